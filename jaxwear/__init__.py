@@ -1,0 +1,31 @@
+"""jaxwear: a differentiable wear model for revolute clearance joints.
+
+Importing jaxwear switches JAX to float64 (`jax_enable_x64`). This is deliberate and the
+only global setting the package touches: wear depths are micrometres on 50 µm clearances
+accumulated over 10⁴-10⁵ revolutions, which float32 cannot resolve.
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from ._config import ModelConfig as ModelConfig  # noqa: E402
+from ._contact import ContactSolution as ContactSolution  # noqa: E402
+from ._contact import solve_contact as solve_contact  # noqa: E402
+from ._contact import stiffness_per_area as stiffness_per_area  # noqa: E402
+from ._errors import InputError as InputError  # noqa: E402
+from ._errors import WornThroughError as WornThroughError  # noqa: E402
+from ._load import LoadHistory as LoadHistory  # noqa: E402
+from ._load import load_history as load_history  # noqa: E402
+from ._mechanism import crank_slider_forces as crank_slider_forces  # noqa: E402
+from ._params import Params as Params  # noqa: E402
+from ._params import preset as preset  # noqa: E402
+from ._schedule import Schedule as Schedule  # noqa: E402
+from ._schedule import make_schedule as make_schedule  # noqa: E402
+from ._wear import WearResult as WearResult  # noqa: E402
+from ._wear import simulate as simulate  # noqa: E402
+from ._wear import wear_loop as wear_loop  # noqa: E402
+from .effects import Effect as Effect  # noqa: E402
+from .effects import register_effect as register_effect  # noqa: E402
+
+__version__ = "0.1.0"

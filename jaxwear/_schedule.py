@@ -1,0 +1,109 @@
+"""Wear-update schedule: how many cycles each update of the wear loop amplifies (eq 23).
+
+Built on the host from integers (so shapes are static): blocks of M cycles, a partial block
+where a segment's cycle count is not divisible by M, and updates that end exactly at every
+requested snapshot and at every change of duty-cycle regime.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._custom_types import Array, Float, Int
+from ._errors import InputError
+
+
+class Schedule(eqx.Module):
+    """Per-update arrays, shape (updates,).
+
+    - `cycles`: the amplification M of each update (0 for padding).
+    - `regime`: index into the load history's regimes.
+    - `snapshot`: index of the snapshot taken after the update (n_snapshots = none).
+    - `cycle_end`: cumulative cycle count after the update.
+    """
+
+    cycles: Float[Array, " updates"]
+    regime: Int[Array, " updates"]
+    snapshot: Int[Array, " updates"]
+    cycle_end: Float[Array, " updates"]
+    n_snapshots: int = eqx.field(static=True)
+
+    @property
+    def updates(self) -> int:
+        return self.cycles.shape[0]
+
+
+def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> Schedule:
+    """Schedule for consecutive `segments` [(regime, cycles)], snapshots at cumulative
+    cycle counts `snapshots` (each ≤ total), at most `M` cycles per update.
+    """
+    if not (M > 0):
+        raise InputError(f"revolutions_per_update must be > 0, got {M}")
+    total = sum(c for _, c in segments)
+    snaps = sorted(float(s) for s in snapshots)
+    for s in snaps:
+        if s <= 0 or s > total * (1 + 1e-12):
+            raise InputError(f"snapshot at {s:g} cycles is outside (0, {total:g}]")
+    cuts = sorted(set(snaps))
+    cyc, reg, snap, end = [], [], [], []
+    pos = 0.0
+    for regime, n in segments:
+        seg_end = pos + n
+        stops = [c for c in cuts if pos < c < seg_end - 1e-9] + [seg_end]
+        for stop in stops:
+            remaining = stop - pos
+            nfull = math.floor(remaining / M + 1e-9)
+            for _ in range(nfull):
+                pos += M
+                cyc.append(M), reg.append(regime), snap.append(-1), end.append(pos)
+            rest = stop - pos
+            if rest > 1e-9:
+                pos = stop
+                cyc.append(rest), reg.append(regime), snap.append(-1), end.append(pos)
+            pos = stop
+    end_arr = np.array(end)
+    snap_idx = np.full(len(cyc), len(snaps), dtype=np.int32)
+    for i, s in enumerate(snaps):
+        j = int(np.argmin(np.abs(end_arr - s)))
+        snap_idx[j] = i
+    n = len(cyc)
+    if pad_to is not None and pad_to > n:
+        extra = pad_to - n
+        cyc += [0.0] * extra
+        reg += [0] * extra
+        snap_idx = np.concatenate([snap_idx, np.full(extra, len(snaps), np.int32)])
+        end_arr = np.concatenate([end_arr, np.full(extra, end_arr[-1] if n else 0.0)])
+    return Schedule(cycles=jnp.asarray(cyc, jnp.float64), regime=jnp.asarray(reg, jnp.int32),
+                    snapshot=jnp.asarray(snap_idx), cycle_end=jnp.asarray(end_arr, jnp.float64),
+                    n_snapshots=len(snaps))
+
+
+def crank_segments(revolutions: float):
+    return [(0, float(revolutions))]
+
+
+def duty_segments(blocks, hours: float, period_s: float):
+    """Repeat the duty-cycle blocks [(amplitude, duration_h)] up to `hours`; cycles per
+    block = duration / swing period. Returns segments and the hours→cycles map."""
+    segs = []
+    t = 0.0
+    cycles_per_h = 3600.0 / period_s
+    while t < hours - 1e-12:
+        for i, b in enumerate(blocks):
+            d = min(b.duration_h, hours - t)
+            if d <= 1e-12:
+                break
+            segs.append((i, d * cycles_per_h))
+            t += d
+    return segs, cycles_per_h
+
+
+def bucket(n: int) -> int:
+    """Round an update count up so that similar runs share one compiled loop."""
+    if n <= 8:
+        return 8
+    return int(2 ** math.ceil(math.log2(n))) if n < 64 else int(math.ceil(n / 64) * 64)
