@@ -111,19 +111,28 @@ def contact_unsymmetric(normals, gap, k, area, w_vec, tol=1e-10):
         d = np.maximum(normals @ e - gap, 0.0)
         return 0.5 * np.sum(ka * d * d) - w_vec @ e
 
-    for _ in range(100):
+    def gradient(e):
         d = normals @ e - gap
         act = d > 0
         kn = ka[act, None] * normals[act]
-        grad = kn.T @ d[act] - w_vec
+        return kn.T @ d[act] - w_vec, kn.T @ normals[act]
+
+    grad, hess = gradient(e)
+    for _ in range(100):
         if math.hypot(grad[0], grad[1]) < tol * w_mag:
             break
-        hess = kn.T @ normals[act] + 1e-12 * np.sum(ka) * np.eye(2)  # tiny shift: rank-1 case
-        step = -np.linalg.solve(hess, grad)
+        # Tiny shift relative to the active stiffness: one active node gives a rank-1 Hessian.
+        step = -np.linalg.solve(hess + 1e-12 * np.trace(hess) * np.eye(2), grad)
         pi0, t = potential(e), 1.0
-        while potential(e + t * step) > pi0 + 1e-4 * t * (grad @ step) and t > 1e-8:
+        while t > 1e-10:
+            new_grad, new_hess = gradient(e + t * step)
+            # Armijo on Π; near the root Π is flat to round-off, so a step that lands within
+            # tolerance is accepted as it stands.
+            if (potential(e + t * step) <= pi0 + 1e-4 * t * (grad @ step)
+                    or math.hypot(new_grad[0], new_grad[1]) < tol * w_mag):
+                break
             t *= 0.5
-        e = e + t * step
+        e, grad, hess = e + t * step, new_grad, new_hess
     else:
         raise RuntimeError("unsymmetric contact: Newton did not converge")
     return k * np.maximum(normals @ e - gap, 0.0)  # eq 14

@@ -177,7 +177,7 @@ def _newton_2d(e0, nx, ny, mx, my, g, kA, W, wnorm, iters, tol, potential):
 
 def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k: NodeArray,
                   area, *, contact: str = "unsymmetric", friction=None,
-                  iterations: int = 40, tol: float = 1e-12) -> ContactSolution:
+                  iterations: int = 40, tol: float = 1e-12, start=None) -> ContactSolution:
     """Contact pressure for every step of a cycle on a frozen bore profile (DESIGN §3).
 
     **Arguments:**
@@ -186,6 +186,8 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
     - `area`: A_j [m²] (scalar). `contact`: `"unsymmetric"` or `"symmetric"`.
     - `friction`: None, or μ·s per step (steps,): Coulomb friction adds μ s t_j to each
       node's force direction (DESIGN §5).
+    - `start`: optional warm start for the offsets (steps, 2) [m], e.g. the previous wear
+      update's solution; by default the exact 1-D solution along the load.
 
     **Returns:** a `ContactSolution`; `residual` is the relative force residual, which the
     caller checks (never assumed).
@@ -226,8 +228,11 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
 
     g = (clearance + h)[None, :]
     kA = (k * area)[None, :]
-    s0 = _newton_1d(sg(load), sg(cosj), sg(weight), sg(g), sg(kA), iterations)
-    e0 = jnp.stack([s0 * sg(ux[:, 0]), s0 * sg(uy[:, 0])], axis=1)
+    if start is None:
+        s0 = _newton_1d(sg(load), sg(cosj), sg(weight), sg(g), sg(kA), iterations)
+        e0 = jnp.stack([s0 * sg(ux[:, 0]), s0 * sg(uy[:, 0])], axis=1)
+    else:
+        e0 = start
     e_star, its = _newton_2d(sg(e0), nx, ny, sg(mx), sg(my), sg(g), sg(kA), sg(W), sg(load),
                              iterations, tol, friction is None)
     e_star = sg(e_star)

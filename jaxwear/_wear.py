@@ -53,7 +53,8 @@ def node_area(p: Params, nodes: int) -> Scalar:
     return p.bore_radius * (2 * jnp.pi / nodes) * p.width
 
 
-def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding):
+def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
+                    start=None):
     """Wear of one cycle on the frozen profile `h`, with its contact solution.
 
     Returns (Δh per cycle [m] (nodes,), Σ_i (Σ_j p_ij A_j) dS_i [N·m], contact solution).
@@ -69,7 +70,7 @@ def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, s
         if mu is not None:
             friction = mu if friction is None else friction + mu
     sol = solve_contact(load, angle, h, p.clearance, k, area, contact=cfg.contact,
-                        friction=friction, iterations=cfg.newton_iterations)
+                        friction=friction, iterations=cfg.newton_iterations, start=start)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
     if effects:
         ctx = RateContext(sol.pressure, slide, dt, sliding)
@@ -90,10 +91,22 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
     per_cycle_slide = jnp.sum(hist.slide, axis=1)  # (regimes,)
     h0 = jnp.zeros(n) if h0 is None else h0
 
+    # Warm starts: each regime's offsets from its previous update (the profile moves little
+    # per update), first from a cold solve on the initial profile.
+    if cfg.contact == "unsymmetric":
+        starts0 = jnp.stack([lax.stop_gradient(
+            cycle_increment(p, cfg, hist, r, h0, jnp.zeros(()))[2].offset)
+            for r in range(hist.load.shape[0])])
+    else:
+        starts0 = jnp.zeros((hist.load.shape[0], cfg.steps_per_rev, 2))
+
     def body(carry, x):
-        h, S, snaps, vol, res, its, worn = carry
+        h, S, snaps, vol, res, its, worn, starts = carry
         M, regime, snap, end = x
-        dh, work, sol = cycle_increment(p, cfg, hist, regime, h, S)
+        warm = starts[regime] if cfg.contact == "unsymmetric" else None
+        dh, work, sol = cycle_increment(p, cfg, hist, regime, h, S, warm)
+        if cfg.contact == "unsymmetric":
+            starts = starts.at[regime].set(lax.stop_gradient(sol.offset))
         s_cyc = per_cycle_slide[regime]
         factor = jnp.ones(())
         for eff in effects:
@@ -107,7 +120,7 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         its = jnp.maximum(its, sol.iterations)
         hit = (M > 0) & jnp.any(h_new >= p.layer_thickness) & (worn < 0)
         worn = jnp.where(hit, end, worn)
-        return (h_new, S_new, snaps, vol, res, its, worn), None
+        return (h_new, S_new, snaps, vol, res, its, worn, starts), None
 
     U = schedule.updates
     inner = max(1, int(math.ceil(math.sqrt(U))))
@@ -125,8 +138,8 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         return lax.scan(jax.checkpoint(body), carry, xs_block)
 
     carry0 = (h0, jnp.zeros(()), jnp.zeros((schedule.n_snapshots, n)), jnp.zeros(()),
-              jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0))
-    (h, S, snaps, vol, res, its, worn), _ = lax.scan(block, carry0, xs)
+              jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0)
+    (h, S, snaps, vol, res, its, worn, _), _ = lax.scan(block, carry0, xs)
     return WearResult(depth=h, snapshots=snaps, sliding_distance=S,
                       worn_volume=jnp.sum(h) * area, archard_volume=vol, max_residual=res,
                       max_iterations=its, worn_through_cycle=worn, history=hist)

@@ -1,0 +1,153 @@
+"""Files and figures written by the CLI: CSV tables, JSON summaries, PNG plots.
+
+Outputs go under the user's `--out` folder and never replace an input file.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+
+class OutputDir:
+    """An output folder that refuses to overwrite the study's input files."""
+
+    def __init__(self, root, inputs=()):
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._inputs = {Path(p).resolve() for p in inputs}
+
+    def path(self, name: str) -> Path:
+        p = self.root / name
+        if p.resolve() in self._inputs:
+            from ._errors import InputError
+
+            raise InputError(f"{p}: refusing to overwrite an input file; choose another --out")
+        return p
+
+    def write_csv(self, name: str, header: list[str], rows) -> Path:
+        p = self.path(name)
+        with p.open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            for r in rows:
+                w.writerow([_fmt(x) for x in r])
+        return p
+
+    def write_json(self, name_or_path, obj) -> Path:
+        p = Path(name_or_path)
+        p = self.path(name_or_path) if not p.is_absolute() and p.parent == Path(".") else p
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(json.dumps(obj, indent=2, default=_json_default))
+        return p
+
+
+def _fmt(x):
+    if isinstance(x, (float, np.floating)):
+        return f"{float(x):.10g}"
+    return x
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if hasattr(o, "item"):
+        return o.item()
+    raise TypeError(type(o))
+
+
+def json_float(x):
+    """JSON has no NaN/inf: map them to None."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as pyplot
+
+    return pyplot
+
+
+def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None):
+    """Final (and snapshot) wear profiles vs bushing angle, with measured points if any."""
+    pl = plt()
+    fig, ax = pl.subplots(figsize=(7, 3.6))
+    if snapshots:
+        for label, d in snapshots:
+            ax.plot(angle_deg, d, lw=0.8, alpha=0.6, label=label)
+    ax.plot(angle_deg, depth_um, "k-", lw=1.6, label="model")
+    if measured is not None:
+        ax.plot(measured[0], measured[1], "o", ms=3, color="tab:red", label="measured")
+    ax.set_xlabel("bushing angle θ [deg] (from B→D, counter-clockwise)")
+    ax.set_ylabel("wear depth [µm]")
+    ax.set_xlim(0, 360)
+    ax.set_xticks(range(0, 361, 45))
+    ax.set_title(f"{name}: wear profile")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pl.close(fig)
+
+
+def plot_load(path, name, fx, fy, angle_rad):
+    """Joint load over one cycle (paper Fig. 7): components, magnitude and bushing angle."""
+    pl = plt()
+    steps = np.arange(len(fx))
+    fig, (a1, a2) = pl.subplots(2, 1, figsize=(7, 5), sharex=True)
+    a1.plot(steps, fx, label="F_Cx")
+    a1.plot(steps, fy, label="F_Cy")
+    a1.plot(steps, np.hypot(fx, fy), "k", label="|F_C|")
+    a1.set_ylabel("joint force [N]")
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3)
+    a1.set_title(f"{name}: joint load over one cycle")
+    a2.plot(steps, np.degrees(angle_rad) % 360, ".", ms=2)
+    a2.set_ylabel("load angle θ_W [deg]")
+    a2.set_xlabel("step")
+    a2.set_ylim(0, 360)
+    a2.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pl.close(fig)
+
+
+def plot_pressure_map(path, title, pressure_pa):
+    """Pressure over (step, bushing angle) of one cycle (paper Figs 8-9)."""
+    pl = plt()
+    steps, nodes = pressure_pa.shape
+    fig, ax = pl.subplots(figsize=(7, 4))
+    im = ax.imshow(pressure_pa / 1e6, aspect="auto", origin="lower", cmap="viridis",
+                   extent=[0, 360, 0, steps])
+    ax.set_xlabel("bushing angle θ [deg]")
+    ax.set_ylabel("step of the cycle")
+    ax.set_title(title)
+    fig.colorbar(im, ax=ax, label="contact pressure [MPa]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pl.close(fig)
+
+
+def plot_history(path, name, hours, depth_mm, measured=None):
+    pl = plt()
+    fig, ax = pl.subplots(figsize=(6, 3.6))
+    ax.plot(hours, depth_mm, "k-o", ms=3, label="model")
+    if measured is not None:
+        ax.plot(measured[0], measured[1], "s", color="tab:red", label="measured")
+    ax.set_xlabel("time [h]")
+    ax.set_ylabel("maximum wear depth [mm]")
+    ax.set_title(f"{name}: depth vs time")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pl.close(fig)

@@ -1,0 +1,101 @@
+"""Running a study's experiments forward (the `simulate` verb's engine)."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from ._contact import solve_contact, stiffness_per_area
+from ._study import Experiment, Study
+from ._wear import WearResult, check_result, node_area, simulate
+
+
+def progress(msg: str):
+    print(msg, file=sys.stderr, flush=True)
+
+
+def run_experiment(study: Study, exp: Experiment, *, M=None, check=True) -> WearResult:
+    """Simulate one experiment with snapshots at its measured revolution counts / hours."""
+    p = study.params(exp)
+    M = study.revolutions_per_update if M is None else M
+    res = simulate(p, study.config, revolutions=exp.revolutions, hours=exp.hours,
+                   snapshots=exp.snapshot_points, M=M, check=False)
+    if check:
+        check_result(res, study.config, f"experiment {exp.name!r}")
+    return res
+
+
+def last_cycle_pressure(study: Study, exp: Experiment, res: WearResult, regime: int = 0):
+    """Pressure map (steps, nodes) [Pa] of the last cycle, on the final profile."""
+    p = study.params(exp)
+    h = res.depth
+    hist = res.history
+    k = stiffness_per_area(h, p, study.config.double_layer)
+    sol = solve_contact(hist.load[regime], hist.angle[regime], h, p.clearance, k,
+                        node_area(p, study.config.nodes), contact=study.config.contact)
+    return np.asarray(sol.pressure)
+
+
+def simulate_study(study: Study, out=None, plots=True) -> dict:
+    """Run every experiment; write profiles, snapshots, plots and a summary under `out`."""
+    from . import _report as rep
+
+    n = study.config.nodes
+    angles = np.arange(n) * 360.0 / n
+    rows, snap_rows, summary = [], [], {}
+    osc = study.config.driver == "oscillating"
+    for i, exp in enumerate(study.experiments, start=1):
+        t0 = time.perf_counter()
+        what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
+        progress(f"[{i}/{len(study.experiments)}] {exp.name}: {what} ...")
+        res = run_experiment(study, exp)
+        depth_um = np.asarray(res.depth) * 1e6
+        dt = time.perf_counter() - t0
+        rows += [(exp.name, a, d) for a, d in zip(angles, depth_um)]
+        snaps = exp.snapshot_points
+        snap_um = np.asarray(res.snapshots) * 1e6
+        for s, prof in zip(snaps, snap_um):
+            snap_rows += [(exp.name, s, a, d) for a, d in zip(angles, prof)]
+        peak = int(np.argmax(depth_um))
+        summary[exp.name] = {
+            "peak_depth_um": float(depth_um[peak]), "peak_angle_deg": float(angles[peak]),
+            "worn_volume_mm3": float(res.worn_volume) * 1e9,
+            "sliding_distance_m": float(res.sliding_distance),
+            "max_contact_residual": float(res.max_residual),
+            "scla_last_pass_gamma_change_deg": float(np.degrees(np.max(
+                np.asarray(res.history.gamma_change)))),
+            "wall_time_s": dt,
+        }
+        progress(f"    peak {depth_um[peak]:.3f} µm at {angles[peak]:.0f}°, "
+                 f"volume {float(res.worn_volume) * 1e9:.4f} mm³ ({dt:.2f} s)")
+        if out is not None and plots:
+            measured = None
+            if exp.profile is not None:
+                last = exp.profile.revolutions == np.max(exp.profile.revolutions)
+                measured = (np.degrees(exp.profile.angle[last]), exp.profile.depth[last] * 1e6)
+            unit = "h" if osc else "rev"
+            labels = [(f"{s:g} {unit}", d) for s, d in zip(snaps, snap_um)]
+            rep.plot_profile(out.path(f"profile_{exp.name}.png"), exp.name, angles, depth_um,
+                             measured, labels if len(labels) > 1 else None)
+            hist = res.history
+            rep.plot_load(out.path(f"load_{exp.name}.png"), exp.name, np.asarray(hist.fx[0]),
+                          np.asarray(hist.fy[0]), np.asarray(hist.angle[0]))
+            rep.plot_pressure_map(out.path(f"pressure_{exp.name}.png"),
+                                  f"{exp.name}: pressure, last cycle ({study.config.contact})",
+                                  last_cycle_pressure(study, exp, res))
+            if osc and snaps:
+                meas = None
+                if exp.history is not None:
+                    meas = (exp.history.hours, exp.history.depth * 1e3)
+                rep.plot_history(out.path(f"history_{exp.name}.png"), exp.name, snaps,
+                                 snap_um.max(axis=1) / 1e3, meas)
+    if out is not None:
+        out.write_csv("profiles.csv", ["experiment", "angle_deg", "depth_um"], rows)
+        if snap_rows:
+            col = "hours" if osc else "revolutions"
+            out.write_csv("snapshots.csv", ["experiment", col, "angle_deg", "depth_um"],
+                          snap_rows)
+        out.write_json("summary.json", {"experiments": summary})
+    return summary

@@ -1,0 +1,372 @@
+"""Study files (TOML) and measurement files (CSV): DESIGN §6.
+
+Everything a user can get wrong is checked here, before any computation, and reported as an
+`InputError` naming the file, the key or line, and what was expected.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ._config import DutyBlock, ModelConfig
+from ._errors import InputError
+from ._params import DERIVED_KEYS, PARAMETER_KEYS, PRESETS, Params, preset
+from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Measured wear profile(s): angle [rad], depth [m], revolution count of each row."""
+
+    angle: np.ndarray
+    depth: np.ndarray
+    revolutions: np.ndarray
+    path: str
+
+
+@dataclass(frozen=True)
+class History:
+    """Measured maximum depth vs time: hours [h], depth [m]."""
+
+    hours: np.ndarray
+    depth: np.ndarray
+    path: str
+
+
+@dataclass(frozen=True)
+class Experiment:
+    name: str
+    overrides: dict  # study keys → values in their units (speed_rpm, clearance_mm, ...)
+    revolutions: float | None = None
+    hours: float | None = None
+    profile: Profile | None = None
+    history: History | None = None
+
+    @property
+    def snapshot_points(self) -> list[float]:
+        """Revolutions (crank) or hours (oscillating) at which the data measure the profile."""
+        if self.profile is not None:
+            return sorted(set(float(r) for r in self.profile.revolutions))
+        if self.history is not None:
+            return sorted(set(float(t) for t in self.history.hours))
+        return []
+
+
+@dataclass(frozen=True)
+class Study:
+    path: Path
+    preset: str
+    config: ModelConfig
+    parameters: dict  # model-level overrides (study keys, user units)
+    experiments: tuple[Experiment, ...]
+    revolutions_per_update: float = 100.0
+    clearance_tolerance_um: float = 5.0
+    fit: tuple[str, ...] = ()
+    raw: dict = field(default_factory=dict, repr=False)
+
+    def params(self, exp: Experiment | None = None) -> Params:
+        """SI parameters of one experiment (model parameters, then the experiment's)."""
+        values = dict(self.parameters)
+        if exp is not None:
+            values.update(exp.overrides)
+        return preset(self.preset, **values)
+
+    def with_config(self, **kw) -> Study:
+        from dataclasses import replace
+
+        return replace(self, config=self.config.replace(**kw))
+
+    def with_experiments(self, experiments) -> Study:
+        from dataclasses import replace
+
+        return replace(self, experiments=tuple(experiments))
+
+
+def _fail(path, msg):
+    raise InputError(f"{path}: {msg}")
+
+
+def _number(path, where, value, *, positive=False, integer=False, nonneg=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        _fail(path, f"{where} must be a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        _fail(path, f"{where} must be finite, got {value!r}")
+    if positive and not v > 0:
+        _fail(path, f"{where} must be > 0, got {value!r}")
+    if nonneg and v < 0:
+        _fail(path, f"{where} must be >= 0, got {value!r}")
+    if integer and v != int(v):
+        _fail(path, f"{where} must be a whole number, got {value!r}")
+    return v
+
+
+def _check_keys(path, where, table, allowed):
+    if not isinstance(table, dict):
+        _fail(path, f"[{where}] must be a table")
+    for k in table:
+        if k not in allowed:
+            _fail(path, f"unknown key {where + '.' if where else ''}{k!r}; expected one of "
+                        f"{sorted(allowed)}")
+
+
+def _read_csv(path: Path, columns: list[str], optional: list[str] = ()):
+    if not path.exists():
+        raise InputError(f"{path}: data file not found")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read data file ({e})") from None
+    rows = list(csv.reader(line for line in text.splitlines() if line.strip()))
+    if not rows:
+        raise InputError(f"{path}: empty file; expected a header {','.join(columns)}")
+    header = [h.strip() for h in rows[0]]
+    if header[:len(columns)] != columns or header[len(columns):] not in (
+            [], list(optional)[:len(header) - len(columns)]):
+        raise InputError(f"{path}: line 1: columns {header}; expected "
+                         f"{','.join(columns)}" + (f"[,{','.join(optional)}]" if optional else ""))
+    if len(rows) == 1:
+        raise InputError(f"{path}: no data rows after the header")
+    data = []
+    for i, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise InputError(f"{path}: line {i}: {len(row)} values, expected {len(header)}")
+        try:
+            vals = [float(x) for x in row]
+        except ValueError:
+            raise InputError(f"{path}: line {i}: not a number in {row}") from None
+        for name, v in zip(header, vals):
+            if not math.isfinite(v):
+                raise InputError(f"{path}: line {i}: {name} is {v} (NaN/inf are not allowed; "
+                                 f"leave the row out instead)")
+        data.append(vals)
+    return header, np.array(data)
+
+
+def read_profile(path: Path) -> Profile:
+    """`angle_deg,depth_um[,revolutions]` (DESIGN §6)."""
+    header, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"])
+    for i, (ang, dep) in enumerate(a[:, :2], start=2):
+        if not (0.0 <= ang < 360.0):
+            raise InputError(f"{path}: line {i}: angle_deg {ang:g} outside [0, 360)")
+        if dep < 0:
+            raise InputError(f"{path}: line {i}: depth_um {dep:g} is negative (depth is wear, "
+                             f"positive into the layer)")
+    revs = a[:, 2] if a.shape[1] > 2 else np.full(len(a), np.nan)
+    if a.shape[1] > 2:
+        for i, r in enumerate(revs, start=2):
+            if not r > 0:
+                raise InputError(f"{path}: line {i}: revolutions {r:g} must be > 0")
+    return Profile(np.deg2rad(a[:, 0]), a[:, 1] * 1e-6, revs, str(path))
+
+
+def read_history(path: Path) -> History:
+    """`hours,depth_mm` (maximum depth vs time, DESIGN §6)."""
+    _, a = _read_csv(path, ["hours", "depth_mm"])
+    for i, (t, d) in enumerate(a, start=2):
+        if not t > 0:
+            raise InputError(f"{path}: line {i}: hours {t:g} must be > 0")
+        if d < 0:
+            raise InputError(f"{path}: line {i}: depth_mm {d:g} is negative")
+    return History(a[:, 0], a[:, 1] * 1e-3, str(path))
+
+
+_MODEL_KEYS = {"preset", "contact", "effects", "parameters", "algorithm", "scla_passes",
+               "gamma0_deg", "bushing", "double_layer", "duty_cycle"}
+_NUMERIC_KEYS = {"nodes", "steps_per_rev", "revolutions_per_update"}
+_FIT_KEYS = {"clearance_tolerance_um", "parameters"}
+_EXP_FIXED = {"name", "revolutions", "hours", "profile", "history"}
+
+
+def _validate_params(path, where, values: dict) -> dict:
+    allowed = set(PARAMETER_KEYS) | set(DERIVED_KEYS) | set(effect_parameter_specs())
+    _check_keys(path, where, values, allowed)
+    out = {}
+    for k, v in values.items():
+        nonneg = k in ("spring_N_per_m", "backing_thickness_mm")
+        positive = (k in PARAMETER_KEYS and PARAMETER_KEYS[k].positive and not nonneg
+                    and k not in ("speed_rpm",))
+        out[k] = _number(path, f"{where}.{k}", v, positive=positive, nonneg=nonneg)
+    return out
+
+
+def _check_geometry(path, where, params: Params):
+    L1, L2 = float(params.crank_length), float(params.coupler_length)
+    if not L1 < L2:
+        _fail(path, f"{where}: crank_length_mm ({L1 * 1e3:g}) must be < coupler_length_mm "
+                    f"({L2 * 1e3:g}) for the crank to turn")
+    c, rb = float(params.clearance), float(params.bore_radius)
+    if not c > 0:
+        _fail(path, f"{where}: clearance_mm must be > 0, got {c * 1e3:g}")
+    if not c < rb:
+        _fail(path, f"{where}: pin diameter must be < bore diameter (clearance_mm {c * 1e3:g} "
+                    f"≥ bore radius {rb * 1e3:g} mm)")
+    if not float(params.layer_poisson) < 0.5:
+        _fail(path, f"{where}: layer_poisson_ratio must be < 0.5")
+
+
+def load_study(path) -> Study:
+    """Read and validate a study file (DESIGN §6). Raises `InputError` on bad input."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: study file not found")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{path}: TOML syntax error: {e}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read ({e})") from None
+    _check_keys(path, "", raw, {"model", "numerics", "experiment", "fit"})
+    model = raw.get("model", {})
+    _check_keys(path, "model", model, _MODEL_KEYS)
+    name = model.get("preset", "rig")
+    if name not in PRESETS:
+        _fail(path, f"model.preset must be one of {sorted(PRESETS)}, got {name!r}")
+    cfg_kw: dict = {}
+    if name == "boom":
+        cfg_kw.update(driver="oscillating", double_layer=True)
+    for key, options in (("contact", ("unsymmetric", "symmetric")),
+                         ("algorithm", ("scla", "ideal", "li")),
+                         ("bushing", ("coupler", "slider"))):
+        if key in model:
+            if model[key] not in options:
+                _fail(path, f"model.{key} must be one of {list(options)}, got {model[key]!r}")
+            cfg_kw[key] = model[key]
+    if "double_layer" in model:
+        if not isinstance(model["double_layer"], bool):
+            _fail(path, "model.double_layer must be true or false")
+        cfg_kw["double_layer"] = model["double_layer"]
+    if "scla_passes" in model:
+        cfg_kw["scla_passes"] = int(_number(path, "model.scla_passes", model["scla_passes"],
+                                            positive=True, integer=True))
+    if "gamma0_deg" in model:
+        cfg_kw["gamma0_rad"] = math.radians(_number(path, "model.gamma0_deg",
+                                                    model["gamma0_deg"]))
+    effects = model.get("effects", [])
+    if not isinstance(effects, list) or not all(isinstance(e, str) for e in effects):
+        _fail(path, "model.effects must be a list of effect names")
+    known = registered_effects()
+    for e in effects:
+        if e not in known and e not in STRUCTURAL:
+            _fail(path, f"model.effects: unknown effect {e!r}; expected one of "
+                        f"{sorted(known) + list(STRUCTURAL)}")
+    if "unsymmetric" in effects:
+        cfg_kw["contact"] = "unsymmetric"
+    if "double_layer" in effects:
+        cfg_kw["double_layer"] = True
+    cfg_kw["effects"] = tuple(e for e in effects if e in known)
+    if "duty_cycle" in model:
+        blocks = model["duty_cycle"]
+        if not isinstance(blocks, list) or not blocks:
+            _fail(path, "model.duty_cycle must be a non-empty array of tables "
+                        "[[model.duty_cycle]] with amplitude_deg and duration_h")
+        parsed = []
+        for i, b in enumerate(blocks):
+            where = f"model.duty_cycle[{i}]"
+            _check_keys(path, where, b, {"amplitude_deg", "duration_h"})
+            if set(b) != {"amplitude_deg", "duration_h"}:
+                _fail(path, f"{where} needs amplitude_deg and duration_h")
+            parsed.append(DutyBlock(_number(path, f"{where}.amplitude_deg", b["amplitude_deg"],
+                                            positive=True),
+                                    _number(path, f"{where}.duration_h", b["duration_h"],
+                                            positive=True)))
+        cfg_kw["duty_cycle"] = tuple(parsed)
+    params = _validate_params(path, "model.parameters", model.get("parameters", {}))
+
+    num = raw.get("numerics", {})
+    _check_keys(path, "numerics", num, _NUMERIC_KEYS)
+    if "nodes" in num:
+        cfg_kw["nodes"] = int(_number(path, "numerics.nodes", num["nodes"], positive=True,
+                                      integer=True))
+    if "steps_per_rev" in num:
+        cfg_kw["steps_per_rev"] = int(_number(path, "numerics.steps_per_rev",
+                                              num["steps_per_rev"], positive=True, integer=True))
+    M = _number(path, "numerics.revolutions_per_update", num.get("revolutions_per_update", 100),
+                positive=True)
+    try:
+        config = ModelConfig(**cfg_kw)
+    except InputError as e:
+        _fail(path, str(e))
+
+    fit = raw.get("fit", {})
+    _check_keys(path, "fit", fit, _FIT_KEYS)
+    tol = fit.get("clearance_tolerance_um", 5.0)
+    if isinstance(tol, str) and tol.strip().lower() in ("inf", "infinity"):
+        tol = math.inf
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:
+        _fail(path, f"fit.clearance_tolerance_um must be a number >= 0 (or inf), got {tol!r}")
+    fit_params = fit.get("parameters", [])
+    if not isinstance(fit_params, list):
+        _fail(path, "fit.parameters must be a list of names")
+
+    exps_raw = raw.get("experiment", [])
+    if not isinstance(exps_raw, list) or not exps_raw:
+        _fail(path, "no [[experiment]] tables: a study needs at least one experiment")
+    allowed_exp = _EXP_FIXED | set(PARAMETER_KEYS) | set(DERIVED_KEYS) | set(
+        effect_parameter_specs())
+    experiments = []
+    names = set()
+    for i, e in enumerate(exps_raw):
+        where = f"experiment[{i}]"
+        _check_keys(path, where, e, allowed_exp)
+        ename = e.get("name", f"experiment{i + 1}")
+        if not isinstance(ename, str) or not ename or "/" in ename or "," in ename:
+            _fail(path, f"{where}.name must be a non-empty string without '/' or ','")
+        if ename in names:
+            _fail(path, f"{where}.name {ename!r} is used twice")
+        names.add(ename)
+        where = f"experiment {ename!r}"
+        overrides = _validate_params(path, where, {k: v for k, v in e.items()
+                                                   if k not in _EXP_FIXED})
+        if config.driver == "crank_slider" and "speed_rpm" in overrides:
+            if not overrides["speed_rpm"] > 0:
+                _fail(path, f"{where}.speed_rpm must be > 0, got {e['speed_rpm']!r}")
+        profile = history = None
+        if "profile" in e:
+            if not isinstance(e["profile"], str):
+                _fail(path, f"{where}.profile must be a file name")
+            profile = read_profile(path.parent / e["profile"])
+        if "history" in e:
+            if not isinstance(e["history"], str):
+                _fail(path, f"{where}.history must be a file name")
+            history = read_history(path.parent / e["history"])
+        revs = hours = None
+        if config.driver == "crank_slider":
+            if "revolutions" not in e:
+                _fail(path, f"{where}: missing key 'revolutions'")
+            revs = _number(path, f"{where}.revolutions", e["revolutions"], positive=True)
+            if profile is not None:
+                r = profile.revolutions
+                if np.all(np.isnan(r)):
+                    profile = Profile(profile.angle, profile.depth,
+                                      np.full(len(r), revs), profile.path)
+                elif np.max(r) > revs + 1e-9:
+                    _fail(path, f"{where}: profile {e['profile']} has revolutions up to "
+                                f"{np.max(r):g} > experiment revolutions {revs:g}")
+        else:
+            if "hours" in e:
+                hours = _number(path, f"{where}.hours", e["hours"], positive=True)
+            elif history is not None:
+                hours = float(np.max(history.hours))
+            else:
+                _fail(path, f"{where}: an oscillating joint needs 'hours' or a 'history' file")
+            if history is not None and np.max(history.hours) > hours + 1e-9:
+                _fail(path, f"{where}: history goes to {np.max(history.hours):g} h > hours")
+        exp = Experiment(ename, overrides, revs, hours, profile, history)
+        st = Study(path, name, config, params, (exp,), M, float(tol), tuple(fit_params), raw)
+        try:
+            p = st.params(exp)
+        except InputError as err:
+            _fail(path, f"{where}: {err}")
+        _check_geometry(path, where, p)
+        if config.driver == "crank_slider" and not float(p.speed) > 0:
+            _fail(path, f"{where}: speed_rpm must be > 0")
+        experiments.append(exp)
+    return Study(path, name, config, params, tuple(experiments), M, float(tol),
+                 tuple(fit_params), raw)
