@@ -138,7 +138,7 @@ def contact_unsymmetric(normals, gap, k, area, w_vec, tol=1e-10):
     return k * np.maximum(normals @ e - gap, 0.0)  # eq 14
 
 
-def periodic_interp(theta_nodes, values, theta):
+def periodic_interp(values, theta):
     """Linear interpolation on the periodic node grid θ_j = 2πj/N."""
     n = len(values)
     x = (theta % (2 * math.pi)) / (2 * math.pi) * n
@@ -170,15 +170,15 @@ def simulate_rig(speed_rpm=276.0, revolutions=10000, M=100, nodes=360, steps=360
     for block in blocks:
         dh = np.zeros(nodes)
         load_ds = 0.0  # Σ_i (Σ_j p_ij A_j) dS_i over one revolution
+        k_nodes = E_W / (LAYER - h)  # eq 14 with the worn, thinner layer (frozen in a block)
         for i in range(steps):
             if contact == "unsymmetric":
-                k = E_W / (LAYER - h)  # eq 14 with the worn, thinner layer
                 w_vec = w_mag[i] * np.array([math.cos(theta_w[i]), math.sin(theta_w[i])])
-                p = contact_unsymmetric(normals, clearance_m + h, k, area, w_vec)
+                p = contact_unsymmetric(normals, clearance_m + h, k_nodes, area, w_vec)
             elif contact == "symmetric":
                 # Traditional model: a circle through the loaded point of the worn bore.
                 if h_at_load == "interp":
-                    h_w = periodic_interp(theta, h, theta_w[i])
+                    h_w = periodic_interp(h, theta_w[i])
                 else:
                     h_w = h[int(round(theta_w[i] % (2 * math.pi) / (2 * math.pi) * nodes)) % nodes]
                 gap, k = clearance_m + h_w, E_W / (LAYER - h_w)

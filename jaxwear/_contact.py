@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ._custom_types import Float, Array, NodeArray, StepArray, StepNodeArray
+from ._custom_types import Array, Float, NodeArray, StepArray, StepNodeArray
 
 sg = lax.stop_gradient
 
@@ -116,11 +116,12 @@ def _jacobian_2d(d, nx, ny, mx, my, kA):
     return jxx, jxy, jyx, jyy
 
 
-def _solve2(j, r):
+def _solve2(j, r, ridge=0.0):
     jxx, jxy, jyx, jyy = j
-    # A single active node makes J rank one; the tiny ridge keeps the step finite and is
-    # irrelevant once two or more nodes carry load (the usual case).
-    ridge = 1e-12 * (jnp.abs(jxx) + jnp.abs(jyy)) + 1e-300
+    # With fewer than two active nodes J is singular: the ridge keeps the step finite (the
+    # iteration then relies on the step cap and line search). It changes steps, never the
+    # fixed point; the implicit-gradient solve uses a negligible one.
+    ridge = ridge + 1e-12 * (jnp.abs(jxx) + jnp.abs(jyy)) + 1e-300
     jxx, jyy = jxx + ridge, jyy + ridge
     det = jxx * jyy - jxy * jyx
     dx = (jyy * r[:, 0] - jxy * r[:, 1]) / det
@@ -134,14 +135,24 @@ def _merit(e, r, d, kA, W, potential):
     return 0.5 * jnp.sum(r * r, 1)
 
 
-def _newton_2d(e0, nx, ny, mx, my, g, kA, W, wnorm, iters, tol, potential):
+def _newton_2d(e0, nx, ny, mx, my, g, kA, W, wnorm, iters, tol, potential, cap):
     """Damped semi-smooth Newton for R(e) = 0, vectorised over steps.
 
     Each loop iteration evaluates one trial point per step: accepted if the merit falls
-    (Armijo), otherwise the step is halved. Steps that have converged are frozen.
+    (Armijo), otherwise the step is halved. Steps that have converged are frozen. Step
+    lengths are capped at `cap` [m] (a fraction of the clearance): the offset never needs
+    to move further than that in one go, and a singular J cannot throw the iterate away.
     """
+    ridge = 1e-9 * jnp.max(kA)
+
+    def newton_step(d, r):
+        st = -_solve2(_jacobian_2d(d, nx, ny, mx, my, kA), r, ridge)
+        st = jnp.where(jnp.isfinite(st), st, 0.0)
+        norm = jnp.linalg.norm(st, axis=1, keepdims=True)
+        return st * jnp.minimum(1.0, cap / jnp.maximum(norm, 1e-300))
+
     r0, d0 = _residual_2d(e0, nx, ny, mx, my, g, kA, W)
-    step0 = -_solve2(_jacobian_2d(d0, nx, ny, mx, my, kA), r0)
+    step0 = newton_step(d0, r0)
     m0 = _merit(e0, r0, d0, kA, W, potential)
     scale = jnp.maximum(wnorm, 1e-300)
 
@@ -162,7 +173,7 @@ def _newton_2d(e0, nx, ny, mx, my, g, kA, W, wnorm, iters, tol, potential):
         # Round-off can hide the decrease of a near-converged step; accept a smaller residual.
         better = jnp.linalg.norm(rt, axis=1) < 0.5 * jnp.linalg.norm(r, axis=1)
         accept = active & (decrease | better)
-        new_step = -_solve2(_jacobian_2d(dt, nx, ny, mx, my, kA), rt)
+        new_step = newton_step(dt, rt)
         e = jnp.where(accept[:, None], trial, e)
         r = jnp.where(accept[:, None], rt, r)
         m = jnp.where(accept, mt, m)
@@ -228,13 +239,31 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
 
     g = (clearance + h)[None, :]
     kA = (k * area)[None, :]
-    if start is None:
+    cap = 0.25 * sg(clearance) + sg(jnp.max(h))
+    newton = lambda e_init, its: _newton_2d(
+        e_init, nx, ny, sg(mx), sg(my), sg(g), sg(kA), sg(W), sg(load), its, tol,
+        friction is None, cap)
+
+    def cold():
         s0 = _newton_1d(sg(load), sg(cosj), sg(weight), sg(g), sg(kA), iterations)
-        e0 = jnp.stack([s0 * sg(ux[:, 0]), s0 * sg(uy[:, 0])], axis=1)
+        return jnp.stack([s0 * sg(ux[:, 0]), s0 * sg(uy[:, 0])], axis=1)
+
+    if start is None:
+        e_star, its = newton(cold(), iterations)
     else:
-        e0 = start
-    e_star, its = _newton_2d(sg(e0), nx, ny, sg(mx), sg(my), sg(g), sg(kA), sg(W), sg(load),
-                             iterations, tol, friction is None)
+        # Warm start, moved out along the load until it touches the (further worn) bore.
+        e0 = sg(start)
+        gap = jnp.max(e0[:, 0:1] * nx + e0[:, 1:2] * ny - sg(g), axis=1)
+        e0 = e0 - jnp.minimum(gap, 0.0)[:, None] * jnp.concatenate([sg(ux), sg(uy)], 1)
+        e_star, its = newton(e0, min(iterations, 12))
+        r_w, _ = _residual_2d(e_star, nx, ny, sg(mx), sg(my), sg(g), sg(kA), sg(W))
+        bad = jnp.linalg.norm(r_w, axis=1) > tol * jnp.maximum(sg(load), 1e-300)
+        # Rare: the warm start failed somewhere; redo those steps from the cold start.
+        e_star, its = lax.cond(
+            jnp.any(bad),
+            lambda: (lambda ec: (jnp.where(bad[:, None], ec[0], e_star), its + ec[1]))(
+                newton(cold(), iterations)),
+            lambda: (e_star, its))
     e_star = sg(e_star)
     r, d = _residual_2d(e_star, nx, ny, mx, my, g, kA, W)
     jac = jax.tree_util.tree_map(sg, _jacobian_2d(sg(d), nx, ny, sg(mx), sg(my), sg(kA)))

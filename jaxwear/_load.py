@@ -11,7 +11,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ._config import ModelConfig
-from ._custom_types import Float, Array
+from ._custom_types import Array, Float
 from ._mechanism import _safe_atan2, crank_slider_forces
 from ._params import Params
 

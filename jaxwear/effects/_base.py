@@ -34,6 +34,7 @@ class EffectParameter:
     - `to_si`: factor to SI. `default`: value used when fitting starts / when unset.
     - `off`: the value at which the effect vanishes (nesting). `lower`, `upper`: bounds.
     - `log`: fitted in log space (strictly positive parameters that are not nested at 0).
+    - `scale`: typical size of the strength, in the key's unit (conditions the fit).
     """
 
     to_si: float
@@ -43,6 +44,7 @@ class EffectParameter:
     upper: float
     doc: str = ""
     log: bool = False
+    scale: float = 1.0  # typical size of a fitted change (sets the fit's parameter scaling)
 
 
 class RateContext(eqx.Module):

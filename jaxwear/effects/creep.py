@@ -12,8 +12,8 @@ class Creep(Effect):
     """
 
     name = "creep"
-    parameters = {"creep_m_per_Pa_s": EffectParameter(1.0, 0.0, 0.0, 0.0, 1e-11,
-                                                      "C: cold-flow rate [m/(Pa s)]")}
+    parameters = {"creep_m_per_Pa_s": EffectParameter(1.0, 0.0, 0.0, 0.0, 1e-13,
+                                                      "C: cold-flow rate [m/(Pa s)]", scale=1e-16)}
     signature = "depth that scales with time under load, not sliding (slow experiments)"
 
     def local_rate(self, p, rate, ctx):

@@ -15,7 +15,7 @@ class Friction(Effect):
 
     name = "friction"
     parameters = {"friction_coefficient": EffectParameter(1.0, 0.0, 0.0, 0.0, 1.0,
-                                                          "μ: Coulomb coefficient [-]")}
+                                                          "μ: Coulomb coefficient [-]", scale=0.1)}
     signature = "wear zones shifted and skewed in angle against the sliding direction"
 
     def friction(self, p, sense):

@@ -14,7 +14,7 @@ class PressureExponent(Effect):
 
     name = "pressure_exponent"
     parameters = {"pressure_exponent": EffectParameter(1.0, 0.0, 0.0, -0.9, 3.0,
-                                                       "b: extra pressure exponent [-]")}
+                                                       "b: extra pressure exponent [-]", scale=0.1)}
     signature = "profile shape: peak depth vs flank width ratio; load-dependent K_d"
 
     def local_rate(self, p, rate, ctx):

@@ -14,7 +14,7 @@ class SpeedDependence(Effect):
 
     name = "speed_dependence"
     parameters = {"speed_exponent": EffectParameter(1.0, 0.0, 0.0, -3.0, 3.0,
-                                                    "q: exponent of sliding speed [-]")}
+                                                    "q: exponent of sliding speed [-]", scale=0.1)}
     signature = "K_d differs between crank speeds (speed sweep residuals of one sign trend)"
 
     def local_rate(self, p, rate, ctx):
