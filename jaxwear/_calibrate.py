@@ -1,26 +1,41 @@
 """Calibration: least squares of measured minus predicted depth over a whole study (§6-7).
 
-All experiments of a study run as one `vmap`-ed wear loop (schedules padded to a common
-length), so one compilation serves every evaluation of the fit. The fit uses optimistix's
-Levenberg-Marquardt with the exact forward-mode Jacobian through the whole wear loop.
+All experiments of a study run in one compiled function (schedules padded to a common
+length), and that one function returns the residuals, the exact forward-mode Jacobian
+through the whole wear loop (`jax.jacfwd`), and the model's snapshots. Everything the fit
+needs (the robust start, every Levenberg-Marquardt trial, both passes, the standard errors)
+is an evaluation of it, so a problem compiles once. The Levenberg-Marquardt iteration itself
+runs on the host on p × p matrices (p = number of fitted parameters, a handful): an
+`optimistix.least_squares` solve would trace the wear loop a second time inside its own
+compiled while loop, which on CPU cost twice the compile time of the Jacobian for no gain.
 
 Parameterisation: positive parameters (K_d, clearances, S_r) are fitted as log-multipliers
 of their start, nested effect strengths linearly around their "off" value in units of a
 typical scale. The clearance-tolerance prior of DESIGN §6 adds one residual per fitted
-clearance, (c - c_nominal)/τ, in units of the noise level (estimated from a first pass).
+clearance, (c - c_nominal)/τ, in units of the noise level (estimated from a first pass);
+τ = inf gives zero rows (free clearances), τ = 0 removes the clearances from the fit.
+
+Robust start: depth is nearly proportional to K_d, so before the iteration K_d is divided
+by 10 until the model no longer wears through the layer, then rescaled so that the model's
+depth matches the data in least squares. This brings a start 100x off to within a few
+percent, where Levenberg-Marquardt converges in a few steps.
+
+Outcome semantics: a fit that stops without meeting its convergence test still returns its
+result, with `converged = False` and a `message` saying why; only a start that cannot be
+evaluated at all (worn through whatever K_d, or non-finite) raises `FitError`.
 """
 
 from __future__ import annotations
 
 import math
 import sys
+import time
 from dataclasses import dataclass
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ._config import ModelConfig
 from ._errors import InputError
@@ -29,6 +44,10 @@ from ._schedule import Schedule
 from ._study import Study
 from ._wear import build_schedule, wear_loop
 from .effects import effect_parameter_specs, get_effect
+
+
+class FitError(RuntimeError):
+    """The fit could not start: the model cannot be evaluated at any usable start."""
 
 
 @dataclass(frozen=True)
@@ -41,6 +60,21 @@ class FitParameter:
     experiment: int | None
     log: bool
     scale: float  # user units per unit of u (linear parameters)
+
+
+_UNITS = (("_m_per_Pa_s", "m/(Pa·s)"), ("_N_per_m", "N/m"), ("_m_per_s2", "m/s²"),
+          ("_per_Pa", "1/Pa"), ("_ratio", "-"), ("_GPa", "GPa"), ("_rpm", "r/min"),
+          ("_deg", "deg"), ("_mm", "mm"), ("_um", "µm"), ("_kg", "kg"), ("_N", "N"),
+          ("_s", "s"), ("_m", "m"))
+
+
+def unit_of(name: str) -> str:
+    """Unit named by a study key's suffix (`clearance_mm/EXP` → mm); dimensionless → "-"."""
+    key = name.split("/")[0]
+    for suffix, unit in _UNITS:
+        if key.endswith(suffix):
+            return unit
+    return "-"
 
 
 def parse_fit(study: Study, fit: str | list[str] | None) -> list[str]:
@@ -90,6 +124,7 @@ class Data(eqx.Module):
     w: jax.Array
     is_max: jax.Array  # True: maximum depth (history rows)
     depth_um: jax.Array  # measured [µm]
+    x: jax.Array  # angle [deg] (profiles) or hours (history), for reports only
 
 
 def _stack(trees):
@@ -118,10 +153,11 @@ def _schedules(study: Study, plist: list[Params]) -> Schedule:
 
 def _data(study: Study) -> Data:
     n = study.config.nodes
-    rows = {k: [] for k in ("exp", "snap", "i0", "i1", "w", "is_max", "depth_um")}
+    rows = {k: [] for k in ("exp", "snap", "i0", "i1", "w", "is_max", "depth_um", "x")}
     for ei, e in enumerate(study.experiments):
         points = e.snapshot_points
         if e.profile is not None:
+            # periodic linear interpolation between the two nodes around each measured angle
             x = np.mod(e.profile.angle / (2 * np.pi) * n, n)
             i0 = np.floor(x).astype(int) % n
             for j in range(len(x)):
@@ -130,21 +166,28 @@ def _data(study: Study) -> Data:
                 rows["i0"].append(i0[j]), rows["i1"].append((i0[j] + 1) % n)
                 rows["w"].append(x[j] - np.floor(x[j])), rows["is_max"].append(False)
                 rows["depth_um"].append(e.profile.depth[j] * 1e6)
+                rows["x"].append(float(np.degrees(e.profile.angle[j])))
         if e.history is not None:
             for t, d in zip(e.history.hours, e.history.depth):
                 rows["exp"].append(ei), rows["snap"].append(points.index(float(t)))
                 rows["i0"].append(0), rows["i1"].append(0), rows["w"].append(0.0)
                 rows["is_max"].append(True), rows["depth_um"].append(d * 1e6)
+                rows["x"].append(float(t))
     if not rows["exp"]:
         raise InputError(f"{study.path}: no measured data (profile or history) to fit")
     return Data(exp=jnp.asarray(rows["exp"]), snap=jnp.asarray(rows["snap"]),
                 i0=jnp.asarray(rows["i0"]), i1=jnp.asarray(rows["i1"]),
                 w=jnp.asarray(rows["w"], jnp.float64), is_max=jnp.asarray(rows["is_max"]),
-                depth_um=jnp.asarray(rows["depth_um"], jnp.float64))
+                depth_um=jnp.asarray(rows["depth_um"], jnp.float64),
+                x=jnp.asarray(rows["x"], jnp.float64))
 
 
 class Problem(eqx.Module):
-    """A study's least-squares problem: parameters u ↦ residuals [µm]."""
+    """A study's least-squares problem: parameters u ↦ residuals [µm].
+
+    `tolerance_um` is an array (not a static field), so changing the prior's width reuses
+    the compiled function.
+    """
 
     cfg: ModelConfig = eqx.field(static=True)
     fits: tuple = eqx.field(static=True)
@@ -155,7 +198,17 @@ class Problem(eqx.Module):
     data: Data
     start: jax.Array  # start values of the fitted parameters, user units (p,)
     nominal_clearance_mm: jax.Array  # (experiments,)
-    tolerance_um: float = eqx.field(static=True)
+    tolerance_um: jax.Array  # clearance prior's standard deviation (inf: no prior)
+
+    @property
+    def n_data(self) -> int:
+        return int(self.data.depth_um.shape[0])
+
+    @property
+    def has_prior(self) -> bool:
+        """True when fitted clearances carry a finite-width prior (the fit needs 2 passes)."""
+        return math.isfinite(float(self.tolerance_um)) and any(
+            f.key == "clearance_mm" for f in self.fits)
 
     def values(self, u):
         """Fitted parameters in user units from u (p,)."""
@@ -191,29 +244,33 @@ class Problem(eqx.Module):
         return p.with_values(updates) if updates else p
 
     def snapshots(self, u):
-        """Model snapshots (experiments, snapshots, nodes) [µm] and max contact residual."""
+        """Model snapshots (experiments, snapshots, nodes) [µm] and the batched WearResult."""
         # lax.map, not vmap: on CPU the experiments gain nothing from batching, and mapping
         # keeps the contact solver's data-dependent branches and loop counts per experiment.
         res = jax.lax.map(lambda ps: wear_loop(ps[0], self.cfg, ps[1]),
                           (self.batched_params(u), self.schedule))
         return res.snapshots * 1e6, res
 
-    def predict(self, u):
-        """Model depth at every measured row [µm]."""
-        snaps, _ = self.snapshots(u)
+    def predict_from(self, snaps_um):
+        """Model depth at every measured row [µm] from snapshots (experiments, snaps, nodes)."""
         d = self.data
-        prof = snaps[d.exp, d.snap]  # (rows, nodes)
+        prof = snaps_um[d.exp, d.snap]  # (rows, nodes)
         at = jnp.take_along_axis(prof, d.i0[:, None], 1)[:, 0] * (1 - d.w) + \
             jnp.take_along_axis(prof, d.i1[:, None], 1)[:, 0] * d.w
         return jnp.where(d.is_max, jnp.max(prof, axis=1), at)
+
+    def predict(self, u):
+        """Model depth at every measured row [µm]."""
+        return self.predict_from(self.snapshots(u)[0])
 
     def data_residuals(self, u):
         return self.predict(u) - self.data.depth_um
 
     def prior_residuals(self, u, noise_um):
-        """(c - c_nominal)/τ per fitted clearance, scaled to µm of depth by the noise level."""
-        if not math.isfinite(self.tolerance_um):
-            return jnp.zeros(0)
+        """(c - c_nominal)/τ per fitted clearance, scaled to µm of depth by the noise level.
+
+        τ = inf gives rows of zeros (no prior) with the same shapes as a finite τ.
+        """
         vals = self.values(u)
         out = [(vals[i] - self.nominal_clearance_mm[f.experiment]) * 1e3 / self.tolerance_um
                for i, f in enumerate(self.fits) if f.key == "clearance_mm"]
@@ -232,6 +289,10 @@ def build_problem(study: Study, keys: list[str], start: dict | None = None) -> P
     plist = [study.params(e) for e in study.experiments]
     nominal = [float(p.clearance) * 1e3 for p in plist]
     start = dict(start or {})
+    unknown = sorted(set(start) - {f.name for f in fits})
+    if unknown:
+        raise InputError(f"start values for {unknown}, which are not fitted; fitted: "
+                         f"{[f.name for f in fits]}")
     s0 = []
     specs = effect_parameter_specs()
     for f in fits:
@@ -251,42 +312,180 @@ def build_problem(study: Study, keys: list[str], start: dict | None = None) -> P
                    params=_stack(plist), schedule=_schedules(study, plist), data=_data(study),
                    start=jnp.asarray(s0, jnp.float64),
                    nominal_clearance_mm=jnp.asarray(nominal),
-                   tolerance_um=study.clearance_tolerance_um)
+                   tolerance_um=jnp.asarray(study.clearance_tolerance_um, jnp.float64))
+
+
+class Evaluation(eqx.Module):
+    """One evaluation of a problem at u (numpy arrays after `_evaluate`).
+
+    `residuals` (rows + prior rows,) [µm]; `jacobian` (rows + prior rows, p) w.r.t. u;
+    `predicted` (rows,) [µm]; `snapshots` (experiments, snapshots, nodes) [µm];
+    `max_residual`: largest relative contact residual; `worn`: largest worn-through cycle
+    (-1: none).
+    """
+
+    residuals: jax.Array
+    jacobian: jax.Array
+    predicted: jax.Array
+    snapshots: jax.Array
+    max_residual: jax.Array
+    worn: jax.Array
 
 
 @eqx.filter_jit
-def _residuals(problem: Problem, u, noise_um):
-    return problem.residuals(u, noise_um)
+def _evaluate_jit(problem: Problem, u, noise_um) -> Evaluation:
+    def f(v):
+        snaps, res = problem.snapshots(v)
+        pred = problem.predict_from(snaps)
+        r = jnp.concatenate([pred - problem.data.depth_um, problem.prior_residuals(v, noise_um)])
+        return r, (r, pred, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle))
+
+    # Forward mode: p (a handful) tangents through the wear loop, pushed alongside the primal.
+    J, (r, pred, snaps, mres, worn) = jax.jacfwd(f, has_aux=True)(u)
+    return Evaluation(r, J, pred, snaps, mres, worn)
 
 
-@eqx.filter_jit
-def _jacobian(problem: Problem, u, noise_um):
-    return jax.jacfwd(lambda v: problem.residuals(v, noise_um))(u)
+def evaluate(problem: Problem, u, noise_um: float = 1.0) -> Evaluation:
+    """Residuals, Jacobian and snapshots at u, as numpy arrays (one compiled function)."""
+    ev = _evaluate_jit(problem, jnp.asarray(u, jnp.float64),
+                       jnp.asarray(noise_um, jnp.float64))
+    return jax.tree.map(np.asarray, ev)
 
 
-@eqx.filter_jit
-def _predict(problem: Problem, u):
-    snaps, res = problem.snapshots(u)
-    return problem.predict(u), snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle)
+def _usable(ev: Evaluation) -> bool:
+    return bool(np.all(np.isfinite(ev.residuals)) and np.all(np.isfinite(ev.jacobian))
+                and float(ev.worn) < 0)
 
 
-@eqx.filter_jit
-def _lm(problem: Problem, u0, noise_um, max_steps: int, rtol: float, verbose: bool):
-    def fn(u, args):
-        return problem.residuals(u, noise_um)
+def _log(verbose, msg):
+    if verbose:
+        print(msg, file=sys.stderr, flush=True)
 
-    def show(**kw):
-        if verbose:
-            n = problem.data.depth_um.shape[0]
-            step = kw["num_steps"][1]
-            loss = kw["loss_last_accepted_step"][1]
-            jax.debug.callback(lambda s, lo: print(
-                f"    LM step {int(s):3d}: rms residual {math.sqrt(2 * float(lo) / n):.4f} µm",
-                file=sys.stderr, flush=True), step, loss)
 
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=1e-12, verbose=show)
-    sol = optx.least_squares(fn, solver, u0, max_steps=max_steps, throw=False)
-    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+def robust_start(problem: Problem, u, noise_um: float = 1.0, *, verbose=False):
+    """Bring K_d (if fitted) to the data's scale before Levenberg-Marquardt.
+
+    1. While the model wears through the layer (or is not finite), divide K_d by 10.
+    2. Depth is nearly proportional to K_d: multiply K_d by the least-squares factor
+       a = Σ m·d / Σ d·d between measured m and predicted d (repeated while |ln a| > 2 %,
+       at most 3 times, since wear slightly changes the contact).
+
+    Returns (u, evaluation at u). Raises `FitError` if no K_d down to 1e-8 of the start
+    gives a usable model.
+    """
+    u = np.array(u, dtype=np.float64)
+    ev = evaluate(problem, u, noise_um)
+    k = next((i for i, f in enumerate(problem.fits) if f.key == "K_d_per_Pa"), None)
+    tries = 0
+    while not _usable(ev):
+        if k is None or tries >= 8:
+            why = ("the layer wears through" if float(ev.worn) >= 0
+                   else "the model is not finite")
+            raise FitError(f"cannot start the fit: {why} at the start values "
+                           f"{dict(zip(problem.names, np.asarray(problem.values(u))))}"
+                           + ("" if k is None else " even with K_d reduced 1e8-fold"))
+        u[k] -= math.log(10.0)
+        tries += 1
+        _log(verbose, f"  start: layer worn through or model not finite; K_d / 10 → "
+                      f"{float(problem.values(u)[k]):.3e}")
+        ev = evaluate(problem, u, noise_um)
+    if k is None:
+        return u, ev
+    meas = np.asarray(problem.data.depth_um)
+    for _ in range(3):
+        d = ev.predicted
+        dd = float(d @ d)
+        if not dd > 0:
+            break
+        a = float(d @ meas) / dd
+        if not (a > 0 and math.isfinite(a)) or abs(math.log(a)) < 0.02:
+            break
+        trial = u.copy()
+        trial[k] += math.log(a)
+        ev_t = evaluate(problem, trial, noise_um)
+        if not _usable(ev_t):
+            break
+        u, ev = trial, ev_t
+        _log(verbose, f"  start: K_d rescaled x{a:.3g} to the data → "
+                      f"{float(problem.values(u)[k]):.3e} 1/Pa")
+    return u, ev
+
+
+@dataclass
+class LMOutcome:
+    u: np.ndarray
+    evaluation: Evaluation
+    converged: bool
+    evaluations: int
+    message: str
+
+
+def levenberg_marquardt(problem: Problem, u0, noise_um: float, *, ev0: Evaluation | None = None,
+                        max_evaluations: int = 60, xtol: float = 1e-8, ftol: float = 1e-10,
+                        gtol: float = 1e-8, verbose: bool = False) -> LMOutcome:
+    """Levenberg-Marquardt with Marquardt's diagonal scaling and Nielsen's damping update.
+
+    Every trial point is one call of the compiled residual/Jacobian function; an accepted
+    trial's Jacobian is the next linearisation. Converged when an accepted step changes u
+    by < xtol (u is a log-multiplier: relative change), the misfit by < ftol relative, or the
+    residual is orthogonal to every Jacobian column to within gtol (MINPACK's tests).
+    Trial points where the model wears through or is not finite are rejected.
+    """
+    u = np.array(u0, dtype=np.float64)
+    ev = evaluate(problem, u, noise_um) if ev0 is None else ev0
+    evals = 0 if ev0 is not None else 1
+    if not _usable(ev):
+        return LMOutcome(u, ev, False, evals, "the model is not usable at the start values "
+                         "(worn through or not finite)")
+    r, J = ev.residuals, ev.jacobian
+    F = 0.5 * float(r @ r)
+    p = J.shape[1]
+    n = problem.n_data
+    if p == 0:
+        return LMOutcome(u, ev, True, evals, "nothing to fit")
+    A, g = J.T @ J, J.T @ r
+    lam, nu = 1e-3, 2.0
+    t0 = time.perf_counter()
+    _log(verbose, f"    LM start: rms residual {math.sqrt(2 * F / max(n, 1)):.4f} µm")
+    while True:
+        col = np.sqrt(np.maximum(np.diag(A), 1e-300))
+        if np.max(np.abs(g) / col) <= gtol * math.sqrt(2 * F + 1e-300):
+            return LMOutcome(u, ev, True, evals, "converged (gradient orthogonal to residuals)")
+        if evals >= max_evaluations:
+            return LMOutcome(u, ev, False, evals, f"did not converge within {max_evaluations} "
+                             f"model evaluations")
+        if lam > 1e16:
+            return LMOutcome(u, ev, False, evals, "stalled: no step reduces the misfit "
+                             "(damping exhausted)")
+        D = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
+        try:
+            step = np.linalg.solve(A + lam * np.diag(D), -g)
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(A + lam * np.diag(D), -g, rcond=None)[0]
+        trial = u + step
+        ev_t = evaluate(problem, trial, noise_um)
+        evals += 1
+        r_t = ev_t.residuals
+        F_t = 0.5 * float(r_t @ r_t) if _usable(ev_t) else math.inf
+        predicted = -(float(step @ g) + 0.5 * float(step @ A @ step))
+        rho = (F - F_t) / predicted if predicted > 0 else -1.0
+        if F_t < F and rho > 0:
+            rel = (F - F_t) / max(F, 1e-300)
+            u, ev, F = trial, ev_t, F_t
+            A, g = ev.jacobian.T @ ev.jacobian, ev.jacobian.T @ ev.residuals
+            lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
+            nu = 2.0
+            _log(verbose, f"    LM {evals:3d}: rms residual {math.sqrt(2 * F / n):.4f} µm, "
+                          f"step {np.max(np.abs(step)):.2e}, λ {lam:.1e} "
+                          f"({time.perf_counter() - t0:.1f} s)")
+            if np.max(np.abs(step)) <= xtol * (1 + np.max(np.abs(u))):
+                return LMOutcome(u, ev, True, evals, "converged (step below tolerance)")
+            if rel <= ftol:
+                return LMOutcome(u, ev, True, evals, "converged (misfit no longer falls)")
+        else:
+            lam *= nu
+            nu *= 2.0
+            _log(verbose, f"    LM {evals:3d}: step rejected, λ → {lam:.1e}")
 
 
 @dataclass
@@ -309,7 +508,7 @@ class FitResult:
     iterations: int
     message: str
     flags: list[str]
-    jacobian: np.ndarray  # of the normalised residuals w.r.t. u (rows incl. prior)
+    jacobian: np.ndarray  # of the residuals [µm] w.r.t. u (rows incl. prior)
     problem: Problem
     snapshots_um: np.ndarray  # (experiments, snapshots, nodes)
     max_contact_residual: float
@@ -317,6 +516,27 @@ class FitResult:
     def parameters_json(self) -> dict:
         return {n: {"value": float(v), "stderr": (float(s) if np.isfinite(s) else None)}
                 for n, v, s in zip(self.names, self.values, self.stderr)}
+
+    def to_json(self) -> dict:
+        """The DESIGN §7 document: `parameters` and `rmse_um`, then diagnostics."""
+        tol = float(self.problem.tolerance_um)
+        return {
+            "parameters": self.parameters_json(),
+            "rmse_um": float(self.rmse_um),
+            "rmse_per_experiment_um": {k: float(v) for k, v in self.rmse_per_experiment.items()},
+            "noise_um": float(self.noise_um),
+            "units": {n: unit_of(n) for n in self.names},
+            "correlation": {"names": list(self.names),
+                            "matrix": [[float(x) if np.isfinite(x) else None for x in row]
+                                       for row in np.asarray(self.correlation)]},
+            "converged": bool(self.converged),
+            "iterations": int(self.iterations),
+            "message": self.message,
+            "flags": list(self.flags),
+            "n_data": int(self.n_data),
+            "clearance_tolerance_um": tol if math.isfinite(tol) else "inf",
+            "max_contact_residual": float(self.max_contact_residual),
+        }
 
     @property
     def n_data(self) -> int:
@@ -327,73 +547,109 @@ class FitResult:
         return float(np.sum(self.residuals_um ** 2))
 
 
-def fit(problem: Problem, u0=None, *, max_steps: int = 60, rtol: float = 1e-7,
-        verbose: bool = False) -> FitResult:
+def fit(problem: Problem, u0=None, *, max_steps: int = 60, rtol: float = 1e-8,
+        verbose: bool = False, robust: bool = True) -> FitResult:
     """Levenberg-Marquardt fit, then Gauss-Newton standard errors and correlations.
 
-    Two passes: the first weights the clearance prior with a 1 µm noise guess, the second
-    with the noise level estimated from the first pass's residuals.
+    **Arguments:**
+    - `u0`: start in the problem's parameterisation (default: the problem's start values).
+    - `max_steps`: model evaluations allowed per pass. `rtol`: step tolerance on u.
+    - `verbose`: progress of every step on stderr. `robust`: rescale K_d first (see
+      `robust_start`).
+
+    Two passes when fitted clearances have a finite prior: the first weights the prior with
+    a 1 µm noise guess, the second with the noise level estimated from the first pass's
+    residuals. Both reuse the one compiled evaluation.
     """
     p = len(problem.fits)
-    u = jnp.zeros(p) if u0 is None else jnp.asarray(u0, jnp.float64)
-    n = int(problem.data.depth_um.shape[0])
+    n = problem.n_data
+    u = np.zeros(p) if u0 is None else np.asarray(u0, np.float64)
     noise = 1.0
-    converged, steps = True, 0
-    if p:
-        for stage in range(2):
-            if verbose:
-                print(f"  fit pass {stage + 1}/2 ({p} parameters, {n} data rows)",
-                      file=sys.stderr, flush=True)
-            u, ok, k = _lm(problem, u, jnp.asarray(noise), max_steps, rtol, verbose)
-            converged, steps = bool(ok), steps + int(k)
-            r = np.asarray(_residuals(problem, u, jnp.asarray(noise)))[:n]
-            dof = max(n - p, 1)
-            noise = max(float(np.sqrt(np.sum(r ** 2) / dof)), 1e-6)
-            if not math.isfinite(problem.tolerance_um) or not any(
-                    f.key == "clearance_mm" for f in problem.fits):
-                break
-    return summarize(problem, u, noise, converged, steps)
+    if robust and p:
+        u, ev = robust_start(problem, u, noise, verbose=verbose)
+    else:
+        ev = evaluate(problem, u, noise)
+    converged, evals, message = True, 0, "nothing to fit"
+    passes = 2 if problem.has_prior else 1
+    for stage in range(passes if p else 0):
+        _log(verbose, f"  fit pass {stage + 1}/{passes} ({p} parameters, {n} data rows"
+                      + (f", prior weighted with noise {noise:.3g} µm)" if passes == 2 else ")"))
+        out = levenberg_marquardt(problem, u, noise, ev0=ev, max_evaluations=max_steps,
+                                  xtol=rtol, verbose=verbose)
+        u, ev = out.u, out.evaluation
+        converged, evals, message = out.converged, evals + out.evaluations, out.message
+        r = ev.residuals[:n]
+        new_noise = max(float(np.sqrt(np.sum(r ** 2) / max(n - p, 1))), 1e-6)
+        if stage + 1 < passes:
+            # The prior rows scale with the noise: re-evaluate them at the new weight.
+            noise = new_noise
+            ev = evaluate(problem, u, noise)
+    return summarize(problem, u, noise, converged, evals, message=message, evaluation=ev)
 
 
-def summarize(problem: Problem, u, noise_guess, converged=True, steps=0) -> FitResult:
-    u = jnp.asarray(u, jnp.float64)
-    n = int(problem.data.depth_um.shape[0])
+def _covariance(JtJ):
+    """Gauss-Newton covariance (JᵀJ)⁻¹ of u and a mask of parameters the data leave
+    undetermined (with a component along a null direction of JᵀJ). A pseudo-inverse alone
+    would give those a zero variance, i.e. claim that they are known exactly."""
+    p = JtJ.shape[0]
+    if not np.all(np.isfinite(JtJ)):
+        return np.full((p, p), np.nan), np.ones(p, bool)
+    w, V = np.linalg.eigh(JtJ)
+    null = w <= 1e-10 * max(float(np.max(w)), 1e-300)
+    unidentified = np.sum(V[:, null] ** 2, axis=1) > 1e-6
+    inv = np.where(null, 0.0, 1.0 / np.where(null, 1.0, w))
+    return (V * inv) @ V.T, unidentified
+
+
+def summarize(problem: Problem, u, noise_guess, converged=True, steps=0, *, message=None,
+              evaluation: Evaluation | None = None) -> FitResult:
+    """FitResult at u: RMSE, noise estimate, Gauss-Newton standard errors, flags.
+
+    `noise_guess` is the noise level the prior rows were weighted with.
+    """
+    u = np.asarray(u, np.float64)
+    ev = evaluate(problem, u, noise_guess) if evaluation is None else evaluation
+    n = problem.n_data
     p = len(problem.fits)
-    pred, snaps, max_res, worn = _predict(problem, u)
-    pred = np.asarray(pred)
+    pred = np.asarray(ev.predicted)
     meas = np.asarray(problem.data.depth_um)
     r = pred - meas
     dof = max(n - p, 1)
     noise = float(np.sqrt(np.sum(r ** 2) / dof))
     flags = []
+    J = np.asarray(ev.jacobian)
     if p:
-        J = np.asarray(_jacobian(problem, u, jnp.asarray(noise_guess)))
-        Jn = J / max(noise, 1e-12)  # residuals in units of the noise (prior rows already are)
-        Jn[n:] = J[n:] / max(noise_guess, 1e-12)
+        Jn = J / max(noise, 1e-12)  # residuals in units of the noise
+        Jn[n:] = J[n:] / max(noise_guess, 1e-12)  # prior rows: in units of τ already
         JtJ = Jn.T @ Jn
-        try:
-            cov_u = np.linalg.pinv(JtJ, rcond=1e-13, hermitian=True)
-        except np.linalg.LinAlgError:
-            cov_u = np.full((p, p), np.nan)
+        cov_u, unidentified = _covariance(JtJ)
         vals = np.asarray(problem.values(u))
         deriv = np.array([vals[i] if f.log else f.scale for i, f in enumerate(problem.fits)])
         se = np.sqrt(np.clip(np.diag(cov_u), 0, None)) * np.abs(deriv)
+        se[unidentified] = np.inf
         d = np.sqrt(np.clip(np.diag(cov_u), 1e-300, None))
         corr = cov_u / np.outer(d, d)
-        rank = np.linalg.matrix_rank(JtJ, tol=1e-10 * np.max(np.abs(JtJ)))
-        if rank < p:
-            flags.append(f"Jacobian rank {rank} < {p} parameters: some are not identifiable")
+        corr[unidentified, :] = np.nan
+        corr[:, unidentified] = np.nan
+        if np.any(unidentified):
+            names = [n for n, bad in zip(problem.names, unidentified) if bad]
+            flags.append(f"the data do not determine {', '.join(names)} (Jacobian rank "
+                         f"deficient: no standard error)")
         for i, name in enumerate(problem.names):
-            rel = se[i] / max(abs(vals[i]), 1e-300)
             f = problem.fits[i]
-            if f.log and rel > 1.0:
-                flags.append(f"{name}: standard error {rel:.0%} of the value (not identifiable)")
+            if f.log:
+                rel = se[i] / max(abs(vals[i]), 1e-300)
+                if rel > 1.0:
+                    flags.append(f"{name}: standard error {rel:.0%} of the value "
+                                 f"(not identifiable from these data)")
+            elif se[i] > 10 * f.scale:
+                flags.append(f"{name}: standard error {se[i]:.3g} is > 10x its typical size "
+                             f"{f.scale:g} (not identifiable from these data)")
             for j in range(i + 1, p):
                 if abs(corr[i, j]) > 0.99:
                     flags.append(f"{name} and {problem.names[j]}: correlation "
                                  f"{corr[i, j]:+.3f} (|r| > 0.99, not separately identifiable)")
     else:
-        J = np.zeros((n, 0))
         vals, se, corr = np.zeros(0), np.zeros(0), np.zeros((0, 0))
     exp_idx = np.asarray(problem.data.exp)
     per = {}
@@ -401,12 +657,12 @@ def summarize(problem: Problem, u, noise_guess, converged=True, steps=0) -> FitR
         m = exp_idx == i
         if m.any():
             per[name] = float(np.sqrt(np.mean(r[m] ** 2)))
-    msg = "converged" if converged else "did not converge within the step limit"
-    if float(worn) >= 0:
-        msg += "; the layer wore through during the fit's last evaluation"
+    msg = message or ("converged" if converged else "did not converge within the step limit")
+    if float(ev.worn) >= 0:
+        msg += "; the layer wears through at the fitted values"
         converged = False
-    if not float(max_res) < 1e-9:
-        msg += f"; contact residual {float(max_res):.1e} ≥ 1e-9"
+    if not float(ev.max_residual) < 1e-9:
+        msg += f"; contact residual {float(ev.max_residual):.1e} ≥ 1e-9 (try more nodes)"
         converged = False
     return FitResult(names=list(problem.names), values=np.asarray(vals), stderr=np.asarray(se),
                      correlation=np.asarray(corr), u=np.asarray(u),
@@ -414,12 +670,23 @@ def summarize(problem: Problem, u, noise_guess, converged=True, steps=0) -> FitR
                      noise_um=noise, residuals_um=r, predicted_um=pred, measured_um=meas,
                      row_experiment=exp_idx, converged=converged, iterations=int(steps),
                      message=msg, flags=flags, jacobian=J, problem=problem,
-                     snapshots_um=np.asarray(snaps), max_contact_residual=float(max_res))
+                     snapshots_um=np.asarray(ev.snapshots),
+                     max_contact_residual=float(ev.max_residual))
 
 
 def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=False,
               max_steps: int = 60) -> FitResult:
-    """Fit a study's parameters to its data (DESIGN §7 `calibrate`)."""
+    """Fit a study's parameters to its data (DESIGN §7 `calibrate`).
+
+    **Arguments:**
+    - `study`: a loaded study with profile and/or history data.
+    - `fit_spec`: "K_d,clearance" (default) or any comma-separated study keys; strengths of
+      the effects the study switches on are always added.
+    - `start`: optional start values by output name (user units), e.g.
+      `{"K_d_per_Pa": 1e-12, "clearance_mm/n276": 0.06}`.
+
+    **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
+    """
     keys = parse_fit(study, fit_spec)
     problem = build_problem(study, keys, start)
     return fit(problem, max_steps=max_steps, verbose=verbose)

@@ -54,7 +54,7 @@ def node_area(p: Params, nodes: int) -> Scalar:
 
 
 def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
-                    start=None):
+                    start=None, window=None):
     """Wear of one cycle on the frozen profile `h`, with its contact solution.
 
     Returns (Δh per cycle [m] (nodes,), Σ_i (Σ_j p_ij A_j) dS_i [N·m], contact solution).
@@ -70,7 +70,8 @@ def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, s
         if mu is not None:
             friction = mu if friction is None else friction + mu
     sol = solve_contact(load, angle, h, p.clearance, k, area, contact=cfg.contact,
-                        friction=friction, iterations=cfg.newton_iterations, start=start)
+                        friction=friction, iterations=cfg.newton_iterations, start=start,
+                        window=window)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
     if effects:
         ctx = RateContext(sol.pressure, slide, dt, sliding)
@@ -93,20 +94,20 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
 
     # Warm starts: each regime's offsets from its previous update (the profile moves little
     # per update), first from a cold solve on the initial profile.
-    if cfg.contact == "unsymmetric":
-        starts0 = jnp.stack([lax.stop_gradient(
-            cycle_increment(p, cfg, hist, r, h0, jnp.zeros(()))[2].offset)
-            for r in range(hist.load.shape[0])])
-    else:
-        starts0 = jnp.zeros((hist.load.shape[0], cfg.steps_per_rev, 2))
+    # The contact arc of the previous update picks the loaded-arc window of the next.
+    n_reg = hist.load.shape[0]
+    cold = [cycle_increment(p, cfg, hist, r, h0, jnp.zeros(()))[2] for r in range(n_reg)]
+    starts0 = jnp.stack([lax.stop_gradient(s.offset) for s in cold])
+    arcs0 = jnp.stack([s.arc for s in cold])
 
     def body(carry, x):
-        h, S, snaps, vol, res, its, worn, starts = carry
+        h, S, snaps, vol, res, its, worn, starts, arcs = carry
         M, regime, snap, end = x
         warm = starts[regime] if cfg.contact == "unsymmetric" else None
-        dh, work, sol = cycle_increment(p, cfg, hist, regime, h, S, warm)
-        if cfg.contact == "unsymmetric":
-            starts = starts.at[regime].set(lax.stop_gradient(sol.offset))
+        window = arcs[regime] if cfg.contact_window else None
+        dh, work, sol = cycle_increment(p, cfg, hist, regime, h, S, warm, window)
+        starts = starts.at[regime].set(lax.stop_gradient(sol.offset))
+        arcs = arcs.at[regime].set(sol.arc)
         s_cyc = per_cycle_slide[regime]
         factor = jnp.ones(())
         for eff in effects:
@@ -120,7 +121,7 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         its = jnp.maximum(its, sol.iterations)
         hit = (M > 0) & jnp.any(h_new >= p.layer_thickness) & (worn < 0)
         worn = jnp.where(hit, end, worn)
-        return (h_new, S_new, snaps, vol, res, its, worn, starts), None
+        return (h_new, S_new, snaps, vol, res, its, worn, starts, arcs), None
 
     U = schedule.updates
     inner = max(1, int(math.ceil(math.sqrt(U))))
@@ -138,8 +139,8 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         return lax.scan(jax.checkpoint(body), carry, xs_block)
 
     carry0 = (h0, jnp.zeros(()), jnp.zeros((schedule.n_snapshots, n)), jnp.zeros(()),
-              jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0)
-    (h, S, snaps, vol, res, its, worn, _), _ = lax.scan(block, carry0, xs)
+              jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0, arcs0)
+    (h, S, snaps, vol, res, its, worn, _, _), _ = lax.scan(block, carry0, xs)
     return WearResult(depth=h, snapshots=snaps, sliding_distance=S,
                       worn_volume=jnp.sum(h) * area, archard_volume=vol, max_residual=res,
                       max_iterations=its, worn_through_cycle=worn, history=hist)

@@ -2,20 +2,26 @@
 
 An effect is a small stateless `eqx.Module` with a name, parameters (study keys with units,
 defaults, bounds) and up to three hooks into the wear loop. Every hook's default is the
-identity, and the base model never calls an effect that is switched off, so a disabled
+identity, and the wear loop never calls an effect that is switched off, so a disabled
 effect leaves results bit-for-bit unchanged. Strength parameters at their `off` value give
 the base model too (nesting), which is what makes score tests and likelihood ratios valid.
 
-Writing your own (see README, "Add your own effect"):
+Writing your own takes a subclass, its parameters and one hook (docs/effects.md has the
+full walk-through, calibration/examples/custom_effect.py a runnable example):
 
     class Humidity(Effect):
         name = "humidity"
-        parameters = {"humidity_gain": EffectParameter(1.0, 0.0, 0.0, -1.0, 10.0, "...")}
+        parameters = {"humidity_gain": EffectParameter(1.0, 0.0, 0.0, -0.5, 5.0, "...",
+                                                       scale=0.1, realistic=0.2)}
         signature = "uniform extra wear, proportional to sliding"
+
         def local_rate(self, p, rate, ctx):
             return rate * (1 + p.effect_params["humidity_gain"])
 
     register_effect(Humidity())
+
+Register effects before building parameters (`preset`, `load_study`): `Params` carries a
+strength for every effect registered at the time it is built.
 """
 
 from __future__ import annotations
@@ -29,12 +35,21 @@ import jax.numpy as jnp
 
 @dataclass(frozen=True)
 class EffectParameter:
-    """A strength parameter of an effect, in the unit its study key names.
+    """A parameter of an effect, in the unit its study key names.
 
-    - `to_si`: factor to SI. `default`: value used when fitting starts / when unset.
-    - `off`: the value at which the effect vanishes (nesting). `lower`, `upper`: bounds.
-    - `log`: fitted in log space (strictly positive parameters that are not nested at 0).
-    - `scale`: typical size of the strength, in the key's unit (conditions the fit).
+    - `to_si`: factor from the key's unit to SI.
+    - `default`: value used when the study does not set it (and when fitting starts, for
+      shape parameters).
+    - `off`: the value at which the effect vanishes (nesting). A *strength* parameter
+      (`log=False`) starts every fit at `off`; diagnosis differentiates the model with
+      respect to it there.
+    - `lower`, `upper`: bounds of a fit (key's unit).
+    - `doc`: one line with symbol, meaning and unit.
+    - `log`: fitted in log space. Use it for strictly positive *shape* parameters (a
+      distance, a time constant) that are not identifiable while the strength is off.
+    - `scale`: typical size of a fitted change (key's unit); sets the fit's scaling.
+    - `realistic`: strength that `jaxwear synth` hides by default: detectable in the
+      paper's rig matrix at 0.3 µm noise, and plausible for the physics (see docs/effects.md).
     """
 
     to_si: float
@@ -44,7 +59,8 @@ class EffectParameter:
     upper: float
     doc: str = ""
     log: bool = False
-    scale: float = 1.0  # typical size of a fitted change (sets the fit's parameter scaling)
+    scale: float = 1.0
+    realistic: float | None = None
 
 
 class RateContext(eqx.Module):
@@ -64,6 +80,16 @@ class Effect(eqx.Module):
     """Base of all effects. Subclasses set `name`, `parameters`, `signature` and override
     any of the hooks below. They hold no state: their strengths live in
     `Params.effect_params` under the study keys of `parameters`.
+
+    Hooks (each optional; the base model is the identity of all three):
+    - `friction(p, sense)`: Coulomb coefficient times sliding sense per step (steps,), or
+      None. Friction coefficients of several effects add.
+    - `local_rate(p, rate, ctx)`: wear per step and node [m] (steps, nodes); receives the
+      base Archard rate K_d p_ij dS_i (or the previous effect's output) and returns it
+      modified.
+    - `block_factor(p, sliding_start, sliding_per_cycle, cycles)`: multiplier of a block of
+      `cycles` cycles' wear, for effects that depend on the history (S at the block start
+      [m], sliding per cycle [m]).
     """
 
     name: ClassVar[str] = ""
@@ -83,19 +109,60 @@ class Effect(eqx.Module):
         """Multiplier of a block of `cycles` cycles' wear (profile frozen within the block)."""
         return jnp.ones(())
 
+    @classmethod
+    def strength_keys(cls) -> tuple[str, ...]:
+        """Keys of the nested strength parameters (linear, `off` gives the base model)."""
+        return tuple(k for k, s in cls.parameters.items() if not s.log)
+
+    @classmethod
+    def shape_keys(cls) -> tuple[str, ...]:
+        """Keys of the shape parameters (log-fitted, identifiable only with the strength on)."""
+        return tuple(k for k, s in cls.parameters.items() if s.log)
+
 
 _REGISTRY: dict[str, Effect] = {}
 
 
 def register_effect(effect: Effect) -> Effect:
-    """Make an effect available by name to studies, `calibrate` and `diagnose`."""
-    if not effect.name or not isinstance(effect.name, str):
-        raise ValueError("an effect needs a non-empty string `name`")
+    """Make an effect available by name to studies, `calibrate`, `diagnose` and `synth`.
+
+    Checks what the fitting machinery relies on: a name, at least one strength parameter,
+    defaults and `off` values within bounds, positive scales, and log parameters > 0.
+    Raises `ValueError` naming the problem.
+    """
+    name = effect.name
+    if not name or not isinstance(name, str) or not name.isidentifier():
+        raise ValueError(f"an effect needs a `name` that is an identifier, got {name!r}")
+    from .structural import STRUCTURAL_CANDIDATES
+
+    if name in STRUCTURAL_CANDIDATES:
+        raise ValueError(f"effect name {name!r} is taken by a structural candidate")
+    if not effect.strength_keys():
+        raise ValueError(f"effect {name}: needs a strength parameter (log=False) whose `off` "
+                         f"value gives the base model")
+    taken = {k: e.name for e in _REGISTRY.values() if e.name != name for k in e.parameters}
     for key, spec in effect.parameters.items():
+        if key in taken:
+            raise ValueError(f"effect {name}: parameter {key!r} already belongs to effect "
+                             f"{taken[key]!r}")
         if not (spec.lower <= spec.default <= spec.upper):
-            raise ValueError(f"effect {effect.name}: default of {key} outside its bounds")
-    _REGISTRY[effect.name] = effect
+            raise ValueError(f"effect {name}: default of {key} outside its bounds")
+        if not (spec.lower <= spec.off <= spec.upper):
+            raise ValueError(f"effect {name}: off value of {key} outside its bounds")
+        if not spec.scale > 0 or not spec.to_si > 0:
+            raise ValueError(f"effect {name}: {key} needs scale > 0 and to_si > 0")
+        if spec.log and not (spec.lower > 0 and spec.default > 0):
+            raise ValueError(f"effect {name}: log-fitted {key} needs lower > 0 and default > 0")
+        if spec.realistic is not None and not (spec.lower <= spec.realistic <= spec.upper):
+            raise ValueError(f"effect {name}: realistic value of {key} outside its bounds")
+    _REGISTRY[name] = effect
     return effect
+
+
+def unregister_effect(name: str) -> None:
+    """Remove an effect from the registry (tests, notebooks). Studies and `Params` built
+    while it was registered keep its keys; build new ones after removing it."""
+    _REGISTRY.pop(name, None)
 
 
 def get_effect(name: str) -> Effect:
