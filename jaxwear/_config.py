@@ -34,8 +34,6 @@ class ModelConfig:
     - `nodes`, `steps_per_rev`: N and n_steps.
     - `effects`: names of the candidate effects switched on (§5).
     - `duty_cycle`: oscillating driver's blocks, repeated (boom: 20° 1 h, then 1° 4 h).
-    - `contact_window`: solve contact on a window around the loaded node sized from the
-      previous update's arc (same result, less work; falls back to the whole bore).
     """
 
     driver: str = "crank_slider"
@@ -51,7 +49,6 @@ class ModelConfig:
     duty_cycle: tuple[DutyBlock, ...] = field(
         default_factory=lambda: (DutyBlock(20.0, 1.0), DutyBlock(1.0, 4.0)))
     newton_iterations: int = 40
-    contact_window: bool = True
 
     def __post_init__(self):
         checks = [

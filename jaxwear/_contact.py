@@ -15,8 +15,6 @@ with no backpropagation through the Newton iterations.
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -35,7 +33,6 @@ class ContactSolution(eqx.Module):
     offset: Float[Array, "steps 2"]  # e_i, bushing frame [m]
     residual: StepArray  # |Σ p A m - W| / |W| (0 where W = 0)
     iterations: Array  # Newton iterations used (max over steps)
-    arc: Array  # contact half-width [nodes] from the loaded node (max over steps)
 
 
 def equivalent_modulus(E, nu):
@@ -249,19 +246,9 @@ def _solve_nodes(load, angle, nx, ny, g, k, area, contact, iterations, tol, star
     return pressure, e, jnp.where(load > 0, resid, 0.0), its
 
 
-def contact_windows(nodes: int) -> tuple[int, ...]:
-    """Half-widths (in nodes) of the loaded-arc windows tried before the whole bore:
-    ±40° and ±75°. Measured rig arcs: ±26° (c = 0.15 mm) to ±37° (0.05 mm, 10⁴ rev),
-    ±58° (c = 0.01 mm), ±79° (0.05 mm after 10⁵ rev)."""
-    ks = tuple(k for k in (int(math.ceil(nodes * 40 / 360)), int(math.ceil(nodes * 75 / 360)))
-               if 2 * k + 1 < nodes)
-    return ks
-
-
 def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k: NodeArray,
                   area, *, contact: str = "unsymmetric", friction=None,
-                  iterations: int = 40, tol: float = 1e-12, start=None,
-                  window=None) -> ContactSolution:
+                  iterations: int = 40, tol: float = 1e-12, start=None) -> ContactSolution:
     """Contact pressure for every step of a cycle on a frozen bore profile (DESIGN §3).
 
     **Arguments:**
@@ -274,13 +261,9 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
       the load R(-β) W / √(1+μ²): friction is solved exactly as a rotated, reduced load.
     - `start`: optional warm start for the offsets (steps, 2) [m], e.g. the previous wear
       update's solution; by default the exact 1-D solution along the load.
-    - `window`: optional expected contact half-width in nodes (traced int). The solve then
-      runs on the smallest loaded-arc window (`contact_windows`) that holds it with margin,
-      and falls back to the whole bore if any node outside the window would touch. The
-      result is the same as without a window; only the cost differs.
 
     **Returns:** a `ContactSolution`; `residual` is the relative force residual, which the
-    caller checks (never assumed). `arc` is the contact half-width in nodes.
+    caller checks (never assumed).
     """
     if friction is not None:
         angle = angle - jnp.arctan(friction)
@@ -299,51 +282,6 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
     else:
         g_all = jnp.broadcast_to((clearance + h)[None, :], (1, nodes))
         k_all = k[None, :]
-    steps = angle.shape[0]
-    jstar = jnp.round(jnp.mod(angle, 2 * jnp.pi) / (2 * jnp.pi) * nodes).astype(jnp.int32)
-    rows = jnp.arange(steps)[:, None]
-
-    def arc_of(pressure_full):
-        off = jnp.mod(jnp.arange(nodes)[None, :] - jstar[:, None] + nodes // 2, nodes)
-        dist = jnp.abs(off - nodes // 2)
-        return jnp.max(jnp.where(pressure_full > 0, dist, 0))
-
-    def full():
-        p, e, r, it = _solve_nodes(load, angle, cos_all, sin_all, g_all, k_all, area, contact,
-                                   iterations, tol, start)
-        return p, e, r, it, arc_of(p)
-
-    def windowed(K):
-        offs = jnp.arange(-K, K + 1)
-        idx = jnp.mod(jstar[:, None] + offs[None, :], nodes)
-        cw, sw = cos_all[0][idx], sin_all[0][idx]
-        gw = jnp.take_along_axis(jnp.broadcast_to(g_all, (steps, nodes)), idx, 1)
-        kw = jnp.take_along_axis(jnp.broadcast_to(k_all, (steps, nodes)), idx, 1)
-        pw, e, r, it = _solve_nodes(load, angle, cw, sw, gw, kw, area, contact, iterations,
-                                    tol, start)
-        p = jnp.zeros((steps, nodes)).at[rows, idx].set(pw)
-        # Can a node outside the window touch? Such a node is at least (K+1)Δθ - φ_e from
-        # the offset's direction (φ_e: angle between e and the window's centre), so e·n_j
-        # ≤ |e| cos((K+1)Δθ - φ_e), while its gap is at least min_j g_j. If that bound
-        # reaches the gap anywhere, the window is not proven wide enough: use the whole bore.
-        en = sg(jnp.linalg.norm(e, axis=1))
-        centre_x, centre_y = cos_all[0][jstar], sin_all[0][jstar]
-        cos_phi = sg(e[:, 0] * centre_x + e[:, 1] * centre_y) / jnp.maximum(en, 1e-300)
-        phi = jnp.arccos(jnp.clip(cos_phi, -1.0, 1.0))
-        beyond = jnp.clip((K + 1) * (2 * jnp.pi / nodes) - phi, 0.0, jnp.pi / 2)
-        gmin = sg(jnp.min(jnp.broadcast_to(g_all, (steps, nodes)), axis=1))
-        leak = jnp.any((en * jnp.cos(beyond) >= gmin) & (load > 0))
-        arc = jnp.max(jnp.where(pw > 0, jnp.abs(offs)[None, :], 0))
-        return p, e, jnp.where(leak, jnp.inf, r), it, arc
-
-    ks = contact_windows(nodes) if window is not None else ()
-    if not ks:
-        p, e, r, it, arc = full()
-    else:
-        margin = max(2, nodes // 72)
-        choice = jnp.sum(jnp.asarray([window + margin > K for K in ks], jnp.int32))
-        branches = [lambda K=K: windowed(K) for K in ks] + [full]
-        p, e, r, it, arc = lax.switch(choice, branches)
-        p, e, r, it, arc = lax.cond(jnp.any(~jnp.isfinite(r)), full,
-                                    lambda: (p, e, r, it, arc))
-    return ContactSolution(p, e, r, it, arc)
+    p, e, r, it = _solve_nodes(load, angle, cos_all, sin_all, g_all, k_all, area, contact,
+                               iterations, tol, start)
+    return ContactSolution(p, e, r, it)

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from ._config import ModelConfig
-from ._contact import solve_contact, stiffness_per_area
+from ._contact import interp_periodic, solve_contact, stiffness_per_area
 from ._custom_types import Array, Float, NodeArray, Scalar
 from ._errors import InputError, WornThroughError
 from ._load import LoadHistory, load_history
@@ -54,7 +54,7 @@ def node_area(p: Params, nodes: int) -> Scalar:
 
 
 def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
-                    start=None, window=None):
+                    start=None):
     """Wear of one cycle on the frozen profile `h`, with its contact solution.
 
     Returns (Δh per cycle [m] (nodes,), Σ_i (Σ_j p_ij A_j) dS_i [N·m], contact solution).
@@ -70,8 +70,7 @@ def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, s
         if mu is not None:
             friction = mu if friction is None else friction + mu
     sol = solve_contact(load, angle, h, p.clearance, k, area, contact=cfg.contact,
-                        friction=friction, iterations=cfg.newton_iterations, start=start,
-                        window=window)
+                        friction=friction, iterations=cfg.newton_iterations, start=start)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
     if effects:
         ctx = RateContext(sol.pressure, slide, dt, sliding)
@@ -94,20 +93,27 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
 
     # Warm starts: each regime's offsets from its previous update (the profile moves little
     # per update), first from a cold solve on the initial profile.
-    # The contact arc of the previous update picks the loaded-arc window of the next.
     n_reg = hist.load.shape[0]
     cold = [cycle_increment(p, cfg, hist, r, h0, jnp.zeros(()))[2] for r in range(n_reg)]
     starts0 = jnp.stack([lax.stop_gradient(s.offset) for s in cold])
-    arcs0 = jnp.stack([s.arc for s in cold])
 
     def body(carry, x):
-        h, S, snaps, vol, res, its, worn, starts, arcs = carry
+        # Padding updates (M = 0, from shape bucketing) skip all work.
+        return lax.cond(x[0] > 0, live, lambda c, _: c, carry, x), None
+
+    def live(carry, x):
+        h, S, snaps, vol, res, its, worn, starts, h_seen = carry
         M, regime, snap, end = x
-        warm = starts[regime] if cfg.contact == "unsymmetric" else None
-        window = arcs[regime] if cfg.contact_window else None
-        dh, work, sol = cycle_increment(p, cfg, hist, regime, h, S, warm, window)
+        warm = None
+        if cfg.contact == "unsymmetric":
+            # Predictor: where the bore wore by Δh since this regime's last solve, the pin
+            # moves out by about Δh along the load to keep its penetration.
+            ang = hist.angle[regime]
+            grown = lax.stop_gradient(interp_periodic(h - h_seen[regime], ang))
+            warm = starts[regime] + grown[:, None] * jnp.stack([jnp.cos(ang), jnp.sin(ang)], 1)
+        dh, work, sol = cycle_increment(p, cfg, hist, regime, h, S, warm)
         starts = starts.at[regime].set(lax.stop_gradient(sol.offset))
-        arcs = arcs.at[regime].set(sol.arc)
+        h_seen = h_seen.at[regime].set(lax.stop_gradient(h))
         s_cyc = per_cycle_slide[regime]
         factor = jnp.ones(())
         for eff in effects:
@@ -121,7 +127,7 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         its = jnp.maximum(its, sol.iterations)
         hit = (M > 0) & jnp.any(h_new >= p.layer_thickness) & (worn < 0)
         worn = jnp.where(hit, end, worn)
-        return (h_new, S_new, snaps, vol, res, its, worn, starts, arcs), None
+        return (h_new, S_new, snaps, vol, res, its, worn, starts, h_seen)
 
     U = schedule.updates
     inner = max(1, int(math.ceil(math.sqrt(U))))
@@ -139,8 +145,9 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         return lax.scan(jax.checkpoint(body), carry, xs_block)
 
     carry0 = (h0, jnp.zeros(()), jnp.zeros((schedule.n_snapshots, n)), jnp.zeros(()),
-              jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0, arcs0)
-    (h, S, snaps, vol, res, its, worn, _, _), _ = lax.scan(block, carry0, xs)
+              jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0,
+              jnp.broadcast_to(lax.stop_gradient(h0), (n_reg, n)))
+    (h, S, snaps, vol, res, its, worn, *_), _ = lax.scan(block, carry0, xs)
     return WearResult(depth=h, snapshots=snaps, sliding_distance=S,
                       worn_volume=jnp.sum(h) * area, archard_volume=vol, max_residual=res,
                       max_iterations=its, worn_through_cycle=worn, history=hist)
