@@ -1,22 +1,25 @@
 """Winkler elastic foundation contact of a pin in a (worn) bore (DESIGN §3, paper §2, §4.1).
 
 The unsymmetric model solves the vector equilibrium Σ_j p_j A_j n_j = W for the pin offset e.
-Without friction it is the gradient of the convex piecewise-quadratic potential
-Σ ½ k_j A_j max(e·n_j - g_j, 0)² - W·e, so a semi-smooth Newton method started outside the
-solution converges; we start from the exact 1-D solution along the load (monotone Newton from
-the right on a convex piecewise-linear function) and globalise the 2-D Newton by halving the
-step until the residual norm falls.
+It is the gradient of the convex piecewise-quadratic potential
+Σ_j ½ k_j A_j max(e·n_j - g_j, 0)² - W·e, so a semi-smooth Newton method with an Armijo line
+search on that potential converges from any start that touches the bore. The cold start is
+the exact 1-D solution along the load (monotone Newton from the right on a convex
+piecewise-linear function); the wear loop warm-starts from the previous update.
+
+Coulomb friction (DESIGN §5) needs no solver of its own: n_j + μ s t_j = √(1+μ²) R(β) n_j
+with tan β = μ s, so Σ p_j A_j (n_j + μ s t_j) = W is the frictionless problem for the load
+R(-β) W / √(1+μ²).
 
 Gradients: the solve runs on `stop_gradient` inputs and one Newton correction
 e = e* - J⁻¹ R(e*; θ) is applied with J held fixed. At a converged e* this is the implicit
-function theorem, dE/dθ = -J⁻¹ ∂R/∂θ: exact first derivatives in forward and reverse mode,
+function theorem, de/dθ = -J⁻¹ ∂R/∂θ: exact first derivatives in forward and reverse mode,
 with no backpropagation through the Newton iterations.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -31,7 +34,7 @@ class ContactSolution(eqx.Module):
 
     pressure: StepNodeArray  # p_ij [Pa]
     offset: Float[Array, "steps 2"]  # e_i, bushing frame [m]
-    residual: StepArray  # |Σ p A m - W| / |W| (0 where W = 0)
+    residual: StepArray  # relative force residual |Σ p A n - W| / |W| (0 where W = 0)
     iterations: Array  # Newton iterations used (max over steps)
 
 
@@ -55,6 +58,7 @@ def stiffness_per_area(h: NodeArray, p, double_layer: bool) -> NodeArray:
 
 
 def node_angles(nodes: int) -> NodeArray:
+    """θ_j = 2πj/N [rad]."""
     return 2 * jnp.pi * jnp.arange(nodes) / nodes
 
 
@@ -67,23 +71,17 @@ def interp_periodic(h: NodeArray, angle):
     return (1 - w) * h[i0] + w * h[(i0 + 1) % n]
 
 
-def _newton_1d(load, cosj, weight, g, kA, iters):
-    """Solve Σ_j kA_j max(s cos_j - g_j, 0) w_j = |W| for s (per step), from the right.
+def _newton_1d(load, cosj, g, kA, iters):
+    """Solve Σ_j kA_j max(s cos_j - g_j, 0) cos_j = |W| for s ≥ 0 (per step), from the right.
 
-    `cosj`, `weight`: (steps, nodes); `g`, `kA`: (steps|1, nodes). Monotone and finite for a
-    convex piecewise-linear left side; returns s (steps,).
+    `cosj` (steps, nodes); `g`, `kA` broadcastable to it. The left side is convex,
+    piecewise linear and increasing in s, so Newton from a point where it exceeds |W| moves
+    monotonically down and stops exactly on the root's linear piece.
     """
     jstar = jnp.argmax(cosj, axis=1)
     pick = lambda a: jnp.take_along_axis(jnp.broadcast_to(a, cosj.shape), jstar[:, None], 1)[:, 0]
-    c_star, g_star, k_star, w_star = pick(cosj), pick(g), pick(kA), pick(weight)
-    s = g_star / c_star + load / (k_star * c_star * jnp.maximum(w_star, 0.5 * c_star))
-
-    def f_and_df(s):
-        d = s[:, None] * cosj - g
-        act = d > 0
-        f = jnp.sum(jnp.where(act, kA * d * weight, 0.0), axis=1) - load
-        df = jnp.sum(jnp.where(act, kA * cosj * weight, 0.0), axis=1)
-        return f, df
+    c_star, g_star, k_star = pick(cosj), pick(g), pick(kA)
+    s = g_star / c_star + load / (k_star * c_star * c_star)  # loaded node alone carries |W|
 
     def cond(state):
         i, _, done = state
@@ -91,89 +89,78 @@ def _newton_1d(load, cosj, weight, g, kA, iters):
 
     def body(state):
         i, s, done = state
-        f, df = f_and_df(s)
+        d = s[:, None] * cosj - g
+        act = d > 0
+        f = jnp.sum(jnp.where(act, kA * d * cosj, 0.0), axis=1) - load
+        df = jnp.sum(jnp.where(act, kA * cosj * cosj, 0.0), axis=1)
         ok = df > 0
         s_new = jnp.where(ok & ~done, s - f / jnp.where(ok, df, 1.0), s)
-        done = done | (jnp.abs(f) <= 1e-13 * jnp.maximum(load, 1e-300)) | (load == 0)
+        done = done | (jnp.abs(f) <= 1e-13 * jnp.maximum(load, 1e-300))
         return i + 1, s_new, done
 
     _, s, _ = lax.while_loop(cond, body, (0, s, load == 0))
     return s
 
 
-def _residual_2d(e, nx, ny, mx, my, g, kA, W):
+def _forces(e, nx, ny, g, kA, W):
+    """Residual R(e) = Σ kA max(d,0) n - W, the penetrations d, and the potential."""
     d = e[:, 0:1] * nx + e[:, 1:2] * ny - g
     q = jnp.where(d > 0, kA * d, 0.0)  # p_j A_j
-    r = jnp.stack([jnp.sum(q * mx, 1), jnp.sum(q * my, 1)], axis=1) - W
-    return r, d
+    r = jnp.stack([jnp.sum(q * nx, 1), jnp.sum(q * ny, 1)], axis=1) - W
+    potential = 0.5 * jnp.sum(q * jnp.maximum(d, 0.0), 1) - jnp.sum(W * e, 1)
+    return r, d, potential
 
 
-def _jacobian_2d(d, nx, ny, mx, my, kA):
+def _hessian(d, nx, ny, kA):
     a = jnp.where(d > 0, kA, 0.0)
-    jxx = jnp.sum(a * mx * nx, 1)
-    jxy = jnp.sum(a * mx * ny, 1)
-    jyx = jnp.sum(a * my * nx, 1)
-    jyy = jnp.sum(a * my * ny, 1)
-    return jxx, jxy, jyx, jyy
+    return jnp.sum(a * nx * nx, 1), jnp.sum(a * nx * ny, 1), jnp.sum(a * ny * ny, 1)
 
 
-def _solve2(j, r, ridge=0.0):
-    jxx, jxy, jyx, jyy = j
-    # With fewer than two active nodes J is singular: the ridge keeps the step finite (the
-    # iteration then relies on the step cap and line search). It changes steps, never the
-    # fixed point; the implicit-gradient solve uses a negligible one.
-    ridge = ridge + 1e-12 * (jnp.abs(jxx) + jnp.abs(jyy)) + 1e-300
-    jxx, jyy = jxx + ridge, jyy + ridge
-    det = jxx * jyy - jxy * jyx
-    dx = (jyy * r[:, 0] - jxy * r[:, 1]) / det
-    dy = (-jyx * r[:, 0] + jxx * r[:, 1]) / det
-    return jnp.stack([dx, dy], axis=1)
+def _solve2(hess, r, ridge=0.0):
+    """Solve H x = r for symmetric 2x2 H per step."""
+    hxx, hxy, hyy = hess
+    # With fewer than two active nodes H is singular: the ridge keeps the step finite (the
+    # step cap and line search do the rest). It changes steps, never the fixed point; the
+    # implicit-gradient solve uses only a negligible one.
+    ridge = ridge + 1e-12 * (hxx + hyy) + 1e-300
+    hxx, hyy = hxx + ridge, hyy + ridge
+    det = hxx * hyy - hxy * hxy
+    return jnp.stack([(hyy * r[:, 0] - hxy * r[:, 1]) / det,
+                      (-hxy * r[:, 0] + hxx * r[:, 1]) / det], axis=1)
 
 
-def _merit(e, r, d, kA, W, potential):
-    if potential:  # Σ ½ kA max(d,0)² - W·e: convex, and Newton steps descend on it
-        return 0.5 * jnp.sum(jnp.where(d > 0, kA * d * d, 0.0), 1) - jnp.sum(W * e, 1)
-    return 0.5 * jnp.sum(r * r, 1)
-
-
-def _newton_2d(e0, nx, ny, mx, my, g, kA, W, wnorm, iters, tol, potential, cap):
+def _newton_2d(e0, nx, ny, g, kA, W, wnorm, iters, tol, cap):
     """Damped semi-smooth Newton for R(e) = 0, vectorised over steps.
 
-    Each loop iteration evaluates one trial point per step: accepted if the merit falls
-    (Armijo), otherwise the step is halved. Steps that have converged are frozen. Step
-    lengths are capped at `cap` [m] (a fraction of the clearance): the offset never needs
-    to move further than that in one go, and a singular J cannot throw the iterate away.
+    Each iteration evaluates one trial point per step: accepted if the potential falls
+    (Armijo) or the residual halves, otherwise the step is halved. Converged steps are
+    frozen. Steps are capped at `cap` [m]: a singular H cannot throw the iterate away.
+    Returns the offsets, the final residuals and the number of iterations.
     """
     ridge = 1e-9 * jnp.max(kA)
 
     def newton_step(d, r):
-        st = -_solve2(_jacobian_2d(d, nx, ny, mx, my, kA), r, ridge)
+        st = -_solve2(_hessian(d, nx, ny, kA), r, ridge)
         st = jnp.where(jnp.isfinite(st), st, 0.0)
         norm = jnp.linalg.norm(st, axis=1, keepdims=True)
         return st * jnp.minimum(1.0, cap / jnp.maximum(norm, 1e-300))
 
-    r0, d0 = _residual_2d(e0, nx, ny, mx, my, g, kA, W)
-    step0 = newton_step(d0, r0)
-    m0 = _merit(e0, r0, d0, kA, W, potential)
-    scale = jnp.maximum(wnorm, 1e-300)
-
-    def slope(r, step):
-        return jnp.sum(r * step, 1) if potential else -jnp.sum(r * r, 1)
+    r0, d0, m0 = _forces(e0, nx, ny, g, kA, W)
+    limit = tol * jnp.maximum(wnorm, 1e-300)
 
     def cond(state):
         i, _, r, _, _, _ = state
-        return (i < iters) & jnp.any(jnp.linalg.norm(r, axis=1) > tol * scale)
+        return (i < iters) & jnp.any(jnp.linalg.norm(r, axis=1) > limit)
 
     def body(state):
         i, e, r, m, step, alpha = state
         trial = e + alpha[:, None] * step
-        rt, dt = _residual_2d(trial, nx, ny, mx, my, g, kA, W)
-        mt = _merit(trial, rt, dt, kA, W, potential)
-        active = jnp.linalg.norm(r, axis=1) > tol * scale
-        decrease = mt <= m + 1e-4 * alpha * slope(r, step)
-        # Round-off can hide the decrease of a near-converged step; accept a smaller residual.
-        better = jnp.linalg.norm(rt, axis=1) < 0.5 * jnp.linalg.norm(r, axis=1)
-        accept = active & (decrease | better)
+        rt, dt, mt = _forces(trial, nx, ny, g, kA, W)
+        rn = jnp.linalg.norm(r, axis=1)
+        active = rn > limit
+        decrease = mt <= m + 1e-4 * alpha * jnp.sum(r * step, 1)
+        # Round-off hides the decrease of a near-converged step; accept a smaller residual.
+        accept = active & (decrease | (jnp.linalg.norm(rt, axis=1) < 0.5 * rn))
         new_step = newton_step(dt, rt)
         e = jnp.where(accept[:, None], trial, e)
         r = jnp.where(accept[:, None], rt, r)
@@ -182,68 +169,65 @@ def _newton_2d(e0, nx, ny, mx, my, g, kA, W, wnorm, iters, tol, potential, cap):
         alpha = jnp.where(accept, 1.0, jnp.where(active, 0.5 * alpha, alpha))
         return i + 1, e, r, m, step, alpha
 
-    alpha0 = jnp.ones_like(m0)
-    i, e, r, _, _, _ = lax.while_loop(cond, body, (0, e0, r0, m0, step0, alpha0))
-    return e, i
+    state = (0, e0, r0, m0, newton_step(d0, r0), jnp.ones_like(m0))
+    i, e, r, _, _, _ = lax.while_loop(cond, body, state)
+    return e, r, i
 
 
-def _solve_nodes(load, angle, nx, ny, g, k, area, contact, iterations, tol, start):
-    """Contact on the nodes with normals (`nx`, `ny`) (steps|1, n), gaps `g` and stiffness
-    `k` on the same shape. Returns pressure on those nodes, offsets, residuals, iterations."""
-    ux, uy = jnp.cos(angle)[:, None], jnp.sin(angle)[:, None]
-    cosj = nx * ux + ny * uy  # n_j · û_W
-    mx, my, weight = nx, ny, cosj
-    W = jnp.stack([load * jnp.cos(angle), load * jnp.sin(angle)], axis=1)
+def _symmetric(load, angle, nx, ny, g, k, area, iterations):
+    """Traditional Winkler: a circle through the loaded node (its gap and stiffness for every
+    node), the pin displaced along the load only; one scalar equation per step."""
+    cosj = nx * jnp.cos(angle)[:, None] + ny * jnp.sin(angle)[:, None]
     kA = k * area
+    s_star = sg(_newton_1d(sg(load), sg(cosj), sg(g), sg(kA), iterations))
+    d = s_star[:, None] * cosj - g
+    act = sg(d > 0)
+    f = jnp.sum(jnp.where(act, kA * d * cosj, 0.0), 1) - load
+    df = sg(jnp.sum(jnp.where(act, kA * cosj * cosj, 0.0), 1))
+    s = s_star - f / jnp.where(df > 0, df, 1.0)  # implicit-function correction
+    delta = s[:, None] * cosj - g
+    pressure = jnp.where(delta > 0, k * delta, 0.0)
+    e = jnp.stack([s * jnp.cos(angle), s * jnp.sin(angle)], axis=1)
+    res = jnp.abs(jnp.sum(pressure * area * cosj, 1) - load) / jnp.maximum(load, 1e-300)
+    return ContactSolution(pressure, e, jnp.where(load > 0, res, 0.0), jnp.asarray(0))
 
-    if contact == "symmetric":
-        s_star = sg(_newton_1d(sg(load), sg(cosj), sg(weight), sg(g), sg(kA), iterations))
-        d = s_star[:, None] * cosj - g
-        act = sg(d > 0)
-        f = jnp.sum(jnp.where(act, kA * d * weight, 0.0), 1) - load
-        df = sg(jnp.sum(jnp.where(act, kA * cosj * weight, 0.0), 1))
-        s = s_star - f / jnp.where(df > 0, df, 1.0)
-        delta = s[:, None] * cosj - g
-        pressure = jnp.where(delta > 0, k * delta, 0.0)
-        e = jnp.stack([s * jnp.cos(angle), s * jnp.sin(angle)], axis=1)
-        res_vec = jnp.sum(pressure * area * weight, 1) - load
-        resid = jnp.abs(res_vec) / jnp.maximum(load, 1e-300)
-        return pressure, e, jnp.where(load > 0, resid, 0.0), jnp.asarray(0)
 
+def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
+    ux, uy = jnp.cos(angle), jnp.sin(angle)
+    W = jnp.stack([load * ux, load * uy], axis=1)
+    kA = k * area
     cap = 0.25 * sg(jnp.min(g))
-    newton = lambda e_init, its: _newton_2d(
-        e_init, nx, ny, sg(mx), sg(my), sg(g), sg(kA), sg(W), sg(load), its, tol, True, cap)
+    newton = lambda e_init, its: _newton_2d(e_init, nx, ny, sg(g), sg(kA), sg(W), sg(load),
+                                            its, tol, cap)
 
     def cold():
-        s0 = _newton_1d(sg(load), sg(cosj), sg(weight), sg(g), sg(kA), iterations)
-        return jnp.stack([s0 * sg(ux[:, 0]), s0 * sg(uy[:, 0])], axis=1)
+        cosj = nx * sg(ux)[:, None] + ny * sg(uy)[:, None]
+        s0 = _newton_1d(sg(load), cosj, sg(g), sg(kA), iterations)
+        return jnp.stack([s0 * sg(ux), s0 * sg(uy)], axis=1)
 
     if start is None:
-        e_star, its = newton(cold(), iterations)
+        e_star, r_star, its = newton(cold(), iterations)
     else:
         # Warm start, moved out along the load until it touches the (further worn) bore.
         e0 = sg(start)
         gap = jnp.max(e0[:, 0:1] * nx + e0[:, 1:2] * ny - sg(g), axis=1)
-        e0 = e0 - jnp.minimum(gap, 0.0)[:, None] * jnp.concatenate([sg(ux), sg(uy)], 1)
-        e_star, its = newton(e0, min(iterations, 12))
-        r_w, _ = _residual_2d(e_star, nx, ny, sg(mx), sg(my), sg(g), sg(kA), sg(W))
-        bad = jnp.linalg.norm(r_w, axis=1) > tol * jnp.maximum(sg(load), 1e-300)
-        # Rare: the warm start failed somewhere; redo those steps from the cold start.
-        e_star, its = lax.cond(
-            jnp.any(bad),
-            lambda: (lambda ec: (jnp.where(bad[:, None], ec[0], e_star), its + ec[1]))(
-                newton(cold(), iterations)),
-            lambda: (e_star, its))
+        e0 = e0 - jnp.minimum(gap, 0.0)[:, None] * jnp.stack([sg(ux), sg(uy)], 1)
+        e_star, r_star, its = newton(e0, min(iterations, 12))
+        bad = jnp.linalg.norm(r_star, axis=1) > tol * jnp.maximum(sg(load), 1e-300)
+
+        def redo():  # rare: the warm start failed somewhere; redo those steps cold
+            ec, rc, ic = newton(cold(), iterations)
+            return (jnp.where(bad[:, None], ec, e_star), jnp.where(bad[:, None], rc, r_star),
+                    its + ic)
+
+        e_star, r_star, its = lax.cond(jnp.any(bad), redo, lambda: (e_star, r_star, its))
     e_star = sg(e_star)
-    r, d = _residual_2d(e_star, nx, ny, mx, my, g, kA, W)
-    jac = jax.tree_util.tree_map(sg, _jacobian_2d(sg(d), nx, ny, sg(mx), sg(my), sg(kA)))
-    e = e_star - _solve2(jac, r)
+    r, d, _ = _forces(e_star, nx, ny, g, kA, W)  # differentiable in g, k, W
+    e = e_star - _solve2(tuple(map(sg, _hessian(sg(d), nx, ny, kA))), r)
     delta = e[:, 0:1] * nx + e[:, 1:2] * ny - g
     pressure = jnp.where(delta > 0, k * delta, 0.0)
-    q = pressure * area
-    res = jnp.stack([jnp.sum(q * mx, 1), jnp.sum(q * my, 1)], axis=1) - W
-    resid = jnp.linalg.norm(res, axis=1) / jnp.maximum(load, 1e-300)
-    return pressure, e, jnp.where(load > 0, resid, 0.0), its
+    res = jnp.linalg.norm(sg(r_star), axis=1) / jnp.maximum(sg(load), 1e-300)
+    return ContactSolution(pressure, e, jnp.where(load > 0, res, 0.0), its)
 
 
 def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k: NodeArray,
@@ -256,14 +240,12 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
     - `h`: wear depth [m], (nodes,). `clearance`: c [m]. `k`: stiffness [Pa/m], (nodes,).
     - `area`: A_j [m²] (scalar). `contact`: `"unsymmetric"` or `"symmetric"`.
     - `friction`: None, or μ·s per step (steps,): Coulomb friction adds μ s t_j to each
-      node's force direction (DESIGN §5). Since n_j + μ s t_j = √(1+μ²) R(β) n_j with
-      tan β = μ s, the equation Σ p_j A_j (n_j + μ s t_j) = W is the frictionless one for
-      the load R(-β) W / √(1+μ²): friction is solved exactly as a rotated, reduced load.
+      node's force direction (DESIGN §5), solved as the rotated, reduced load (see above).
     - `start`: optional warm start for the offsets (steps, 2) [m], e.g. the previous wear
       update's solution; by default the exact 1-D solution along the load.
 
-    **Returns:** a `ContactSolution`; `residual` is the relative force residual, which the
-    caller checks (never assumed).
+    **Returns:** a `ContactSolution`; `residual` is the relative force residual of the
+    converged Newton iterate, which the caller checks (never assumed).
     """
     if friction is not None:
         angle = angle - jnp.arctan(friction)
@@ -271,17 +253,11 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
     nodes = h.shape[0]
     # Normals as host constants: computed inside the trace, XLA re-evaluates the cosines in
     # every fused Newton pass (measured: 10x slower).
-    th_np = 2 * np.pi * np.arange(nodes) / nodes
-    cos_all, sin_all = jnp.asarray(np.cos(th_np))[None, :], jnp.asarray(np.sin(th_np))[None, :]
+    th = 2 * np.pi * np.arange(nodes) / nodes
+    nx, ny = jnp.asarray(np.cos(th))[None, :], jnp.asarray(np.sin(th))[None, :]
     if contact == "symmetric":
-        # Traditional Winkler: a circle through the loaded node (gap and stiffness of the
-        # bore at θ_W for every node), pin displaced along the load only.
-        g_all = jnp.broadcast_to(clearance + interp_periodic(h, angle)[:, None],
-                                 (angle.shape[0], nodes))
-        k_all = jnp.broadcast_to(interp_periodic(k, angle)[:, None], (angle.shape[0], nodes))
-    else:
-        g_all = jnp.broadcast_to((clearance + h)[None, :], (1, nodes))
-        k_all = k[None, :]
-    p, e, r, it = _solve_nodes(load, angle, cos_all, sin_all, g_all, k_all, area, contact,
-                               iterations, tol, start)
-    return ContactSolution(p, e, r, it)
+        g = (clearance + interp_periodic(h, angle))[:, None]
+        kw = interp_periodic(k, angle)[:, None]
+        return _symmetric(load, angle, nx, ny, g, kw, area, iterations)
+    return _unsymmetric(load, angle, nx, ny, (clearance + h)[None, :], k[None, :], area,
+                        iterations, tol, start)
