@@ -125,8 +125,12 @@ def _solve2(hess, r, ridge=0.0):
     ridge = ridge + 1e-12 * (hxx + hyy) + 1e-300
     hxx, hyy = hxx + ridge, hyy + ridge
     det = hxx * hyy - hxy * hxy
-    return jnp.stack([(hyy * r[:, 0] - hxy * r[:, 1]) / det,
-                      (-hxy * r[:, 0] + hxx * r[:, 1]) / det], axis=1)
+    # No active node at all (zero load): no step, and no 0/0 in the gradient either.
+    ok = det > 0
+    det = jnp.where(ok, det, 1.0)
+    x = jnp.stack([(hyy * r[:, 0] - hxy * r[:, 1]) / det,
+                   (-hxy * r[:, 0] + hxx * r[:, 1]) / det], axis=1)
+    return jnp.where(ok[:, None], x, 0.0)
 
 
 def _newton_2d(e0, nx, ny, g, kA, W, wnorm, iters, tol, cap):
