@@ -9,6 +9,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from ._calibrate import FitError as FitError  # noqa: E402
+from ._calibrate import FitResult as FitResult  # noqa: E402
+from ._calibrate import calibrate as calibrate  # noqa: E402
 from ._config import ModelConfig as ModelConfig  # noqa: E402
 from ._contact import ContactSolution as ContactSolution  # noqa: E402
 from ._contact import solve_contact as solve_contact  # noqa: E402
@@ -22,6 +25,12 @@ from ._params import Params as Params  # noqa: E402
 from ._params import preset as preset  # noqa: E402
 from ._schedule import Schedule as Schedule  # noqa: E402
 from ._schedule import make_schedule as make_schedule  # noqa: E402
+from ._sensitivity import Sensitivities as Sensitivities  # noqa: E402
+from ._sensitivity import sensitivities as sensitivities  # noqa: E402
+from ._sensitivity import study_sensitivities as study_sensitivities  # noqa: E402
+from ._study import load_study as load_study  # noqa: E402
+from ._sweep import SweepResult as SweepResult  # noqa: E402
+from ._sweep import sweep as sweep  # noqa: E402
 from ._wear import WearResult as WearResult  # noqa: E402
 from ._wear import simulate as simulate  # noqa: E402
 from ._wear import wear_loop as wear_loop  # noqa: E402

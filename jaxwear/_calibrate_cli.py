@@ -38,7 +38,7 @@ def _inputs(study):
 def fit_spec(args, study) -> str | list[str]:
     """--fit wins; without it (or with the default) the study's `[fit] parameters`."""
     given = getattr(args, "fit", None)
-    if (given is None or given == DEFAULT_FIT) and study.fit:
+    if given is None and study.fit:
         return list(study.fit)
     return given or DEFAULT_FIT
 
@@ -57,9 +57,9 @@ def summary_text(result: FitResult, study_name: str) -> str:
     status = "converged" if result.converged else "NOT CONVERGED"
     lines.append(f"fit: {status} after {result.iterations} model evaluations ({result.message})")
     w = max([len("parameter")] + [len(n) for n in result.names]) + 2
-    lines.append(f"{'parameter':<{w}}{'value':>14}   {'± SE':<12}{'unit'}")
+    lines.append(f"{'parameter':<{w}}{'value':>14}   {'± SE':<15}{'unit'}")
     for n, v, s in zip(result.names, result.values, result.stderr):
-        lines.append(f"{n:<{w}}{_fmt(v):>14}   ± {_fmt(s):<10}{unit_of(n)}")
+        lines.append(f"{n:<{w}}{_fmt(v):>14}   ± {_fmt(s):<13}{unit_of(n)}")
     lines.append(f"RMSE {result.rmse_um:.4g} µm overall (noise estimate {result.noise_um:.4g} µm)")
     for name, r in result.rmse_per_experiment.items():
         lines.append(f"  {name:<{w}}{r:.4g} µm")
@@ -122,7 +122,9 @@ def plot_fits(out, study, result: FitResult):
         points = e.snapshot_points
         if e.history is not None:
             model = result.snapshots_um[ei, :len(points)].max(axis=1) / 1e3
-            top.plot(points, model, "k-o", ms=3, label="fitted model")
+            # a fresh bore at t = 0 (no wear), for a readable curve from the origin
+            top.plot([0.0] + list(points), [0.0] + list(model), "k-o", ms=3,
+                     label="fitted model")
             top.plot(x[rows], result.measured_um[rows] / 1e3, "s", color="tab:red",
                      label="measured")
             top.set_ylabel("maximum depth [mm]")
@@ -136,8 +138,11 @@ def plot_fits(out, study, result: FitResult):
                 label = f"fitted, {s:g} rev" if len(points) > 1 else "fitted model"
                 top.plot(angles, np.append(prof, prof[0]), "-", color=c, lw=1.4, label=label)
                 m = rows & (snap == si)
+                last = si == len(points) - 1
+                label = None if not last else (
+                    "measured (same colours)" if len(points) > 1 else "measured")
                 top.plot(x[m], result.measured_um[m], "o", ms=3, color=c, alpha=0.8,
-                         mfc="none", label="measured" if si == len(points) - 1 else None)
+                         mfc="none", label=label)
                 bot.plot(x[m], result.residuals_um[m], "o", ms=3, color=c)
             top.set_ylabel("wear depth [µm]")
             bot.set_xlabel("bushing angle θ [deg] (from B→D, counter-clockwise)")
@@ -177,6 +182,9 @@ def cmd_calibrate(args):
     out = OutputDir(args.out, inputs)
     keys = parse_fit(study, fit_spec(args, study))
     problem = build_problem(study, keys)
+    if not problem.names:
+        raise InputError(f"{study.path}: nothing to fit: {', '.join(keys)} requested, and "
+                         f"[fit] clearance_tolerance_um = 0 fixes the clearances")
     n_exp = len(study.experiments)
     print(f"calibrate: {n_exp} experiments, {problem.n_data} data rows, fitting "
           f"{', '.join(problem.names) or 'nothing'} (first call compiles the model)",

@@ -15,8 +15,9 @@ def _lazy(module: str, func: str):
 def add_verbs(sub):
     c = sub.add_parser("calibrate", help="fit K_d, clearances (and effect strengths) to data")
     c.add_argument("study")
-    c.add_argument("--fit", default="K_d,clearance",
-                   help="comma-separated: K_d, clearance, or any study parameter key")
+    c.add_argument("--fit", default=None,
+                   help="comma-separated: K_d, clearance, or any study parameter key "
+                        "(default: the study's [fit] parameters, else K_d,clearance)")
     c.add_argument("--out", default="jaxwear_out")
     c.add_argument("--json", default=None, help="write the result as JSON to this file")
     c.set_defaults(func=_lazy("_calibrate_cli", "cmd_calibrate"))

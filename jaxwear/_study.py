@@ -337,6 +337,9 @@ def load_study(path) -> Study:
                 _fail(path, f"{where}.history must be a file name")
             history = read_history(path.parent / e["history"])
         revs = hours = None
+        if config.driver == "crank_slider" and history is not None:
+            _fail(path, f"{where}: 'history' (depth vs hours) is for the oscillating joint "
+                        f"(preset \"boom\"); a crank-slider experiment takes a 'profile'")
         if config.driver == "crank_slider":
             if "revolutions" not in e:
                 _fail(path, f"{where}: missing key 'revolutions'")

@@ -1,0 +1,308 @@
+"""Batched parameter sweeps: one compiled, batched wear loop over a grid of named parameters.
+
+`sweep(...)` runs the outer product of any study keys' values (speed, clearance, K_d, an
+effect strength...), a fixed-size chunk of grid points at a time (`jax.vmap`, or `lax.map`
+on CPU where that is faster), so memory stays bounded and every chunk reuses one
+compilation. Results are numpy arrays shaped by the grid, with
+the axes named by their study keys. The CLI verb `jaxwear sweep` sweeps speed and clearance
+around a study's first experiment.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._config import ModelConfig
+from ._errors import InputError
+from ._params import PARAMETER_KEYS, Params, key_to_si
+from ._schedule import Schedule
+from ._wear import build_schedule, node_area, wear_loop
+from .effects import effect_parameter_specs
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """Outcome of a sweep; every array has the grid's shape `tuple(len(v) for v in axes)`.
+
+    - `axes`: axis name (study key) → values in the key's unit, in grid order.
+    - `peak_depth_um`, `peak_angle_deg`: maximum of the final profile and where it is.
+    - `worn_volume_mm3`: Σ h_j A_j of the final profile.
+    - `worn_through_cycle`: revolution / swing cycle at which the layer wore through (-1:
+      never). Where it is ≥ 0 the other numbers describe a bore worn past its layer and are
+      not physical (`valid` is False there).
+    - `max_contact_residual`: largest relative contact force residual met.
+    - `depth_um`: final profiles, shape grid + (nodes,).
+    """
+
+    axes: dict
+    peak_depth_um: np.ndarray
+    peak_angle_deg: np.ndarray
+    worn_volume_mm3: np.ndarray
+    worn_through_cycle: np.ndarray
+    max_contact_residual: np.ndarray
+    depth_um: np.ndarray
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(len(v) for v in self.axes.values())
+
+    @property
+    def valid(self) -> np.ndarray:
+        """True where the layer did not wear through and the contact converged."""
+        return (self.worn_through_cycle < 0) & (self.max_contact_residual < 1e-9)
+
+    def points(self) -> dict:
+        """Axis values at every grid point, each flattened in C order (like `.ravel()`)."""
+        mesh = np.meshgrid(*self.axes.values(), indexing="ij")
+        return {k: m.ravel() for k, m in zip(self.axes, mesh)}
+
+
+def _check_grid(p: Params, cfg: ModelConfig, grid: dict) -> dict:
+    if not grid:
+        raise InputError("sweep: the grid is empty; give at least one parameter and its values")
+    specs = effect_parameter_specs()
+    out = {}
+    for key, vals in grid.items():
+        if key not in PARAMETER_KEYS and key not in specs:
+            raise InputError(f"sweep: unknown parameter {key!r}; expected a study key such as "
+                             f"speed_rpm or clearance_mm")
+        if cfg.driver == "oscillating" and key == "swing_period_s":
+            raise InputError("sweep: swing_period_s changes the number of cycles of an "
+                             "oscillating joint's schedule; sweep it with separate runs")
+        if cfg.driver == "oscillating" and key in ("speed_rpm", "crank_length_mm",
+                                                   "coupler_length_mm"):
+            raise InputError(f"sweep: {key} does not enter an oscillating joint")
+        v = np.atleast_1d(np.asarray(vals, dtype=np.float64))
+        if v.ndim != 1 or v.size == 0 or not np.all(np.isfinite(v)):
+            raise InputError(f"sweep: {key} needs a non-empty 1-D list of finite values")
+        if key in PARAMETER_KEYS and PARAMETER_KEYS[key].positive and np.any(v <= 0):
+            raise InputError(f"sweep: {key} values must be > 0, got {v.min():g}")
+        if key == "clearance_mm" and np.any(v * 1e-3 >= float(p.bore_radius)):
+            raise InputError(f"sweep: clearance_mm must be < the bore radius "
+                             f"{float(p.bore_radius) * 1e3:g} mm")
+        out[key] = v
+    return out
+
+
+def _outputs(p, cfg, sched, keys, vals):
+    q = p.with_values({k: vals[i] for i, k in enumerate(keys)})
+    r = wear_loop(q, cfg, sched)
+    return (r.depth, r.worn_volume, r.worn_through_cycle, r.max_residual,
+            node_area(q, cfg.nodes))
+
+
+@eqx.filter_jit
+def _run_chunk(p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple, vals, method: str):
+    """The wear loop at `vals` (chunk, keys) [SI], batched over the chunk."""
+    one = lambda v: _outputs(p, cfg, sched, keys, v)
+    if method == "vmap":
+        return jax.vmap(one)(vals)
+    return jax.lax.map(one, vals)
+
+
+def _method(method: str) -> str:
+    if method not in ("auto", "vmap", "map"):
+        raise ValueError(f"sweep: method must be 'auto', 'vmap' or 'map', got {method!r}")
+    if method == "auto":
+        # Measured on CPU (64 nodes x 72 steps, 16 points): lax.map 0.035 s/point, vmap
+        # 0.20 s/point. Batched, the contact solver's while loops run until the slowest lane
+        # converges and its warm-start fallback (a lax.cond) becomes a select that always
+        # runs the cold solve; a CPU has no idle lanes to fill. Accelerators do.
+        return "map" if jax.default_backend() == "cpu" else "vmap"
+    return method
+
+
+def _base(base, cfg, revolutions, hours, M, experiment):
+    from ._study import Study
+
+    if isinstance(base, Study):
+        exp = base.experiments[experiment]
+        p = base.params(exp)
+        cfg = base.config if cfg is None else cfg
+        if revolutions is None and hours is None:
+            revolutions, hours = exp.revolutions, exp.hours
+        M = base.revolutions_per_update if M is None else M
+    elif isinstance(base, Params):
+        p = base
+        if cfg is None:
+            raise TypeError("sweep: pass a ModelConfig `cfg` with a Params base")
+    else:
+        raise TypeError(f"sweep: base must be a Study or Params, got {type(base).__name__}")
+    return p, cfg, revolutions, hours, (100.0 if M is None else M)
+
+
+def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
+          revolutions=None, hours=None, M: float | None = None, chunk: int = 16,
+          experiment: int = 0, method: str = "auto", progress: bool = False) -> SweepResult:
+    """Wear over the outer product of parameter values, batched in compiled chunks.
+
+    **Arguments:**
+    - `base`: a `Study` (its experiment `experiment` gives parameters, config, revolutions
+      or hours and M) or a `Params` (then `cfg` and `revolutions`/`hours` are needed).
+    - `grid`: study key → 1-D values in the key's unit, e.g.
+      `{"speed_rpm": np.linspace(100, 300, 21), "clearance_mm": [0.05, 0.1]}`; the
+      result's axes follow this order.
+    - `chunk`: grid points per batched call; memory grows with it, compilation happens once
+      (the last chunk is padded by repeating a point).
+    - `method`: `"vmap"` (one batched wear loop per chunk), `"map"` (`lax.map`: the chunk's
+      points one after the other inside one compiled call) or `"auto"`: `"map"` on CPU,
+      where it is ~6x faster, `"vmap"` on GPU/TPU.
+    - `progress`: report chunks on stderr.
+
+    **Returns:** a `SweepResult`. Each point equals `simulate` at that point: same schedule
+    (the bucketed one `simulate` builds), same wear loop.
+    """
+    p, cfg, revolutions, hours, M = _base(base, cfg, revolutions, hours, M, experiment)
+    method = _method(method)
+    grid = _check_grid(p, cfg, dict(grid or {}))
+    sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, M=M)
+    keys = tuple(grid)
+    shape = tuple(len(v) for v in grid.values())
+    mesh = np.meshgrid(*grid.values(), indexing="ij")
+    si = np.stack([m.ravel() * key_to_si(k) for k, m in zip(keys, mesh)], axis=1)
+    total = si.shape[0]
+    chunk = max(1, min(int(chunk), total))
+    parts = []
+    t0 = time.perf_counter()
+    for start in range(0, total, chunk):
+        block = si[start:start + chunk]
+        n = block.shape[0]
+        if n < chunk:  # pad: one compiled chunk size for the whole sweep
+            block = np.concatenate([block, np.repeat(block[-1:], chunk - n, axis=0)])
+        out = jax.device_get(_run_chunk(p, cfg, sched, keys, jnp.asarray(block), method))
+        parts.append([np.asarray(o)[:n] for o in out])
+        if progress:
+            print(f"  sweep: {min(start + chunk, total)}/{total} points "
+                  f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr, flush=True)
+    depth, vol, worn, resid, area = (np.concatenate(x) for x in zip(*parts))
+    depth_um = depth * 1e6
+    nodes = cfg.nodes
+    peak_idx = np.argmax(depth_um, axis=1)
+    return SweepResult(
+        axes=dict(grid),
+        peak_depth_um=depth_um.max(axis=1).reshape(shape),
+        peak_angle_deg=(peak_idx * 360.0 / nodes).reshape(shape),
+        worn_volume_mm3=(vol * 1e9).reshape(shape),
+        worn_through_cycle=worn.reshape(shape),
+        max_contact_residual=resid.reshape(shape),
+        depth_um=depth_um.reshape(shape + (nodes,)))
+
+
+def parse_range(option: str, text: str) -> np.ndarray:
+    """`START:STOP:COUNT` (inclusive, evenly spaced), `A,B,C` or a single value."""
+    text = str(text).strip()
+    try:
+        if ":" in text:
+            a, b, n = text.split(":")
+            count = int(n)
+            if count < 1 or str(count) != n.strip():
+                raise ValueError
+            vals = np.linspace(float(a), float(b), count)
+        else:
+            vals = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise InputError(f"{option} {text!r}: expected START:STOP:COUNT (e.g. 100:300:21), "
+                         f"a comma-separated list or one value") from None
+    if not np.all(np.isfinite(vals)):
+        raise InputError(f"{option} {text!r}: values must be finite")
+    return vals
+
+
+def _heatmap(path, title, label, res: SweepResult, z):
+    from ._report import plt
+
+    pl = plt()
+    names = list(res.axes)
+    fig, ax = pl.subplots(figsize=(6.4, 4.6))
+    z = np.where(res.valid, z, np.nan)
+    if len(names) == 2 and min(res.shape) > 1:
+        x, y = res.axes[names[1]], res.axes[names[0]]
+        im = ax.pcolormesh(x, y, z, shading="nearest", cmap="viridis")
+        fig.colorbar(im, ax=ax, label=label)
+        ax.set_xlabel(names[1])
+        ax.set_ylabel(names[0])
+        if not res.valid.all():
+            yy, xx = np.nonzero(~res.valid)
+            ax.plot(x[xx], y[yy], "x", color="tab:red", label="layer worn through")
+            ax.legend(fontsize=8)
+    else:  # one axis with several values: a line
+        k = next((i for i, s in enumerate(res.shape) if s > 1), 0)
+        ax.plot(res.axes[names[k]], z.ravel(), "k-o", ms=3)
+        ax.set_xlabel(names[k])
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pl.close(fig)
+
+
+def cmd_sweep(args):
+    """`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11`."""
+    from ._report import OutputDir
+    from ._study import load_study
+
+    study = load_study(args.study)
+    exp = study.experiments[0]
+    p = study.params(exp)
+    osc = study.config.driver == "oscillating"
+    grid = {}
+    if args.speed_rpm is not None:
+        if osc:
+            raise InputError("--speed-rpm: the study's joint is oscillating (no crank speed); "
+                             "sweep --clearance-mm only")
+        grid["speed_rpm"] = parse_range("--speed-rpm", args.speed_rpm)
+    if args.clearance_mm is not None:
+        grid["clearance_mm"] = parse_range("--clearance-mm", args.clearance_mm)
+    if not grid:
+        raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
+                         "--clearance-mm START:STOP:COUNT")
+    inputs = [study.path] + [d.path for e in study.experiments
+                             for d in (e.profile, e.history) if d is not None]
+    out = OutputDir(args.out, inputs)
+    total = math.prod(len(v) for v in grid.values())
+    what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
+    print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first chunk "
+          f"compiles the model", file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    res = sweep(study, grid=grid, progress=True)
+    dt = time.perf_counter() - t0
+    pts = res.points()
+    cols = ["clearance_mm"] if osc else ["speed_rpm", "clearance_mm"]
+    fixed = {k: float(p.get(k)) / key_to_si(k) for k in cols}
+    valid = res.valid.ravel()
+    rows = []
+    for i in range(total):
+        keyvals = [pts[k][i] if k in pts else fixed[k] for k in cols]
+        ok = valid[i]
+        rows.append(keyvals + [res.peak_depth_um.ravel()[i] if ok else np.nan,
+                               res.worn_volume_mm3.ravel()[i] if ok else np.nan,
+                               res.peak_angle_deg.ravel()[i] if ok else np.nan,
+                               res.worn_through_cycle.ravel()[i]])
+    unit = "cycle" if osc else "revolution"
+    out.write_csv("sweep.csv", cols + ["peak_depth_um", "worn_volume_mm3", "peak_angle_deg",
+                                       f"worn_through_{unit}"], rows)
+    _heatmap(out.path("sweep_peak_depth.png"), f"{exp.name}, {what}: peak wear depth",
+             "peak depth [µm]", res, res.peak_depth_um)
+    _heatmap(out.path("sweep_worn_volume.png"), f"{exp.name}, {what}: worn volume",
+             "worn volume [mm³]", res, res.worn_volume_mm3)
+    v = res.valid
+    print(f"sweep of {total} points in {dt:.1f} s: peak depth "
+          f"{np.nanmin(np.where(v, res.peak_depth_um, np.nan)):.4g} to "
+          f"{np.nanmax(np.where(v, res.peak_depth_um, np.nan)):.4g} µm, worn volume "
+          f"{np.nanmin(np.where(v, res.worn_volume_mm3, np.nan)):.4g} to "
+          f"{np.nanmax(np.where(v, res.worn_volume_mm3, np.nan)):.4g} mm³"
+          if v.any() else f"sweep of {total} points in {dt:.1f} s: every point wore through")
+    if not v.all():
+        print(f"{int((~v).sum())} points wore through the layer (or the contact did not "
+              f"converge): NaN in sweep.csv, marked in the plots")
+    print(f"wrote {out.root / 'sweep.csv'}, sweep_peak_depth.png, sweep_worn_volume.png")
+    return res
