@@ -185,6 +185,10 @@ def cmd_calibrate(args):
     if not problem.names:
         raise InputError(f"{study.path}: nothing to fit: {', '.join(keys)} requested, and "
                          f"[fit] clearance_tolerance_um = 0 fixes the clearances")
+    from ._simulate_study import amplification_warnings
+
+    for line in amplification_warnings(study):
+        print(line, file=sys.stderr, flush=True)
     n_exp = len(study.experiments)
     print(f"calibrate: {n_exp} experiments, {problem.n_data} data rows, fitting "
           f"{', '.join(problem.names) or 'nothing'} (first call compiles the model)",

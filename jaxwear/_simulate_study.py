@@ -9,11 +9,26 @@ import numpy as np
 
 from ._contact import solve_contact, stiffness_per_area
 from ._study import Experiment, Study
-from ._wear import WearResult, check_result, node_area, simulate
+from ._wear import WearResult, check_result, node_area, simulate, stable_amplification
 
 
 def progress(msg: str):
     print(msg, file=sys.stderr, flush=True)
+
+
+def amplification_warnings(study: Study) -> list[str]:
+    """A line for each experiment whose M exceeds the explicit-update stability estimate."""
+    out = []
+    M = study.revolutions_per_update
+    for exp in study.experiments:
+        limit = stable_amplification(study.params(exp), study.config)
+        if M > limit:
+            out.append(f"warning: {exp.name}: revolutions_per_update = {M:g} exceeds the "
+                       f"stability estimate {limit:.3g} of the explicit wear update for this "
+                       f"joint (stiff layer or large K_d); the profile may oscillate. Use "
+                       f"[numerics] revolutions_per_update <= {max(1, int(limit)):d} and "
+                       f"compare with a smaller value.")
+    return out
 
 
 def run_experiment(study: Study, exp: Experiment, *, M=None, check=True) -> WearResult:
@@ -46,6 +61,8 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
     angles = np.arange(n) * 360.0 / n
     rows, snap_rows, summary = [], [], {}
     osc = study.config.driver == "oscillating"
+    for line in amplification_warnings(study):
+        progress(line)
     for i, exp in enumerate(study.experiments, start=1):
         t0 = time.perf_counter()
         what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"

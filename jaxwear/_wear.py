@@ -156,6 +156,23 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
 _wear_loop_jit = eqx.filter_jit(wear_loop)
 
 
+def stable_amplification(p: Params, cfg: ModelConfig) -> float:
+    """Largest M for which the explicit wear update (eq 23) is expected to stay stable.
+
+    Linearised, one update changes the wear rate at a loaded node by -M K_d k S_c times the
+    extra depth (k the foundation stiffness, S_c the sliding per cycle), so the update is a
+    stable, non-oscillating relaxation only while M K_d k S_c stays below ~2. We use the
+    whole cycle's sliding for S_c (a node touches for part of it), which makes the estimate
+    conservative: measured onset of trouble at M ≈ 2500 on the rig (estimate 1400) and
+    M ≈ 20 on the stiff bimetal boom bearing (estimate ~6).
+    """
+    hist = load_history(p, cfg)
+    k = float(jnp.max(stiffness_per_area(jnp.zeros(1), p, cfg.double_layer)))
+    s = float(jnp.max(jnp.sum(hist.slide, axis=1)))
+    rate = float(p.wear_coefficient) * k * s
+    return math.inf if not rate > 0 else 2.0 / rate
+
+
 def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
                    snapshots=(), M: float = 100, pad: bool = True) -> Schedule:
     """Schedule for a crank-slider run of `revolutions` or an oscillating run of `hours`;
