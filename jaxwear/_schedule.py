@@ -31,6 +31,8 @@ class Schedule(eqx.Module):
     snapshot: Int[Array, " updates"]
     cycle_end: Float[Array, " updates"]
     n_snapshots: int = eqx.field(static=True)
+    # requested snapshot i is the order[i]-th distinct count in increasing order
+    order: tuple = eqx.field(static=True, default=())
 
     @property
     def updates(self) -> int:
@@ -39,12 +41,15 @@ class Schedule(eqx.Module):
 
 def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> Schedule:
     """Schedule for consecutive `segments` [(regime, cycles)], snapshots at cumulative
-    cycle counts `snapshots` (each ≤ total), at most `M` cycles per update.
+    cycle counts `snapshots` (each ≤ total, in any order, repeats allowed: the wear loop
+    returns them in the order asked), at most `M` cycles per update.
     """
     if not (M > 0):
         raise InputError(f"revolutions_per_update must be > 0, got {M}")
     total = sum(c for _, c in segments)
-    snaps = sorted(float(s) for s in snapshots)
+    requested = [float(s) for s in snapshots]
+    snaps = sorted(set(requested))
+    order = tuple(snaps.index(s) for s in requested)
     for s in snaps:
         if s <= 0 or s > total * (1 + 1e-12):
             raise InputError(f"snapshot at {s:g} cycles is outside (0, {total:g}]")
@@ -79,7 +84,7 @@ def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> S
         end_arr = np.concatenate([end_arr, np.full(extra, end_arr[-1] if n else 0.0)])
     return Schedule(cycles=jnp.asarray(cyc, jnp.float64), regime=jnp.asarray(reg, jnp.int32),
                     snapshot=jnp.asarray(snap_idx), cycle_end=jnp.asarray(end_arr, jnp.float64),
-                    n_snapshots=len(snaps))
+                    n_snapshots=len(snaps), order=order)
 
 
 def crank_segments(revolutions: float):

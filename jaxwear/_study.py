@@ -205,8 +205,9 @@ def _check_geometry(path, where, params: Params):
     if not c > 0:
         _fail(path, f"{where}: clearance_mm must be > 0, got {c * 1e3:g}")
     if not c < rb:
-        _fail(path, f"{where}: pin diameter must be < bore diameter (clearance_mm {c * 1e3:g} "
-                    f"≥ bore radius {rb * 1e3:g} mm)")
+        _fail(path, f"{where}: pin_diameter_mm must be < bore_diameter_mm (pin "
+                    f"{(rb - c) * 2e3:g} mm from clearance_mm {c * 1e3:g} and bore "
+                    f"{rb * 2e3:g} mm)")
     if not float(params.layer_poisson) < 0.5:
         _fail(path, f"{where}: layer_poisson_ratio must be < 0.5")
 

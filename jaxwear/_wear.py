@@ -148,6 +148,8 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
               jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0,
               jnp.broadcast_to(lax.stop_gradient(h0), (n_reg, n)))
     (h, S, snaps, vol, res, its, worn, *_), _ = lax.scan(block, carry0, xs)
+    if schedule.order and list(schedule.order) != list(range(schedule.n_snapshots)):
+        snaps = snaps[jnp.asarray(schedule.order)]
     return WearResult(depth=h, snapshots=snaps, sliding_distance=S,
                       worn_volume=jnp.sum(h) * area, archard_volume=vol, max_residual=res,
                       max_iterations=its, worn_through_cycle=worn, history=hist)
@@ -214,11 +216,13 @@ def simulate(p: Params, cfg: ModelConfig = ModelConfig(), *, revolutions=None, h
 
 
 def check_result(res: WearResult, cfg: ModelConfig, what: str = "simulation"):
-    worn = float(res.worn_through_cycle)
+    worn = float(jnp.max(res.worn_through_cycle))
+    unit = "swing cycle" if cfg.driver == "oscillating" else "revolution"
+    residual = float(jnp.max(res.max_residual))
+    if not residual < 1e-9:
+        also = f"; the layer also reached its thickness at {unit} {worn:.0f}" if worn >= 0 else ""
+        raise RuntimeError(f"{what}: contact solve did not converge (relative force residual "
+                           f"{residual:.2e} ≥ 1e-9){also}")
     if worn >= 0:
-        unit = "swing cycle" if cfg.driver == "oscillating" else "revolution"
         raise WornThroughError(f"{what}: the bushing layer is worn through at {unit} "
                                f"{worn:.0f} (h ≥ layer thickness)")
-    if not float(res.max_residual) < 1e-9:
-        raise RuntimeError(f"{what}: contact solve did not converge (relative force residual "
-                           f"{float(res.max_residual):.2e} ≥ 1e-9); try more nodes")

@@ -1,0 +1,27 @@
+"""Shared set-up of the physics tests.
+
+`jaxwear` is the first JAX-related import, so float64 (`jax_enable_x64`) is on before any
+array is made; every tolerance in these tests assumes 64-bit floats.
+"""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+import jaxwear
+
+# tests/ on the path so that `import helpers` works whatever the import mode.
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+def pytest_configure(config):
+    import jax
+
+    assert jax.config.jax_enable_x64, "importing jaxwear must switch JAX to float64"
+
+
+@pytest.fixture(scope="session")
+def rig():
+    """Rig preset: Tables 1 and 3, 276 r/min, k = 1009.4 N/m, x0 = L2 - L1 (DESIGN §8)."""
+    return jaxwear.preset("rig")
