@@ -9,7 +9,14 @@ import numpy as np
 
 from ._contact import solve_contact, stiffness_per_area
 from ._study import Experiment, Study
-from ._wear import WearResult, check_result, node_area, simulate, stable_amplification
+from ._wear import (
+    WearResult,
+    build_schedule,
+    check_result,
+    node_area,
+    simulate,
+    stable_amplification,
+)
 
 
 def progress(msg: str):
@@ -31,12 +38,21 @@ def amplification_warnings(study: Study) -> list[str]:
     return out
 
 
-def run_experiment(study: Study, exp: Experiment, *, M=None, check=True) -> WearResult:
+def common_length(study: Study, M=None) -> int:
+    """Update count (bucketed) that fits every experiment: one compilation for the study."""
+    M = study.revolutions_per_update if M is None else M
+    return max(build_schedule(study.params(e), study.config, revolutions=e.revolutions,
+                              hours=e.hours, snapshots=e.snapshot_points, M=M).updates
+               for e in study.experiments)
+
+
+def run_experiment(study: Study, exp: Experiment, *, M=None, check=True,
+                   pad_to: int | None = None) -> WearResult:
     """Simulate one experiment with snapshots at its measured revolution counts / hours."""
     p = study.params(exp)
     M = study.revolutions_per_update if M is None else M
     res = simulate(p, study.config, revolutions=exp.revolutions, hours=exp.hours,
-                   snapshots=exp.snapshot_points, M=M, check=False)
+                   snapshots=exp.snapshot_points, M=M, check=False, pad_to=pad_to)
     if check:
         check_result(res, study.config, f"experiment {exp.name!r}")
     return res
@@ -63,11 +79,12 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
     osc = study.config.driver == "oscillating"
     for line in amplification_warnings(study):
         progress(line)
+    length = common_length(study)
     for i, exp in enumerate(study.experiments, start=1):
         t0 = time.perf_counter()
         what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
         progress(f"[{i}/{len(study.experiments)}] {exp.name}: {what} ...")
-        res = run_experiment(study, exp)
+        res = run_experiment(study, exp, pad_to=length)
         depth_um = np.asarray(res.depth) * 1e6
         dt = time.perf_counter() - t0
         rows += [(exp.name, a, d) for a, d in zip(angles, depth_um)]

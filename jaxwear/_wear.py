@@ -177,9 +177,11 @@ def stable_amplification(p: Params, cfg: ModelConfig) -> float:
 
 
 def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
-                   snapshots=(), M: float = 100, pad: bool = True) -> Schedule:
+                   snapshots=(), M: float = 100, pad: bool = True,
+                   pad_to: int | None = None) -> Schedule:
     """Schedule for a crank-slider run of `revolutions` or an oscillating run of `hours`;
-    `snapshots` in revolutions (crank) or hours (oscillating)."""
+    `snapshots` in revolutions (crank) or hours (oscillating). Padded (with no-op updates)
+    to `pad_to` updates, or with `pad` to a bucket size, so that runs share compilations."""
     if cfg.driver == "oscillating":
         if hours is None or not hours > 0:
             raise InputError(f"an oscillating joint needs hours > 0, got {hours}")
@@ -191,13 +193,15 @@ def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
         segs = crank_segments(revolutions)
         snaps = list(snapshots)
     sched = make_schedule(segs, snaps, M)
-    if pad:
-        sched = make_schedule(segs, snaps, M, pad_to=bucket(sched.updates))
+    target = max(pad_to or 0, bucket(sched.updates) if pad else 0)
+    if target > sched.updates:
+        sched = make_schedule(segs, snaps, M, pad_to=target)
     return sched
 
 
 def simulate(p: Params, cfg: ModelConfig = ModelConfig(), *, revolutions=None, hours=None,
-             snapshots=(), M: float = 100, h0=None, check: bool = True) -> WearResult:
+             snapshots=(), M: float = 100, h0=None, check: bool = True,
+             pad_to: int | None = None) -> WearResult:
     """Predict the wear of one joint (jit-compiled; recompiles only when shapes or `cfg` change).
 
     **Arguments:**
@@ -209,7 +213,8 @@ def simulate(p: Params, cfg: ModelConfig = ModelConfig(), *, revolutions=None, h
 
     **Returns:** a `WearResult`.
     """
-    sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, snapshots=snapshots, M=M)
+    sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, snapshots=snapshots, M=M,
+                           pad_to=pad_to)
     res = _wear_loop_jit(p, cfg, sched, h0)
     if check:
         check_result(res, cfg)

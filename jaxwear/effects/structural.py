@@ -72,7 +72,7 @@ DOUBLE_LAYER = StructuralCandidate(
     parameters={"backing_compliance_um_per_MPa": EffectParameter(
         1e-12, 0.0, 0.0, 0.0, 10.0,
         "C_b = L_b/E_w,b: compliance of a backing under the wearing layer [µm/MPa]",
-        scale=0.1, realistic=0.5)},
+        scale=0.1, realistic=1.0)},
     signature="wider, shallower wear zones than the layer's own stiffness gives, in every "
               "experiment; the same K_d",
     doc="series spring of a backing layer (paper §4.1): a softer foundation spreads the "

@@ -1,0 +1,312 @@
+"""Self-contained HTML report of a diagnosis: figures as embedded base64 PNG, no links out."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+
+import numpy as np
+
+from ._report import plt
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt().close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _img(src: str, alt: str) -> str:
+    return f'<figure><img src="{src}" alt="{html.escape(alt)}"><figcaption>' \
+           f'{html.escape(alt)}</figcaption></figure>'
+
+
+def _fig_rmse(diag) -> str:
+    pl = plt()
+    m = diag.model
+    names = m.exp_names
+    from ._diagnose import rmse_per_experiment
+
+    before = rmse_per_experiment(m, diag.base.ev.r)
+    after = rmse_per_experiment(m, diag.final.ev.r)
+    x = np.arange(len(names))
+    fig, ax = pl.subplots(figsize=(7, 3.4))
+    ax.bar(x - 0.2, [before.get(n, np.nan) for n in names], 0.4, label="base model")
+    ax.bar(x + 0.2, [after.get(n, np.nan) for n in names], 0.4,
+           label=f"after ({diag.final.label})")
+    ax.axhline(diag.noise_um, color="k", ls="--", lw=1, label=f"noise {diag.noise_um:.3g} µm")
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("RMSE [µm]")
+    ax.set_title("RMSE per experiment, before and after")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _fig_loo(diag) -> str | None:
+    pl = plt()
+    names = list(diag.loo_before)
+    if not names:
+        return None
+    x = np.arange(len(names))
+    fig, ax = pl.subplots(figsize=(7, 3.2))
+    ax.bar(x - 0.2, [diag.loo_before[n] for n in names], 0.4, label="base model")
+    ax.bar(x + 0.2, [diag.loo_after.get(n, np.nan) for n in names], 0.4,
+           label=f"after ({diag.final.label})")
+    ax.axhline(diag.noise_um, color="k", ls="--", lw=1, label="noise")
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=20, ha="right", fontsize=8)
+    ax.set_ylabel("prediction RMSE [µm]")
+    ax.set_title("Leave-one-experiment-out prediction error")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _fig_residuals_angle(diag) -> str | None:
+    m = diag.model
+    prof = ~m._is_max
+    if not prof.any():
+        return None
+    pl = plt()
+    fig, axes = pl.subplots(2, 1, figsize=(8, 5.2), sharex=True, sharey=True)
+    for ax, fit, title in ((axes[0], diag.base, "base model"),
+                           (axes[1], diag.final, f"after ({diag.final.label})")):
+        for i, name in enumerate(m.exp_names):
+            sel = prof & (m.row_exp == i)
+            ax.plot(m.row_x[sel], fit.ev.r[sel], ".", ms=3, label=name)
+        ax.axhline(0, color="k", lw=0.8)
+        for s in (-2, 2):
+            ax.axhline(s * diag.noise_um, color="k", ls=":", lw=0.8)
+        ax.set_ylabel("model - measured [µm]")
+        ax.set_title(f"Residuals over bushing angle: {title} (dotted: ±2 noise)", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[1].set_xlabel("bushing angle [deg]")
+    axes[1].set_xlim(0, 360)
+    axes[0].legend(fontsize=7, ncol=3)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _fig_residuals_time(diag) -> str:
+    from ._diagnose import where_it_fails
+
+    pl = plt()
+    fig, ax = pl.subplots(figsize=(7, 3.4))
+    for fit, label, mk in ((diag.base, "base model", "o-"),
+                           (diag.final, f"after ({diag.final.label})", "s-")):
+        w = where_it_fails(diag.model, fit.ev.r)
+        t = [d["at"] for d in w["per_time"]]
+        ax.plot(t, [d["mean_um"] for d in w["per_time"]], mk, label=f"{label}: mean")
+        ax.plot(t, [d["rmse_um"] for d in w["per_time"]], mk, alpha=0.4, label=f"{label}: RMSE")
+    ax.axhline(0, color="k", lw=0.8)
+    ax.axhline(diag.noise_um, color="k", ls="--", lw=0.8, label="noise")
+    unit = where_it_fails(diag.model, diag.base.ev.r)["time_unit"]
+    ax.set_xlabel(unit)
+    ax.set_ylabel("residual [µm]")
+    ax.set_title(f"Residuals over {unit} (all experiments)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _fig_speed_clearance(diag) -> str | None:
+    from ._diagnose import where_it_fails
+
+    w = where_it_fails(diag.model, diag.base.ev.r)["per_experiment"]
+    if len(w) < 2:
+        return None
+    pl = plt()
+    fig, (a1, a2) = pl.subplots(1, 2, figsize=(8, 3.2), sharey=True)
+    wa = {d["experiment"]: d for d in where_it_fails(diag.model, diag.final.ev.r)[
+        "per_experiment"]}
+    for ax, key, xlabel in ((a1, "speed_rpm", "crank speed [r/min]"),
+                            (a2, "clearance_mm", "nominal clearance [mm]")):
+        ax.plot([d[key] for d in w], [d["mean_um"] for d in w], "o", label="base: mean")
+        ax.plot([d[key] for d in w], [wa[d["experiment"]]["mean_um"] for d in w], "s",
+                label="after: mean")
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3)
+    a1.set_ylabel("mean residual [µm]")
+    a1.legend(fontsize=7)
+    fig.suptitle("Residuals across speed and clearance", fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _fig_profiles(diag) -> str:
+    """Measured data with the base and final model, per experiment."""
+    m = diag.model
+    pl = plt()
+    n = len(m.exp_names)
+    cols = min(n, 3)
+    rows = int(math.ceil(n / cols))
+    fig, axes = pl.subplots(rows, cols, figsize=(3.4 * cols, 2.8 * rows), squeeze=False)
+    for i, name in enumerate(m.exp_names):
+        ax = axes[i // cols][i % cols]
+        sel = m.row_exp == i
+        if m._is_max[sel].all():
+            x = m.row_time[sel]
+            ax.plot(x, m.measured[sel], "ks", label="measured")
+            ax.plot(x, diag.base.ev.pred[sel], "o-", label="base")
+            ax.plot(x, diag.final.ev.pred[sel], "^-", label="after")
+            ax.set_xlabel("hours")
+            ax.set_ylabel("max depth [µm]")
+        else:
+            last = sel & (m.row_time == m.row_time[sel].max())
+            order = np.argsort(m.row_x[last])
+            x = m.row_x[last][order]
+            # break the model lines across unmeasured arcs (between wear scars)
+            dx = np.diff(x)
+            gap = np.r_[dx > 2.5 * np.median(dx), False] if len(dx) else np.zeros(len(x), bool)
+
+            def broken(y):
+                return _with_breaks(x, y, gap)
+
+            ax.plot(x, m.measured[last][order], "k.", ms=3, label="measured")
+            ax.plot(*broken(diag.base.ev.pred[last][order]), "-", lw=1, label="base")
+            ax.plot(*broken(diag.final.ev.pred[last][order]), "-", lw=1, label="after")
+            ax.set_xlabel("angle [deg]")
+            ax.set_ylabel("depth [µm]")
+            name += f" @ {m.row_time[sel].max():g} rev"
+        ax.set_title(name, fontsize=8)
+        ax.grid(alpha=0.3)
+        if i == 0:
+            ax.legend(fontsize=7)
+    for j in range(n, rows * cols):
+        axes[j // cols][j % cols].axis("off")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _with_breaks(x, y, gap):
+    """x, y with a NaN point after every index where `gap` is True (line breaks)."""
+    xs, ys = [], []
+    for xi, yi, g in zip(x, y, gap):
+        xs.append(xi), ys.append(yi)
+        if g:
+            xs.append(np.nan), ys.append(np.nan)
+    return np.array(xs), np.array(ys)
+
+
+def _fig_candidates(diag) -> str | None:
+    cands = [c for c in diag.candidates]
+    if not cands:
+        return None
+    pl = plt()
+    fig, ax = pl.subplots(figsize=(7, 0.45 * len(cands) + 1.2))
+    y = np.arange(len(cands))[::-1]
+    ev = [max(c.evidence, -5.0) for c in cands]
+    colors = ["tab:green" if c.effect in diag.effects else
+              ("tab:blue" if c.refit else "tab:gray") for c in cands]
+    ax.barh(y, ev, color=colors)
+    ax.set_yticks(y)
+    ax.set_yticklabels([c.effect + ("" if c.refit else " (screen)") for c in cands], fontsize=8)
+    ax.axvline(math.log(150), color="k", ls="--", lw=0.8, label="strong evidence (ln 150)")
+    ax.set_xlabel("evidence: ln Bayes factor against the base model")
+    ax.set_title("Candidates (green: the verdict; grey: linearised screen only)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _table(rows, header) -> str:
+    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>"
+                   for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _num(x, fmt=".4g"):
+    if x is None:
+        return "—"
+    try:
+        return format(float(x), fmt)
+    except (TypeError, ValueError):
+        return str(x)
+
+
+def report_html(diag, doc: dict) -> str:
+    """The report: verdict paragraph, figures, tables (DESIGN §7 `diagnose --out`)."""
+    v = doc["verdict"]
+    status = {"adequate": "Adequate: the base model fits to noise level",
+              "effect_found": f"Missing effect found: {' + '.join(v['effects'])}",
+              "unexplained": "Unexplained systematic misfit"}[v["status"]]
+    figs = [("Per-experiment RMSE before and after (dashed: noise level)", _fig_rmse(diag)),
+            ("Measured data and the two models", _fig_profiles(diag)),
+            ("Residuals over bushing angle", _fig_residuals_angle(diag)),
+            ("Residuals over revolutions / hours", _fig_residuals_time(diag)),
+            ("Residuals across speed and clearance", _fig_speed_clearance(diag)),
+            ("Leave-one-experiment-out prediction error", _fig_loo(diag)),
+            ("Candidates ranked by evidence", _fig_candidates(diag))]
+    b, a = doc["baseline"], doc["after"]
+    exp_rows = [(n, _num(b["rmse_per_experiment_um"].get(n), ".3f"),
+                 _num(a["rmse_per_experiment_um"].get(n), ".3f"),
+                 _num(b["loo_rmse_per_experiment_um"].get(n), ".3f"),
+                 _num(a["loo_rmse_per_experiment_um"].get(n), ".3f"))
+                for n in diag.model.exp_names]
+    exp_rows.append(("all", _num(b["rmse_um"], ".3f"), _num(a["rmse_um"], ".3f"),
+                     _num(b["loo_rmse_um"], ".3f"), _num(a["loo_rmse_um"], ".3f")))
+    cand_rows = []
+    for c in doc["candidates"]:
+        strength = "; ".join(
+            f"{k} = {_num(p['value'])}" + (f" ± {_num(p['stderr'], '.2g')}"
+                                          if p.get("stderr") is not None else "")
+            for k, p in c["parameters"].items()
+            if not k.startswith("clearance_mm/") and k != "K_d_per_Pa")
+        cand_rows.append((c["effect"], _num(c["rmse_um"], ".3f"), _num(c["evidence"], ".1f"),
+                          _num(c.get("score"), ".1f"), _num(c.get("p_score"), ".1e"),
+                          "refit" if c["refit"] else "screen",
+                          {True: "yes", False: "no"}.get(c.get("at_noise_level"), "—"),
+                          strength))
+    t = b["tests"]
+    test_rows = [
+        ("noise level (neighbour differences)", f"{b['noise_um']:.4g} µm",
+         f"ν = {_num(b['noise_dof'], '.4g')}"),
+        ("chi-square ratio RSS/(n-k)/σ̂²", _num(t["chi2_ratio"], ".3f"),
+         f"p = {_num(t['p_chi2'], '.2e')}"),
+        ("lag-1 autocorrelation (Durbin-Watson)",
+         f"{_num(t['lag1_autocorrelation'], '.3f')} (DW {_num(t['durbin_watson'], '.2f')})",
+         f"p = {_num(t['p_autocorrelation'], '.2e')}"),
+        ("best candidate score test", str(t["score_effect"]),
+         f"p = {_num(t['p_score_min'], '.2e')} (Bonferroni)"),
+        ("combined (Bonferroni over the three)", "systematic" if t["systematic"] else "noise",
+         f"p = {_num(t['p_combined'], '.2e')}, α = {t['alpha']:g}")]
+    par_rows = [(k, _num(p["value"]), _num(p.get("stderr"), ".3g"))
+                for k, p in a["parameters"].items()]
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>jaxwear diagnose: {html.escape(str(diag.study.path))}</title>",
+        "<style>body{font-family:sans-serif;max-width:980px;margin:2em auto;line-height:1.4}"
+        "table{border-collapse:collapse;margin:1em 0;font-size:0.9em}"
+        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}"
+        "figure{margin:1em 0}img{max-width:100%}figcaption{font-size:0.85em;color:#555}"
+        ".verdict{padding:1em;border-left:6px solid #2a7;background:#f4faf6}"
+        ".unexplained{border-color:#c52;background:#fbf4f1}"
+        ".adequate{border-color:#27a;background:#f1f6fb}</style></head><body>",
+        f"<h1>Diagnosis of {html.escape(str(diag.study.path))}</h1>",
+        f"<div class='verdict {v['status']}'><h2>{html.escape(status)}</h2>"
+        f"<p>{html.escape(v['summary'])}</p></div>",
+        "<h2>Error before and after</h2>",
+        _table(exp_rows, ["experiment", "RMSE base [µm]", "RMSE after [µm]",
+                          "left-out base [µm]", "left-out after [µm]"]),
+        f"<p>After = {html.escape(a['model'])}; noise level {b['noise_um']:.4g} µm. "
+        "Left-out errors: each experiment predicted by a fit without it (one Gauss-Newton "
+        "step from the full fit), its clearance at the nominal value.</p>",
+        "<h2>Is the misfit noise?</h2>", _table(test_rows, ["test", "value", "p"]),
+        "<h2>Candidates</h2>",
+        _table(cand_rows, ["candidate", "RMSE [µm]", "evidence (ln BF)", "score", "p (score)",
+                           "how", "at noise level", "fitted strength"]),
+        "<h2>Fitted parameters (after)</h2>", _table(par_rows, ["parameter", "value", "SE"]),
+        "<h2>Figures</h2>",
+    ]
+    parts += [_img(src, alt) for alt, src in figs if src]
+    parts.append(f"<h2>Method</h2><p>{html.escape(doc['method'])}</p>")
+    parts.append(f"<p>Wall time {doc['wall_time_s']:.1f} s.</p></body></html>")
+    return "\n".join(parts)

@@ -1,0 +1,367 @@
+"""A virtual test rig with hidden effects: `jaxwear synth` (issue "find the missing physics").
+
+It writes a study (TOML + CSV, DESIGN §6) whose data come from the full model with chosen
+effects switched on, as a careful experimenter would have measured them:
+
+- **Interrupted tests.** Each specimen is measured at several revolution counts (default
+  2000, 5000, 10000 and, for the 15000-rev test, 15000), because some effects (running-in
+  above all) leave almost no trace in a final profile alone: K_d and the clearances absorb
+  them. Oscillating (boom-type) conditions are measured as maximum depth every 5 h.
+- **The wear scar, every 2°.** An optical profiler scans the worn arc: rows at whole
+  multiples of `angle_step_deg` where the true depth is at least 3 noise levels (outside
+  the scar there is nothing to measure, and a depth file has no negative depths).
+- **Real specimens.** Each experiment's actual clearance differs from its nominal value by a
+  Gaussian machining tolerance (σ = the study's `clearance_tolerance_um`, default 5 µm); the
+  study states the nominal value. The true K_d differs from the study's start value by a
+  log-normal factor (σ = 15 %).
+- **Noise.** Gaussian, `noise_um` (default 0.3 µm), independent per row.
+
+The truth (effects and strengths, true K_d and clearances, seed) goes to `truth.json` next to
+the study, which does not reference it. The data are made by the same discretisation the
+study states ([numerics]), so a study with no hidden effect is fitted to noise level by the
+base model: what is left is what is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ._config import ModelConfig
+from ._errors import InputError
+from ._params import PRESETS
+from ._study import Experiment, History, Profile, Study, load_study
+from .effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
+
+# The paper's rig matrix (§3.3): name, speed [r/min], revolutions, nominal clearance [mm].
+PAPER_MATRIX = (
+    ("n276-r10000", 276.0, 10000.0, 0.05),
+    ("n276-r15000", 276.0, 15000.0, 0.05),
+    ("n148-r10000", 148.0, 10000.0, 0.05),
+    ("n230-r10000-c010", 230.0, 10000.0, 0.10),
+    ("n230-r10000-c015", 230.0, 10000.0, 0.15),
+)
+INTERRUPTIONS = (2000.0, 5000.0, 10000.0)  # revolutions at which a specimen is measured
+PAPER_NUMERICS = {"nodes": 120, "steps_per_rev": 120, "revolutions_per_update": 250}
+HISTORY_EVERY_H = 5.0
+
+
+@dataclass
+class SynthResult:
+    study: Study  # the study as written (with its data)
+    study_path: Path | None
+    truth: dict
+
+
+def parse_hidden(items) -> dict:
+    """`["running_in=0.5", "friction"]` → {"running_in": {"running_in_amplitude": 0.5},
+    "friction": {"friction_coefficient": <realistic>}}. A value names the strength in its
+    key's unit; `KEY=VALUE` sets any parameter of a listed effect (e.g.
+    `running_in_distance_m=10`). Raises `InputError` for unknown names."""
+    out: dict = {}
+    flat = []
+    for it in items or []:
+        flat += [s.strip() for s in str(it).split(",") if s.strip()]
+    known = list(registered_effects()) + list(STRUCTURAL_CANDIDATES)
+    keys = {}
+    for name in known:
+        for k in _parameters(name):
+            keys[k] = name
+    for it in flat:
+        name, _, val = it.partition("=")
+        name = name.strip()
+        if name in keys and val:
+            eff = keys[name]
+            out.setdefault(eff, {})[name] = _number(it, val)
+            continue
+        if name not in known:
+            raise InputError(f"--hidden: unknown effect {name!r}; expected one of {known} "
+                             f"(EFFECT[=STRENGTH]) or a parameter KEY=VALUE")
+        params = out.setdefault(name, {})
+        strength = [k for k, s in _parameters(name).items() if not s.log]
+        if not strength:
+            continue
+        spec = _parameters(name)[strength[0]]
+        if val:
+            v = _number(it, val)
+            if not (spec.lower <= v <= spec.upper):
+                raise InputError(f"--hidden {it}: {strength[0]} must lie in "
+                                 f"[{spec.lower:g}, {spec.upper:g}]")
+            params[strength[0]] = v
+        else:
+            if spec.realistic is None:
+                raise InputError(f"--hidden {name}: no realistic strength is declared; give "
+                                 f"one as {name}=VALUE")
+            params.setdefault(strength[0], spec.realistic)
+    return out
+
+
+def _number(item, text):
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError(f"--hidden {item}: {text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise InputError(f"--hidden {item}: the strength must be finite")
+    return v
+
+
+def _parameters(name):
+    if name in STRUCTURAL_CANDIDATES:
+        return STRUCTURAL_CANDIDATES[name].parameters
+    return get_effect(name).parameters
+
+
+def paper_conditions(numerics=None) -> Study:
+    """The paper's rig matrix as a study without data (Tables 1, 3; spring 1009.4 N/m)."""
+    num = dict(PAPER_NUMERICS)
+    num.update(numerics or {})
+    cfg = ModelConfig(nodes=int(num["nodes"]), steps_per_rev=int(num["steps_per_rev"]))
+    exps = tuple(Experiment(name, {"speed_rpm": n, "clearance_mm": c}, revolutions=r)
+                 for name, n, r, c in PAPER_MATRIX)
+    return Study(path=Path("paper"), preset="rig", config=cfg,
+                 parameters={"K_d_per_Pa": 1.0e-13, "spring_N_per_m": 1009.4},
+                 experiments=exps, revolutions_per_update=float(num["revolutions_per_update"]),
+                 clearance_tolerance_um=5.0)
+
+
+def _measure_points(study: Study, exp: Experiment) -> list[float]:
+    """Revolutions (crank) or hours (oscillating) at which the specimen is measured."""
+    if exp.profile is not None or exp.history is not None:
+        return exp.snapshot_points
+    if study.config.driver == "oscillating":
+        n = max(1, int(round(exp.hours / HISTORY_EVERY_H)))
+        return [exp.hours * (i + 1) / n for i in range(n)]
+    pts = [r for r in INTERRUPTIONS if r < exp.revolutions - 1e-9]
+    if not pts:  # short tests: interrupt at 20 % and 50 % of the run
+        pts = [round(0.2 * exp.revolutions), round(0.5 * exp.revolutions)]
+    return sorted(set(pts + [float(exp.revolutions)]))
+
+
+def _with_placeholder_data(study: Study, step_deg: float) -> Study:
+    """The study with zero-depth data at the planned measurement points, so that the
+    calibration builds the same problem (schedules, snapshots) the written study will give."""
+    angles = np.deg2rad(np.arange(0.0, 360.0, step_deg))
+    exps = []
+    for e in study.experiments:
+        pts = _measure_points(study, e)
+        if study.config.driver == "oscillating":
+            hist = History(np.array(pts), np.zeros(len(pts)), "")
+            exps.append(replace(e, profile=None, history=hist, hours=max(pts)))
+        else:
+            revs = np.repeat(pts, len(angles))
+            prof = Profile(np.tile(angles, len(pts)), np.zeros(len(revs)), revs, "")
+            exps.append(replace(e, profile=prof, history=None))
+    return study.with_experiments(exps)
+
+
+def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: int = 0,
+               out=None, numerics=None, angle_step_deg: float = 2.0, kd_sd: float = 0.15,
+               perturb=None, verbose: bool = False) -> SynthResult:
+    """Make a study with data from the model with `hidden` effects switched on.
+
+    **Arguments:**
+    - `hidden`: `parse_hidden` items (`["running_in=0.5"]`) or its dict
+      `{effect: {key: value}}` (values in the keys' units); empty for null data.
+    - `conditions`: `"paper"` (the rig matrix), a study file or a `Study`; its data (if
+      any) fix the measurement points, else they are planned as described above.
+    - `noise_um`: measurement noise σ [µm]; `seed`: random seed.
+    - `out`: folder to write `study.toml`, one CSV per experiment and `truth.json` (None:
+      nothing is written). `numerics`: overrides of nodes / steps_per_rev /
+      revolutions_per_update. `angle_step_deg`: profile spacing [deg].
+    - `perturb(exp_name, points, angle_deg, depth_um) -> depth_um`: optional physics from
+      outside the library added to the true profiles before noise (for tests).
+
+    **Returns:** `SynthResult` with the study as written and the truth.
+    """
+    from ._diagnose import Model
+
+    if not (noise_um >= 0 and math.isfinite(noise_um)):
+        raise InputError(f"--noise-um must be >= 0, got {noise_um}")
+    hid = hidden if isinstance(hidden, dict) else parse_hidden(hidden)
+    base = _conditions(conditions, numerics)
+    rng = np.random.default_rng(seed)
+    written_cfg = base.config
+    if "unsymmetric" in hid:  # the study states the traditional contact it is missing
+        written_cfg = written_cfg.replace(contact="symmetric")
+    if "double_layer" in hid and written_cfg.double_layer:
+        raise InputError("--hidden double_layer: the conditions already have a double layer")
+    for name in hid:
+        if name in written_cfg.effects:
+            raise InputError(f"--hidden {name}: the conditions already switch it on")
+    planned = _with_placeholder_data(replace(base, config=written_cfg), angle_step_deg)
+    model = Model(planned)
+    truth_model = model.with_contact("unsymmetric") if "unsymmetric" in hid else model
+    tol_um = planned.clearance_tolerance_um if math.isfinite(
+        planned.clearance_tolerance_um) else 5.0
+    u = np.zeros(len(model.names))
+    truth = {"hidden": {k: dict(v) for k, v in hid.items()}, "noise_um": noise_um,
+             "seed": seed, "clearance_mm": {}, "numerics": {
+                 "nodes": written_cfg.nodes, "steps_per_rev": written_cfg.steps_per_rev,
+                 "revolutions_per_update": planned.revolutions_per_update},
+             "angle_step_deg": angle_step_deg}
+    for i, name in enumerate(model.names):
+        c = model.columns[i]
+        start = float(model.ext.start[i])
+        if c.key == "K_d_per_Pa" and c.group == "":
+            kd = start * math.exp(kd_sd * rng.standard_normal())
+            u[i] = model.u_of(name, kd)
+            truth["K_d_per_Pa"] = kd
+        elif c.key == "clearance_mm" and c.group == "":
+            cl = start + 1e-3 * tol_um * rng.standard_normal()
+            u[i] = model.u_of(name, cl)
+            truth["clearance_mm"][model.exp_names[c.experiment]] = cl
+    for eff, params in hid.items():
+        for key, v in params.items():
+            if key in model.index:
+                u[model.index[key]] = model.u_of(key, v)
+            else:
+                raise InputError(f"--hidden {eff}: {key} is not a parameter of the study's "
+                                 f"candidates")
+        for key, spec in _parameters(eff).items():
+            params.setdefault(key, float(truth_model.values(u)[model.index[key]]))
+        truth["hidden"][eff] = dict(params)
+    if verbose:
+        print(f"synth: evaluating the true model ({len(planned.experiments)} experiments)",
+              file=sys.stderr, flush=True)
+    ev = truth_model.evaluate(u)
+    if not ev.usable:
+        raise InputError("the hidden model wears through the layer (or is not finite) for "
+                         "these conditions; choose a smaller strength")
+    snaps = ev.snaps  # (E, S, N) µm
+    nodes = planned.config.nodes
+    node_deg = np.arange(nodes + 1) * 360.0 / nodes
+    exps = []
+    thresh = 3.0 * noise_um
+    for ei, e in enumerate(planned.experiments):
+        pts = e.snapshot_points
+        if planned.config.driver == "oscillating":
+            depth = snaps[ei, :len(pts)].max(axis=1)
+            if perturb is not None:
+                depth = np.asarray(perturb(e.name, pts, None, depth), float)
+            y = np.maximum(depth + noise_um * rng.standard_normal(len(pts)), 0.0)
+            exps.append((e, {"hours": np.array(pts), "depth_mm": y * 1e-3}))
+            continue
+        ang = np.arange(0.0, 360.0, angle_step_deg)
+        rows = []
+        for si, s in enumerate(pts):
+            prof = snaps[ei, si]
+            d = np.interp(ang, node_deg, np.r_[prof, prof[0]])
+            if perturb is not None:
+                d = np.asarray(perturb(e.name, s, ang, d), float)
+            keep = d >= max(thresh, 1e-9)
+            y = np.maximum(d[keep] + noise_um * rng.standard_normal(int(keep.sum())), 0.0)
+            rows += [(a, v, s) for a, v in zip(ang[keep], y)]
+        if not rows:
+            raise InputError(f"experiment {e.name!r}: no point of the scar is deeper than "
+                             f"3 noise levels; nothing to measure")
+        exps.append((e, {"rows": rows}))
+    truth["K_d_start_per_Pa"] = float(model.ext.start[model.index["K_d_per_Pa"]])
+    study_written = _as_study(planned, written_cfg, exps)
+    path = None
+    if out is not None:
+        path = _write(Path(out), planned, written_cfg, exps, truth)
+        study_written = load_study(path)
+    return SynthResult(study_written, path, truth)
+
+
+def _conditions(conditions, numerics) -> Study:
+    if isinstance(conditions, Study):
+        st = conditions
+    elif conditions in (None, "paper"):
+        return paper_conditions(numerics)
+    else:
+        st = load_study(conditions)
+    if numerics:
+        kw = {k: int(v) for k, v in numerics.items() if k in ("nodes", "steps_per_rev")}
+        st = st.with_config(**kw) if kw else st
+        if "revolutions_per_update" in numerics:
+            st = replace(st, revolutions_per_update=float(numerics["revolutions_per_update"]))
+    return st
+
+
+def _as_study(planned: Study, cfg: ModelConfig, exps) -> Study:
+    out = []
+    for e, data in exps:
+        if "rows" in data:
+            a = np.array(data["rows"])
+            prof = Profile(np.deg2rad(a[:, 0]), a[:, 1] * 1e-6, a[:, 2], "")
+            out.append(replace(e, profile=prof, history=None))
+        else:
+            out.append(replace(e, profile=None,
+                               history=History(data["hours"], data["depth_mm"] * 1e-3, "")))
+    return replace(planned, config=cfg, experiments=tuple(out))
+
+
+def _toml_value(v):
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return repr(float(v)) if not float(v).is_integer() or abs(v) >= 1e15 else f"{v:g}"
+
+
+def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
+    out.mkdir(parents=True, exist_ok=True)
+    lines = ["# Written by `jaxwear synth`: data from a model with hidden effects.",
+             "# The truth is in truth.json (not referenced by this study).",
+             "[model]", f"preset = {_toml_value(planned.preset)}",
+             f"contact = {_toml_value(cfg.contact)}"]
+    if cfg.effects:
+        lines.append("effects = [" + ", ".join(_toml_value(e) for e in cfg.effects) + "]")
+    preset_defaults = PRESETS[planned.preset]
+    if cfg.double_layer and planned.preset != "boom":
+        lines.append("double_layer = true")
+    if cfg.driver == "oscillating":
+        lines.append("duty_cycle = [" + ", ".join(
+            f"{{amplitude_deg = {b.amplitude_deg:g}, duration_h = {b.duration_h:g}}}"
+            for b in cfg.duty_cycle) + "]")
+    lines.append("[model.parameters]")
+    for k, v in planned.parameters.items():
+        lines.append(f"{k} = {_toml_value(v)}")
+    lines += ["[numerics]", f"nodes = {cfg.nodes}", f"steps_per_rev = {cfg.steps_per_rev}",
+              f"revolutions_per_update = {_toml_value(planned.revolutions_per_update)}",
+              "[fit]", f"clearance_tolerance_um = {_toml_value(planned.clearance_tolerance_um)}"
+              if math.isfinite(planned.clearance_tolerance_um)
+              else 'clearance_tolerance_um = "inf"']
+    del preset_defaults
+    for e, data in exps:
+        lines += ["", "[[experiment]]", f"name = {_toml_value(e.name)}"]
+        for k, v in e.overrides.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+        fname = f"{e.name}.csv"
+        if "rows" in data:
+            lines.append(f"revolutions = {_toml_value(e.revolutions)}")
+            lines.append(f"profile = {_toml_value(fname)}")
+            with (out / fname).open("w") as f:
+                f.write("angle_deg,depth_um,revolutions\n")
+                for a, d, s in data["rows"]:
+                    f.write(f"{a:g},{d:.4f},{s:g}\n")
+        else:
+            lines.append(f"hours = {_toml_value(e.hours)}")
+            lines.append(f"history = {_toml_value(fname)}")
+            with (out / fname).open("w") as f:
+                f.write("hours,depth_mm\n")
+                for t, d in zip(data["hours"], data["depth_mm"]):
+                    f.write(f"{t:g},{d:.6f}\n")
+    path = out / "study.toml"
+    path.write_text("\n".join(lines) + "\n")
+    (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
+    return path
+
+
+def cmd_synth(args):
+    """`jaxwear synth --hidden EFFECT[=STRENGTH] ... --out DIR`."""
+    res = synthesize(args.hidden, args.conditions, noise_um=args.noise_um, seed=args.seed,
+                     out=args.out, verbose=True)
+    n = sum(len(e.profile.angle) if e.profile is not None else len(e.history.hours)
+            for e in res.study.experiments)
+    hidden = ", ".join(f"{k}({', '.join(f'{kk}={vv:g}' for kk, vv in v.items())})"
+                       for k, v in res.truth["hidden"].items()) or "none"
+    print(f"wrote {res.study_path} ({len(res.study.experiments)} experiments, {n} rows; "
+          f"hidden: {hidden}); truth in {res.study_path.parent / 'truth.json'}")
