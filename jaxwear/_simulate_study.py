@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 import time
 
+import equinox as eqx
 import numpy as np
 
 from ._contact import solve_contact, stiffness_per_area
@@ -58,15 +59,18 @@ def run_experiment(study: Study, exp: Experiment, *, M=None, check=True,
     return res
 
 
+@eqx.filter_jit
+def _pressure(p, cfg, h, load, angle):
+    k = stiffness_per_area(h, p, cfg.double_layer)
+    return solve_contact(load, angle, h, p.clearance, k, node_area(p, cfg.nodes),
+                         contact=cfg.contact).pressure
+
+
 def last_cycle_pressure(study: Study, exp: Experiment, res: WearResult, regime: int = 0):
     """Pressure map (steps, nodes) [Pa] of the last cycle, on the final profile."""
-    p = study.params(exp)
-    h = res.depth
     hist = res.history
-    k = stiffness_per_area(h, p, study.config.double_layer)
-    sol = solve_contact(hist.load[regime], hist.angle[regime], h, p.clearance, k,
-                        node_area(p, study.config.nodes), contact=study.config.contact)
-    return np.asarray(sol.pressure)
+    return np.asarray(_pressure(study.params(exp), study.config, res.depth,
+                                hist.load[regime], hist.angle[regime]))
 
 
 def simulate_study(study: Study, out=None, plots=True) -> dict:
