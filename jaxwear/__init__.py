@@ -21,6 +21,7 @@ from ._errors import WornThroughError as WornThroughError  # noqa: E402
 from ._load import LoadHistory as LoadHistory  # noqa: E402
 from ._load import load_history as load_history  # noqa: E402
 from ._mechanism import crank_slider_forces as crank_slider_forces  # noqa: E402
+from ._parallel import sharded_vmap as sharded_vmap  # noqa: E402
 from ._params import Params as Params  # noqa: E402
 from ._params import preset as preset  # noqa: E402
 from ._schedule import Schedule as Schedule  # noqa: E402

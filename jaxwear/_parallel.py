@@ -174,7 +174,8 @@ def sharded_vmap(fn: Callable, batched_args: tuple, *, broadcast_args: tuple = (
       common leading batch axis of length B.
     - `broadcast_args`: tuple of arguments passed first to `fn` at every point, e.g.
       `(params, cfg, schedule)`: array leaves are replicated on every device and traced (new
-      values reuse the compilation), other leaves (a `ModelConfig`, strings) are static.
+      values reuse the compilation); other leaves (a `ModelConfig`, strings, and Python
+      numbers, so pass numbers that change between calls as arrays) are static.
     - `devices`: mesh devices (default `jax.devices()`: all devices of all processes).
     - `chunk`: points per device per call (default: the whole batch in one call).
     - `method`: `"vmap"` (default) or `"map"` (`lax.map` per device: on CPU usually faster

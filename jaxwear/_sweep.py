@@ -22,6 +22,7 @@ import numpy as np
 
 from ._config import ModelConfig
 from ._errors import InputError
+from ._parallel import sharded_vmap
 from ._params import PARAMETER_KEYS, Params, key_to_si
 from ._schedule import Schedule
 from ._wear import build_schedule, node_area, wear_loop
@@ -177,7 +178,11 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         n = block.shape[0]
         if n < chunk:  # pad: one compiled chunk size for the whole sweep
             block = np.concatenate([block, np.repeat(block[-1:], chunk - n, axis=0)])
-        out = jax.device_get(_run_chunk(p, cfg, sched, keys, jnp.asarray(block), method))
+        if jax.device_count() > 1:  # shard the chunk's points over all devices/processes
+            out = sharded_vmap(_outputs, (jnp.asarray(block),),
+                               broadcast_args=(p, cfg, sched, keys), method=method)
+        else:
+            out = jax.device_get(_run_chunk(p, cfg, sched, keys, jnp.asarray(block), method))
         parts.append([np.asarray(o)[:n] for o in out])
         if progress:
             print(f"  sweep: {min(start + chunk, total)}/{total} points "

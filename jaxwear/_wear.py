@@ -169,11 +169,15 @@ def stable_amplification(p: Params, cfg: ModelConfig) -> float:
     conservative: measured onset of trouble at M ≈ 2500 on the rig (estimate 1400) and
     M ≈ 20 on the stiff bimetal boom bearing (estimate ~6).
     """
-    hist = load_history(p, cfg)
-    k = float(jnp.max(stiffness_per_area(jnp.zeros(1), p, cfg.double_layer)))
-    s = float(jnp.max(jnp.sum(hist.slide, axis=1)))
-    rate = float(p.wear_coefficient) * k * s
+    rate = float(_update_rate(p, cfg))
     return math.inf if not rate > 0 else 2.0 / rate
+
+
+@eqx.filter_jit
+def _update_rate(p: Params, cfg: ModelConfig):
+    """K_d k S_cycle (per cycle) of the unworn joint, for `stable_amplification`."""
+    k = jnp.max(stiffness_per_area(jnp.zeros(1), p, cfg.double_layer))
+    return p.wear_coefficient * k * jnp.max(jnp.sum(load_history(p, cfg).slide, axis=1))
 
 
 def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
