@@ -3,34 +3,40 @@
 The steps, each a function below:
 
 1. **Base fit.** The study's own model and fitted parameters (`parse_fit`, `build_problem`
-   of the calibration), fitted by Levenberg-Marquardt.
+   of the calibration: K_d, the clearances with their tolerance prior, the strengths of
+   effects the study switches on), fitted by Levenberg-Marquardt (`fit_masked`).
 2. **Where it fails.** Residuals per experiment, over angle, over revolutions (or hours)
-   and across speed and clearance. The noise level is estimated from the data alone: each
-   measured point against the straight line through its two neighbours (angle-ordered
-   within one profile), which removes the smooth wear profile and leaves the noise. Two
-   stated tests say whether the misfit is noise: a chi-square test of the residuals
-   against that noise level, and a lag-1 autocorrelation (Durbin-Watson type) test of the
-   angle-ordered residuals. Noise is white; a missing effect leaves smooth, correlated
-   residuals.
-3. **Rank the candidates.** A score (Lagrange-multiplier) test per candidate from the
-   Jacobian column of its strength at the base fit: every candidate is switched on at its
-   `off` value, where the model is the base model exactly (nesting), so one forward-mode
-   Jacobian of the extended model gives every candidate's column at once. The leading
-   candidates are refitted; they are compared by BIC (log Bayes factor ΔBIC/2 against the
-   base: the `evidence`).
-4. **Refit with the winner**, RMSE per experiment before and after, and leave-one-
-   experiment-out prediction error before and after (one Gauss-Newton step from the full
-   fit, which is exact for a linear model and a close approximation here).
-5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the DESIGN §7 JSON, and a
-   self-contained HTML report (`_html.py`).
+   and across speed and clearance (`where_it_fails`). The noise level comes from the data:
+   each residual against the straight line through its two neighbours (angle order within
+   one profile, time order within a history), normalised (`line_residuals`); the smooth
+   profile and any smooth misfit cancel, white noise does not. Stated tests say whether the
+   misfit is noise (`Tests`): a chi-square test of RSS/(n-k) against that noise level
+   (F distribution: the noise level has ν degrees of freedom), a lag-1 autocorrelation
+   (Durbin-Watson) test of the angle-ordered residuals, and the candidates' score tests,
+   Bonferroni-combined at α = 1e-3.
+3. **Rank the candidates.** A score (Lagrange-multiplier) test per candidate (`screen`)
+   from the Jacobian column of its strength at the base fit: every candidate is switched
+   on at its `off` value, where the model is the base model exactly (nesting), so one
+   forward-mode Jacobian of the extended model gives every candidate's column at once.
+   The leading candidates are refitted and compared by the `evidence`, the BIC log Bayes
+   factor against the base model with the noise level unknown (`evidence_from`).
+4. **Refit with the winner**: RMSE per experiment before and after, and left-out-experiment
+   prediction error before and after (`loo`: one Gauss-Newton step from the full fit).
+   A candidate is named when its evidence is very strong (> ln 150) and its residuals pass
+   the tests of step 2; when the best explains over half the misfit but leaves a
+   systematic remainder, pairs with it are tried; otherwise the verdict is `unexplained`
+   and names nothing. Candidates within ln 20 of the winner that also fit to noise are
+   reported as alternatives the data cannot tell apart.
+5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the DESIGN §7 JSON
+   (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
 
 Why one extended model: compiling the wear loop costs far more than evaluating it, so the
-base model, every candidate and every combination of two candidates are evaluated by the
-same compiled function (all candidates switched on, the unused ones held at `off`). Only a
+base model, every candidate and every pair of candidates are evaluated by the same
+compiled function (all candidates switched on, the unused ones held at `off`). Only the
 structural candidate that changes the contact model (`unsymmetric`) needs a second one.
 The compiled function depends on the shapes of the model (experiments, snapshots, nodes,
-updates) and not on the measured rows, so studies with the same design share it
-(`synth` uses it to make data, the tests reuse it across seeds).
+updates), not on the measured rows, so studies with the same design share it (`synth`
+uses it to make data; the tests reuse it across seeds).
 """
 
 from __future__ import annotations
@@ -51,7 +57,12 @@ from ._params import Params, key_to_si
 from ._schedule import Schedule
 from ._study import Study
 from ._wear import wear_loop
-from .effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
+from .effects import (
+    STRUCTURAL_CANDIDATES,
+    effect_parameter_specs,
+    get_effect,
+    registered_effects,
+)
 
 # --------------------------------------------------------------------------------------
 # The extended model: base parameters and every candidate strength in one vector
@@ -172,8 +183,10 @@ def _candidate_parameters(name):
 class Model:
     """A study's data with the extended model: evaluation, fits and statistics on the host.
 
-    Built from the calibration's `Problem` (data rows, prior, start values, schedules), so
-    its base model is exactly what `calibrate` fits.
+    Built from the calibration's `Problem` (data rows, clearance prior, start values,
+    schedules), so its base model is the model `calibrate` fits, to the same data. One
+    difference: the prior rows are weighted with the noise level estimated from the data
+    (`calibrate` uses its first pass's RMSE).
     """
 
     evaluations = 0  # process-wide count of compiled-model evaluations (for progress)
@@ -195,8 +208,12 @@ class Model:
             cfg_ext = cfg_ext.replace(contact=contact)
         self.base_cfg = cfg
         columns, names, start = [], [], []
+        specs = effect_parameter_specs()
         for f, s in zip(problem.fits, np.asarray(problem.start)):
-            lower, upper = (0.0, math.inf)
+            if f.key in specs:  # a strength of an effect the study switches on
+                lower, upper = specs[f.key].lower, specs[f.key].upper
+            else:
+                lower, upper = (0.0, math.inf) if f.log else (-math.inf, math.inf)
             columns.append(Column(f.key, f.experiment, f.log, f.scale, key_to_si(f.key), "",
                                   lower, upper))
             names.append(f.name)
@@ -1114,6 +1131,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     `noise_um`: a known measurement noise level [µm]; default: estimated from the data.
     """
     t0 = time.perf_counter()
+    evals0 = Model.evaluations
     _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
     model = Model(study)
     if model.n < 3:
@@ -1170,7 +1188,11 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     promising = [c for c in cands.values() if c.evidence > STRONG_LOG_BF]
     if base_tests.systematic or promising:
         # refit the leading candidates (and the parameter-free structural ones)
-        todo = [(s_.effect, s_) for s_ in scores if s_.feasible and s_.score > 0][:max_refits]
+        # the leader always; others only where their own score test is significant and
+        # not negligible next to the leader's (a refit costs ~10 model evaluations)
+        live = [s_ for s_ in scores if s_.feasible and s_.score > 0]
+        todo = [(s_.effect, s_) for i, s_ in enumerate(live)
+                if i == 0 or (s_.p < ALPHA and s_.score >= 0.1 * live[0].score)][:max_refits]
         if "unsymmetric" in model.candidates:
             todo.append(("unsymmetric", None))
         for name, scr in todo:
@@ -1227,7 +1249,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     diag.summary = summarize_verdict(diag)
     diag.wall_s = time.perf_counter() - t0
     _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
-                  + f" in {diag.wall_s:.1f} s")
+                  + f" in {diag.wall_s:.1f} s ({Model.evaluations - evals0} model "
+                    f"evaluations)")
     return diag
 
 

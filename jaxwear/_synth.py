@@ -34,7 +34,6 @@ import numpy as np
 
 from ._config import ModelConfig
 from ._errors import InputError
-from ._params import PRESETS
 from ._study import Experiment, History, Profile, Study, load_study
 from .effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
 
@@ -77,7 +76,11 @@ def parse_hidden(items) -> dict:
         name = name.strip()
         if name in keys and val:
             eff = keys[name]
-            out.setdefault(eff, {})[name] = _number(it, val)
+            v, spec = _number(it, val), _parameters(eff)[name]
+            if not (spec.lower <= v <= spec.upper):
+                raise InputError(f"--hidden {it}: {name} must lie in "
+                                 f"[{spec.lower:g}, {spec.upper:g}]")
+            out.setdefault(eff, {})[name] = v
             continue
         if name not in known:
             raise InputError(f"--hidden: unknown effect {name!r}; expected one of {known} "
@@ -98,6 +101,10 @@ def parse_hidden(items) -> dict:
                 raise InputError(f"--hidden {name}: no realistic strength is declared; give "
                                  f"one as {name}=VALUE")
             params.setdefault(strength[0], spec.realistic)
+    for name, params in out.items():  # an effect named only by a shape key: realistic strength
+        for k, spec in _parameters(name).items():
+            if not spec.log and spec.realistic is not None:
+                params.setdefault(k, spec.realistic)
     return out
 
 
@@ -184,6 +191,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     if not (noise_um >= 0 and math.isfinite(noise_um)):
         raise InputError(f"--noise-um must be >= 0, got {noise_um}")
     hid = hidden if isinstance(hidden, dict) else parse_hidden(hidden)
+    hid = {k: dict(v) for k, v in hid.items()}  # filled in below; the caller's stays
     base = _conditions(conditions, numerics)
     rng = np.random.default_rng(seed)
     written_cfg = base.config
@@ -314,7 +322,6 @@ def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
              f"contact = {_toml_value(cfg.contact)}"]
     if cfg.effects:
         lines.append("effects = [" + ", ".join(_toml_value(e) for e in cfg.effects) + "]")
-    preset_defaults = PRESETS[planned.preset]
     if cfg.double_layer and planned.preset != "boom":
         lines.append("double_layer = true")
     if cfg.driver == "oscillating":
@@ -329,7 +336,6 @@ def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
               "[fit]", f"clearance_tolerance_um = {_toml_value(planned.clearance_tolerance_um)}"
               if math.isfinite(planned.clearance_tolerance_um)
               else 'clearance_tolerance_um = "inf"']
-    del preset_defaults
     for e, data in exps:
         lines += ["", "[[experiment]]", f"name = {_toml_value(e.name)}"]
         for k, v in e.overrides.items():
