@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import csv
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import tomllib
 
 from ._config import DutyBlock, ModelConfig
 from ._errors import InputError

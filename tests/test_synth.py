@@ -3,10 +3,10 @@ the stated noise, measured as a careful experimenter would (interrupted tests, s
 
 import json
 import math
+import tomllib
 
 import numpy as np
 import pytest
-import tomllib
 
 from jaxwear import InputError
 from jaxwear._study import load_study
