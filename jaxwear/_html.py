@@ -24,47 +24,42 @@ def _img(src: str, alt: str) -> str:
            f'{html.escape(alt)}</figcaption></figure>'
 
 
-def _fig_rmse(diag) -> str:
+def _before_after_bars(diag, names, before, after, ylabel, title, height, noise_label):
+    """Grouped bars of a per-experiment error before and after the refit, noise marked."""
     pl = plt()
-    m = diag.model
-    names = m.exp_names
-    from ._diagnose import rmse_per_experiment
-
-    before = rmse_per_experiment(m, diag.base.ev.r)
-    after = rmse_per_experiment(m, diag.final.ev.r)
     x = np.arange(len(names))
-    fig, ax = pl.subplots(figsize=(7, 3.4))
+    fig, ax = pl.subplots(figsize=(7, height))
     ax.bar(x - 0.2, [before.get(n, np.nan) for n in names], 0.4, label="base model")
     ax.bar(x + 0.2, [after.get(n, np.nan) for n in names], 0.4,
            label=f"after ({diag.final.label})")
-    ax.axhline(diag.noise_um, color="k", ls="--", lw=1, label=f"noise {diag.noise_um:.3g} µm")
+    ax.axhline(diag.noise_um, color="k", ls="--", lw=1, label=noise_label)
     ax.set_xticks(x)
     ax.set_xticklabels(names, rotation=20, ha="right", fontsize=8)
-    ax.set_ylabel("RMSE [µm]")
-    ax.set_title("RMSE per experiment, before and after")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.legend(fontsize=8)
     fig.tight_layout()
     return _png(fig)
+
+
+def _fig_rmse(diag) -> str:
+    from ._diagnose import rmse_per_experiment
+
+    m = diag.model
+    before = rmse_per_experiment(m, diag.base.ev.r)
+    after = rmse_per_experiment(m, diag.final.ev.r)
+    return _before_after_bars(diag, m.exp_names, before, after, "RMSE [µm]",
+                              "RMSE per experiment, before and after", 3.4,
+                              f"noise {diag.noise_um:.3g} µm")
 
 
 def _fig_loo(diag) -> str | None:
-    pl = plt()
     names = list(diag.loo_before)
     if not names:
         return None
-    x = np.arange(len(names))
-    fig, ax = pl.subplots(figsize=(7, 3.2))
-    ax.bar(x - 0.2, [diag.loo_before[n] for n in names], 0.4, label="base model")
-    ax.bar(x + 0.2, [diag.loo_after.get(n, np.nan) for n in names], 0.4,
-           label=f"after ({diag.final.label})")
-    ax.axhline(diag.noise_um, color="k", ls="--", lw=1, label="noise")
-    ax.set_xticks(x)
-    ax.set_xticklabels(names, rotation=20, ha="right", fontsize=8)
-    ax.set_ylabel("prediction RMSE [µm]")
-    ax.set_title("Leave-one-experiment-out prediction error")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    return _png(fig)
+    return _before_after_bars(diag, names, diag.loo_before, diag.loo_after,
+                              "prediction RMSE [µm]",
+                              "Leave-one-experiment-out prediction error", 3.2, "noise")
 
 
 def _fig_residuals_angle(diag) -> str | None:
