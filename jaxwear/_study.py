@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import math
+import sys
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +69,9 @@ class Study:
     revolutions_per_update: float = 100.0
     clearance_tolerance_um: float = 5.0
     fit: tuple[str, ...] = ()
+    integrator: str = "adaptive"  # or "paper" (fixed M = revolutions_per_update, eq 23)
+    wear_tolerance_um: float = 0.01
+    angle_tolerance_deg: float = 0.0
     raw: dict = field(default_factory=dict, repr=False)
 
     def params(self, exp: Experiment | None = None) -> Params:
@@ -116,21 +120,42 @@ def _check_keys(path, where, table, allowed):
                         f"{sorted(allowed)}")
 
 
-def _read_csv(path: Path, columns: list[str], optional: list[str] = ()):
+def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
+              alternatives: dict | None = None):
+    """Rows of a CSV file whose header starts with `columns` (each may be replaced by one of
+    `alternatives[column]`), then any of `optional`; other columns are ignored with a note.
+
+    Returns (the header names used, in the order `columns + present optional`, and an array
+    with those columns)."""
     if not path.exists():
         raise InputError(f"{path}: data file not found")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not data
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{path}: cannot read data file ({e})") from None
     rows = list(csv.reader(line for line in text.splitlines() if line.strip()))
     if not rows:
         raise InputError(f"{path}: empty file; expected a header {','.join(columns)}")
     header = [h.strip() for h in rows[0]]
-    if header[:len(columns)] != columns or header[len(columns):] not in (
-            [], list(optional)[:len(header) - len(columns)]):
-        raise InputError(f"{path}: line 1: columns {header}; expected "
-                         f"{','.join(columns)}" + (f"[,{','.join(optional)}]" if optional else ""))
+    alternatives = alternatives or {}
+    used = []
+    for c in columns:
+        names = [c, *alternatives.get(c, ())]
+        found = [n for n in names if n in header]
+        if len(found) != 1:
+            expected = ",".join(columns) + (f"[,{','.join(optional)}]" if optional else "")
+            what = "missing" if not found else "given twice as " + " and ".join(found)
+            raise InputError(f"{path}: line 1: columns {header}; expected {expected} "
+                             f"(column {c!r} {what})")
+        used.append(found[0])
+    used += [o for o in optional if o in header]
+    if len(set(header)) != len(header):
+        raise InputError(f"{path}: line 1: a column name is repeated in {header}")
+    extra = [h for h in header if h not in used]
+    if extra:
+        print(f"note: {path}: ignoring column(s) {', '.join(map(repr, extra))}",
+              file=sys.stderr)
+    idx = [header.index(u) for u in used]
     if len(rows) == 1:
         raise InputError(f"{path}: no data rows after the header")
     data = []
@@ -138,50 +163,54 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = ()):
         if len(row) != len(header):
             raise InputError(f"{path}: line {i}: {len(row)} values, expected {len(header)}")
         try:
-            vals = [float(x) for x in row]
+            vals = [float(row[j]) for j in idx]
         except ValueError:
             raise InputError(f"{path}: line {i}: not a number in {row}") from None
-        for name, v in zip(header, vals):
+        for name, v in zip(used, vals):
             if not math.isfinite(v):
                 raise InputError(f"{path}: line {i}: {name} is {v} (NaN/inf are not allowed; "
                                  f"leave the row out instead)")
         data.append(vals)
-    return header, np.array(data)
+    return used, np.array(data)
 
 
-def read_profile(path: Path) -> Profile:
-    """`angle_deg,depth_um[,revolutions]` (DESIGN §6)."""
-    header, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"])
-    for i, (ang, dep) in enumerate(a[:, :2], start=2):
+def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
+    """`angle_deg,depth_um[,revolutions]` (DESIGN §6); `depth_mm` may replace `depth_um`.
+
+    Depths may be negative: a scan is noise around zero outside the wear scar. The scan's
+    angle plus `angle_offset_deg` is the bushing-frame angle."""
+    header, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"],
+                          alternatives={"depth_um": ["depth_mm"]})
+    for i, ang in enumerate(a[:, 0], start=2):
         if not (0.0 <= ang < 360.0):
             raise InputError(f"{path}: line {i}: angle_deg {ang:g} outside [0, 360)")
-        if dep < 0:
-            raise InputError(f"{path}: line {i}: depth_um {dep:g} is negative (depth is wear, "
-                             f"positive into the layer)")
+    depth = a[:, 1] * (1e-3 if header[1] == "depth_mm" else 1e-6)
     revs = a[:, 2] if a.shape[1] > 2 else np.full(len(a), np.nan)
     if a.shape[1] > 2:
         for i, r in enumerate(revs, start=2):
             if not r > 0:
                 raise InputError(f"{path}: line {i}: revolutions {r:g} must be > 0")
-    return Profile(np.deg2rad(a[:, 0]), a[:, 1] * 1e-6, revs, str(path))
+    angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
+    return Profile(angle, depth, revs, str(path))
 
 
 def read_history(path: Path) -> History:
-    """`hours,depth_mm` (maximum depth vs time, DESIGN §6)."""
-    _, a = _read_csv(path, ["hours", "depth_mm"])
+    """`hours,depth_mm` (maximum depth vs time, DESIGN §6); `depth_um` may replace
+    `depth_mm`."""
+    header, a = _read_csv(path, ["hours", "depth_mm"], alternatives={"depth_mm": ["depth_um"]})
     for i, (t, d) in enumerate(a, start=2):
         if not t > 0:
             raise InputError(f"{path}: line {i}: hours {t:g} must be > 0")
-        if d < 0:
-            raise InputError(f"{path}: line {i}: depth_mm {d:g} is negative")
-    return History(a[:, 0], a[:, 1] * 1e-3, str(path))
+    return History(a[:, 0], a[:, 1] * (1e-6 if header[1] == "depth_um" else 1e-3),
+                   str(path))
 
 
 _MODEL_KEYS = {"preset", "contact", "effects", "parameters", "algorithm", "scla_passes",
                "gamma0_deg", "bushing", "double_layer", "duty_cycle"}
-_NUMERIC_KEYS = {"nodes", "steps_per_rev", "revolutions_per_update"}
-_FIT_KEYS = {"clearance_tolerance_um", "parameters"}
-_EXP_FIXED = {"name", "revolutions", "hours", "profile", "history"}
+_NUMERIC_KEYS = {"nodes", "steps_per_rev", "revolutions_per_update", "integrator",
+                 "wear_tolerance_um"}
+_FIT_KEYS = {"clearance_tolerance_um", "angle_tolerance_deg", "parameters"}
+_EXP_FIXED = {"name", "revolutions", "hours", "profile", "history", "angle_offset_deg"}
 
 
 def _validate_params(path, where, values: dict) -> dict:
@@ -218,7 +247,7 @@ def load_study(path) -> Study:
     if not path.exists():
         raise InputError(f"{path}: study file not found")
     try:
-        raw = tomllib.loads(path.read_text())
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"{path}: TOML syntax error: {e}") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -290,6 +319,11 @@ def load_study(path) -> Study:
                                               num["steps_per_rev"], positive=True, integer=True))
     M = _number(path, "numerics.revolutions_per_update", num.get("revolutions_per_update", 100),
                 positive=True)
+    integrator = num.get("integrator", "adaptive")
+    if integrator not in ("adaptive", "paper"):
+        _fail(path, f"numerics.integrator must be \"adaptive\" or \"paper\", got {integrator!r}")
+    wear_tol = _number(path, "numerics.wear_tolerance_um", num.get("wear_tolerance_um", 0.01),
+                       positive=True)
     try:
         config = ModelConfig(**cfg_kw)
     except InputError as e:
@@ -302,6 +336,8 @@ def load_study(path) -> Study:
         tol = math.inf
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:
         _fail(path, f"fit.clearance_tolerance_um must be a number >= 0 (or inf), got {tol!r}")
+    angle_tol = _number(path, "fit.angle_tolerance_deg", fit.get("angle_tolerance_deg", 0.0),
+                        nonneg=True)
     fit_params = fit.get("parameters", [])
     if not isinstance(fit_params, list):
         _fail(path, "fit.parameters must be a list of names")
@@ -332,7 +368,8 @@ def load_study(path) -> Study:
         if "profile" in e:
             if not isinstance(e["profile"], str):
                 _fail(path, f"{where}.profile must be a file name")
-            profile = read_profile(path.parent / e["profile"])
+            offset = _number(path, f"{where}.angle_offset_deg", e.get("angle_offset_deg", 0.0))
+            profile = read_profile(path.parent / e["profile"], offset)
         if "history" in e:
             if not isinstance(e["history"], str):
                 _fail(path, f"{where}.history must be a file name")
@@ -363,7 +400,8 @@ def load_study(path) -> Study:
             if history is not None and np.max(history.hours) > hours + 1e-9:
                 _fail(path, f"{where}: history goes to {np.max(history.hours):g} h > hours")
         exp = Experiment(ename, overrides, revs, hours, profile, history)
-        st = Study(path, name, config, params, (exp,), M, float(tol), tuple(fit_params), raw)
+        st = Study(path, name, config, params, (exp,), M, float(tol), tuple(fit_params),
+                   integrator, wear_tol, angle_tol, raw)
         try:
             p = st.params(exp)
         except InputError as err:
@@ -373,4 +411,4 @@ def load_study(path) -> Study:
             _fail(path, f"{where}: speed_rpm must be > 0")
         experiments.append(exp)
     return Study(path, name, config, params, tuple(experiments), M, float(tol),
-                 tuple(fit_params), raw)
+                 tuple(fit_params), integrator, wear_tol, angle_tol, raw)

@@ -207,7 +207,7 @@ def test_non_identifiable_parameter_is_flagged(truth, tmp_path):
 
 BAD = {
     "nan": ("angle_deg,depth_um\n0,1.0\n10,nan\n", "line 3"),
-    "negative": ("angle_deg,depth_um\n0,1.0\n10,-0.5\n", "line 3"),
+    "inf": ("angle_deg,depth_um\n0,1.0\n10,inf\n", "line 3"),
     "angle": ("angle_deg,depth_um\n0,1.0\n360,0.5\n", "line 3"),
     "angle_negative": ("angle_deg,depth_um\n-5,1.0\n", "line 2"),
     "empty": ("", "empty"),
