@@ -73,6 +73,14 @@ def last_cycle_pressure(study: Study, exp: Experiment, res: WearResult, regime: 
                                 hist.load[regime], hist.angle[regime]))
 
 
+def simulate_outputs(study: Study) -> list[str]:
+    """Every file name `simulate_study` may write (for the output guard)."""
+    from ._io import per_experiment
+
+    return ["profiles.csv", "snapshots.csv", "summary.json", *per_experiment(
+        study, "profile_{}.png", "load_{}.png", "pressure_{}.png", "history_{}.png")]
+
+
 def simulate_study(study: Study, out=None, plots=True) -> dict:
     """Run every experiment; write profiles, snapshots, plots and a summary under `out`."""
     from . import _report as rep

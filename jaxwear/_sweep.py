@@ -222,6 +222,7 @@ def parse_range(option: str, text: str) -> np.ndarray:
 
 
 def _heatmap(path, title, label, res: SweepResult, z):
+    from ._io import save_figure
     from ._report import plt
 
     pl = plt()
@@ -246,13 +247,16 @@ def _heatmap(path, title, label, res: SweepResult, z):
         ax.grid(alpha=0.3)
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     pl.close(fig)
+
+
+SWEEP_OUTPUTS = ("sweep.csv", "sweep_peak_depth.png", "sweep_worn_volume.png")
 
 
 def cmd_sweep(args):
     """`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11`."""
-    from ._report import OutputDir
+    from ._io import open_outputs
     from ._study import load_study
 
     study = load_study(args.study)
@@ -270,9 +274,7 @@ def cmd_sweep(args):
     if not grid:
         raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
                          "--clearance-mm START:STOP:COUNT")
-    inputs = [study.path] + [d.path for e in study.experiments
-                             for d in (e.profile, e.history) if d is not None]
-    out = OutputDir(args.out, inputs)
+    out = open_outputs(study, args.out, planned=SWEEP_OUTPUTS)
     total = math.prod(len(v) for v in grid.values())
     what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
     print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first chunk "

@@ -34,6 +34,7 @@ import numpy as np
 
 from ._config import ModelConfig
 from ._errors import InputError
+from ._io import OutputDir, open_outputs, per_experiment
 from ._study import Experiment, History, Profile, Study, load_study
 from .effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
 
@@ -193,6 +194,10 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     hid = hidden if isinstance(hidden, dict) else parse_hidden(hidden)
     hid = {k: dict(v) for k, v in hid.items()}  # filled in below; the caller's stays
     base = _conditions(conditions, numerics)
+    outdir = None
+    if out is not None:  # before any work: the study and CSVs must not replace an input
+        outdir = out if isinstance(out, OutputDir) else open_outputs(
+            base, out, planned=synth_outputs(base))
     rng = np.random.default_rng(seed)
     written_cfg = base.config
     if "unsymmetric" in hid:  # the study states the traditional contact it is missing
@@ -273,7 +278,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     study_written = _as_study(planned, written_cfg, exps)
     path = None
     if out is not None:
-        path = _write(Path(out), planned, written_cfg, exps, truth)
+        path = _write(outdir, planned, written_cfg, exps, truth)
         study_written = load_study(path)
     return SynthResult(study_written, path, truth)
 
@@ -314,8 +319,12 @@ def _toml_value(v):
     return repr(float(v)) if not float(v).is_integer() or abs(v) >= 1e15 else f"{v:g}"
 
 
-def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
-    out.mkdir(parents=True, exist_ok=True)
+def synth_outputs(conditions: Study) -> list[str]:
+    """Every file name `synthesize(out=...)` writes (for the output guard)."""
+    return ["study.toml", "truth.json", *per_experiment(conditions, "{}.csv")]
+
+
+def _write(out: OutputDir, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
     lines = ["# Written by `jaxwear synth`: data from a model with hidden effects.",
              "# The truth is in truth.json (not referenced by this study).",
              "[model]", f"preset = {_toml_value(planned.preset)}",
@@ -344,21 +353,16 @@ def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
         if "rows" in data:
             lines.append(f"revolutions = {_toml_value(e.revolutions)}")
             lines.append(f"profile = {_toml_value(fname)}")
-            with (out / fname).open("w") as f:
-                f.write("angle_deg,depth_um,revolutions\n")
-                for a, d, s in data["rows"]:
-                    f.write(f"{a:g},{d:.4f},{s:g}\n")
+            out.write_text(fname, "angle_deg,depth_um,revolutions\n" + "".join(
+                f"{a:g},{d:.4f},{s:g}\n" for a, d, s in data["rows"]))
         else:
             lines.append(f"hours = {_toml_value(e.hours)}")
             lines.append(f"history = {_toml_value(fname)}")
-            with (out / fname).open("w") as f:
-                f.write("hours,depth_mm\n")
-                for t, d in zip(data["hours"], data["depth_mm"]):
-                    f.write(f"{t:g},{d:.6f}\n")
-    path = out / "study.toml"
-    path.write_text("\n".join(lines) + "\n")
-    (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
-    return path
+            out.write_text(fname, "hours,depth_mm\n" + "".join(
+                f"{t:g},{d:.6f}\n" for t, d in zip(data["hours"], data["depth_mm"])))
+    # the CSVs first: a study file under its final name always has its data beside it
+    out.write_text("truth.json", json.dumps(truth, indent=2) + "\n")
+    return out.write_text("study.toml", "\n".join(lines) + "\n")
 
 
 def cmd_synth(args):
