@@ -160,12 +160,14 @@ def calibrate_outputs(study) -> list[str]:
 
 
 def cmd_calibrate(args):
+    from ._budget import check_work
     from ._io import open_outputs
     from ._study import load_study
 
     study = load_study(args.study)
     out = open_outputs(study, args.out, planned=calibrate_outputs(study),
                        json_file=getattr(args, "json", None))
+    check_work(study, tangents=1 + len(study.experiments) + len(study.fit))
     keys = parse_fit(study, fit_spec(args, study))
     problem = build_problem(study, keys)
     if not problem.names:

@@ -40,11 +40,13 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
 
 
 def cmd_diagnose(args):
+    from ._budget import check_work
     from ._diagnose import diagnose
     from ._study import load_study
 
     study = load_study(args.study)
     out = open_diagnose_outputs(study, args.out, args.json)
+    check_work(study, tangents=1 + len(study.experiments) + 4)  # + a candidate's strengths
     diag = diagnose(study, verbose=True)
     doc = write_outputs(diag, out)
     v = doc["verdict"]

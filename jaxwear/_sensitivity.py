@@ -210,11 +210,13 @@ SENSITIVITY_OUTPUTS = ("sensitivity.csv", "sensitivity.json", "sensitivity.png")
 
 def cmd_sensitivity(args):
     """`jaxwear sensitivity STUDY.toml [--out DIR]`: every experiment of the study."""
+    from ._budget import check_work
     from ._io import open_outputs
     from ._study import load_study
 
     study = load_study(args.study)
     out = open_outputs(study, args.out, planned=SENSITIVITY_OUTPUTS)
+    check_work(study, tangents=len(PARAMETER_KEYS))
     print(f"sensitivity: {len(study.experiments)} experiments, forward-mode autodiff through "
           f"the wear loop (the first compiles it)", file=sys.stderr, flush=True)
     results = study_sensitivities(study, progress=True)

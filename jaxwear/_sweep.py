@@ -256,6 +256,7 @@ SWEEP_OUTPUTS = ("sweep.csv", "sweep_peak_depth.png", "sweep_worn_volume.png")
 
 def cmd_sweep(args):
     """`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11`."""
+    from ._budget import check_work
     from ._io import open_outputs
     from ._study import load_study
 
@@ -275,6 +276,7 @@ def cmd_sweep(args):
         raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
                          "--clearance-mm START:STOP:COUNT")
     out = open_outputs(study, args.out, planned=SWEEP_OUTPUTS)
+    check_work(study)
     total = math.prod(len(v) for v in grid.values())
     what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
     print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first chunk "

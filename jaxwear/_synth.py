@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._budget import check_work
 from ._config import ModelConfig
 from ._errors import InputError
 from ._io import OutputDir, open_outputs, per_experiment
@@ -198,6 +199,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     if out is not None:  # before any work: the study and CSVs must not replace an input
         outdir = out if isinstance(out, OutputDir) else open_outputs(
             base, out, planned=synth_outputs(base))
+    check_work(base)
     rng = np.random.default_rng(seed)
     written_cfg = base.config
     if "unsymmetric" in hid:  # the study states the traditional contact it is missing

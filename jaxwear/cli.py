@@ -29,12 +29,14 @@ def _enable_cache():
 
 
 def cmd_simulate(args):
+    from ._budget import check_work
     from ._io import open_outputs
     from ._simulate_study import simulate_outputs, simulate_study
     from ._study import load_study
 
     study = load_study(args.study)
     out = open_outputs(study, args.out, planned=simulate_outputs(study))
+    check_work(study)
     simulate_study(study, out)
     print(f"wrote {out.root / 'profiles.csv'}")
 
