@@ -99,7 +99,10 @@ def _fail(path, msg):
 def _number(path, where, value, *, positive=False, integer=False, nonneg=False):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         _fail(path, f"{where} must be a number, got {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # TOML integers have no size limit in tomllib
+        v = math.inf
     if not math.isfinite(v):
         _fail(path, f"{where} must be finite, got {value!r}")
     if positive and not v > 0:
@@ -129,6 +132,8 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
     with those columns)."""
     if not path.exists():
         raise InputError(f"{path}: data file not found")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a data file")
     try:
         text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not data
     except (OSError, UnicodeDecodeError) as e:
@@ -241,6 +246,15 @@ def _check_geometry(path, where, params: Params):
         _fail(path, f"{where}: layer_poisson_ratio must be < 0.5")
 
 
+def _data_file(path: Path, where: str, name: str):
+    """A data file named by the study must be a file beside it (or under its folder)."""
+    f = path.parent / name
+    if not f.exists():
+        _fail(path, f"{where}: data file {name!r} not found (looked for {f})")
+    if not f.is_file():
+        _fail(path, f"{where}: {name!r} is not a file (looked for {f})")
+
+
 def load_study(path) -> Study:
     """Read and validate a study file (DESIGN §6). Raises `InputError` on bad input."""
     path = Path(path)
@@ -336,6 +350,8 @@ def load_study(path) -> Study:
         tol = math.inf
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:
         _fail(path, f"fit.clearance_tolerance_um must be a number >= 0 (or inf), got {tol!r}")
+    if isinstance(tol, int) and tol > 1e300:
+        tol = math.inf  # a huge whole number means no prior, like "inf"
     angle_tol = _number(path, "fit.angle_tolerance_deg", fit.get("angle_tolerance_deg", 0.0),
                         nonneg=True)
     fit_params = fit.get("parameters", [])
@@ -366,13 +382,15 @@ def load_study(path) -> Study:
                 _fail(path, f"{where}.speed_rpm must be > 0, got {e['speed_rpm']!r}")
         profile = history = None
         if "profile" in e:
-            if not isinstance(e["profile"], str):
-                _fail(path, f"{where}.profile must be a file name")
+            if not isinstance(e["profile"], str) or not e["profile"].strip():
+                _fail(path, f"{where}.profile must be a file name, got {e['profile']!r}")
             offset = _number(path, f"{where}.angle_offset_deg", e.get("angle_offset_deg", 0.0))
+            _data_file(path, f"{where}.profile", e["profile"])
             profile = read_profile(path.parent / e["profile"], offset)
         if "history" in e:
-            if not isinstance(e["history"], str):
-                _fail(path, f"{where}.history must be a file name")
+            if not isinstance(e["history"], str) or not e["history"].strip():
+                _fail(path, f"{where}.history must be a file name, got {e['history']!r}")
+            _data_file(path, f"{where}.history", e["history"])
             history = read_history(path.parent / e["history"])
         revs = hours = None
         if config.driver == "crank_slider" and history is not None:

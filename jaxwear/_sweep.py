@@ -201,6 +201,9 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         depth_um=depth_um.reshape(shape + (nodes,)))
 
 
+MAX_POINTS = 100_000  # grid points of one sweep (each is a whole wear simulation)
+
+
 def parse_range(option: str, text: str) -> np.ndarray:
     """`START:STOP:COUNT` (inclusive, evenly spaced), `A,B,C` or a single value."""
     text = str(text).strip()
@@ -210,12 +213,18 @@ def parse_range(option: str, text: str) -> np.ndarray:
             count = int(n)
             if count < 1 or str(count) != n.strip():
                 raise ValueError
-            vals = np.linspace(float(a), float(b), count)
+            a, b = float(a), float(b)
         else:
+            count = None
             vals = np.array([float(x) for x in text.split(",")])
     except ValueError:
         raise InputError(f"{option} {text!r}: expected START:STOP:COUNT (e.g. 100:300:21), "
                          f"a comma-separated list or one value") from None
+    if count is not None:
+        if count > MAX_POINTS:
+            raise InputError(f"{option} {text!r}: {count} values; at most {MAX_POINTS} per "
+                             f"sweep")
+        vals = np.linspace(a, b, count)
     if not np.all(np.isfinite(vals)):
         raise InputError(f"{option} {text!r}: values must be finite")
     return vals
@@ -275,6 +284,10 @@ def cmd_sweep(args):
     if not grid:
         raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
                          "--clearance-mm START:STOP:COUNT")
+    total = math.prod(len(v) for v in grid.values())
+    if total > MAX_POINTS:
+        raise InputError(f"sweep: {total} grid points; at most {MAX_POINTS} (each is a whole "
+                         f"wear simulation): give fewer values")
     out = open_outputs(study, args.out, planned=SWEEP_OUTPUTS)
     check_work(study)
     total = math.prod(len(v) for v in grid.values())
