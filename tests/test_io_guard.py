@@ -212,3 +212,30 @@ def test_figures_are_written_atomically(tmp_path):
     pl.close(fig)
     assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert [q.name for q in tmp_path.iterdir()] == ["f.png"]
+
+
+# --------------------------------------------------------------------------------------
+# The planned names are complete: a run writes only files its guard checked up front
+# --------------------------------------------------------------------------------------
+
+def test_synth_writes_exactly_its_planned_files(tmp_path):
+    from jaxwear import load_study
+    from jaxwear._synth import synth_outputs
+
+    conditions = _study(tmp_path / "c")
+    rc = main(["synth", "--hidden", "creep", "--conditions", str(conditions), "--out",
+               str(tmp_path / "new"), "--noise-um", "0.1"])
+    assert rc == 0
+    written = {p.name for p in (tmp_path / "new").iterdir()}
+    assert written == set(synth_outputs(load_study(conditions)))
+
+
+def test_simulate_writes_only_planned_files(tmp_path):
+    from jaxwear import load_study
+    from jaxwear._simulate_study import simulate_outputs
+
+    study = _study(tmp_path / "s")
+    assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 0
+    written = {p.name for p in (tmp_path / "o").iterdir()}
+    assert written and written <= set(simulate_outputs(load_study(study)))
+    assert "pressure_a.png" in written and not any(n.endswith(".part") for n in written)
