@@ -99,6 +99,14 @@ def parse_fit(study: Study, fit: str | list[str] | None) -> list[str]:
     return list(dict.fromkeys(keys))
 
 
+def with_registration(study: Study, keys: list[str]) -> list[str]:
+    """`keys` plus the scans' angular registration (`angle_offset_deg`, one per profile
+    experiment) when the study's `[fit] angle_tolerance_deg` is > 0."""
+    if study.angle_tolerance_deg > 0 and "angle_offset_deg" not in keys:
+        return [*keys, "angle_offset_deg"]
+    return list(keys)
+
+
 def fit_parameters(study: Study, keys: list[str]) -> list[FitParameter]:
     specs = effect_parameter_specs()
     out = []
@@ -780,8 +788,6 @@ def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=Fal
 
     **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
     """
-    keys = parse_fit(study, fit_spec)
-    if study.angle_tolerance_deg > 0 and "angle_offset_deg" not in keys:
-        keys.append("angle_offset_deg")  # [fit] angle_tolerance_deg > 0: registration fitted
+    keys = with_registration(study, parse_fit(study, fit_spec))
     problem = build_problem(study, keys, start)
     return fit(problem, max_steps=max_steps, verbose=verbose, engine=engine)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._calibrate import FitResult, build_problem, fit, parse_fit, unit_of
+from ._calibrate import FitResult, build_problem, fit, parse_fit, unit_of, with_registration
 from ._errors import InputError
 
 DEFAULT_FIT = "K_d,clearance"
@@ -180,7 +180,7 @@ def cmd_calibrate(args):
     study = load_study(args.study)
     inputs = _inputs(study)
     out = OutputDir(args.out, inputs)
-    keys = parse_fit(study, fit_spec(args, study))
+    keys = with_registration(study, parse_fit(study, fit_spec(args, study)))
     problem = build_problem(study, keys)
     if not problem.names:
         raise InputError(f"{study.path}: nothing to fit: {', '.join(keys)} requested, and "

@@ -148,3 +148,27 @@ def test_null_study_from_the_numpy_reference(reference_study):
     d = diagnose(st)
     assert d.status == "adequate", d.summary
     assert d.noise_um == pytest.approx(NOISE, rel=4 / math.sqrt(d.model.n))
+
+
+def test_cli_synth_offset_then_calibrate_fits_it(tmp_path):
+    """The CLI round trip: `synth --angle-offset-deg`, the user states a registration prior,
+    `calibrate` writes `angle_offset_deg/<experiment>` into calibration.json."""
+    import json
+
+    from jaxwear.cli import main
+
+    cond = tmp_path / "cond.toml"
+    cond.write_text('[model]\npreset = "rig"\n[model.parameters]\nK_d_per_Pa = 1e-13\n'
+                    'spring_N_per_m = 1009.4\n[numerics]\nnodes = 64\nsteps_per_rev = 72\n'
+                    'revolutions_per_update = 500\n[fit]\nangle_tolerance_deg = 4\n'
+                    '[[experiment]]\nname = "a"\nspeed_rpm = 276\nrevolutions = 5000\n'
+                    'clearance_mm = 0.05\n')
+    out = tmp_path / "s"
+    assert main(["synth", "--conditions", str(cond), "--angle-offset-deg", "-2.5", "--seed",
+                 "9", "--out", str(out)]) == 0
+    assert json.loads((out / "truth.json").read_text())["angle_offset_deg"] == {"a": -2.5}
+    assert "angle_tolerance_deg = 4" in (out / "study.toml").read_text()
+    assert main(["calibrate", str(out / "study.toml"), "--out", str(tmp_path / "c")]) == 0
+    doc = json.loads((tmp_path / "c" / "calibration.json").read_text())
+    p = doc["parameters"]["angle_offset_deg/a"]
+    assert abs(p["value"] + 2.5) < 0.5 and p["stderr"] > 0
