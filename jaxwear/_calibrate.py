@@ -14,6 +14,10 @@ of their start, nested effect strengths linearly around their "off" value in uni
 typical scale. The clearance-tolerance prior of DESIGN §6 adds one residual per fitted
 clearance, (c - c_nominal)/τ, in units of the noise level (estimated from a first pass);
 τ = inf gives zero rows (free clearances), τ = 0 removes the clearances from the fit.
+With `[fit] angle_tolerance_deg` > 0 each profile's angular registration is fitted too
+(`angle_offset_deg/EXP`, linear, started at the given offset, the same kind of prior row):
+the model is read at the shifted angles by a periodic interpolation differentiable in the
+offset (docs/measurements.md).
 
 Robust start: depth is nearly proportional to K_d, so before the iteration K_d is divided
 by 10 until the model no longer wears through the layer, then rescaled so that the model's
