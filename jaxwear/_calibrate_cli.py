@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from ._calibrate import FitResult, build_problem, fit, parse_fit, unit_of
+from ._calibrate import FitResult, build_problem, fit, parse_fit, unit_of, with_registration
 from ._errors import InputError
 
 DEFAULT_FIT = "K_d,clearance"
@@ -168,7 +168,7 @@ def cmd_calibrate(args):
     out = open_outputs(study, args.out, planned=calibrate_outputs(study),
                        json_file=getattr(args, "json", None))
     check_work(study, tangents=1 + len(study.experiments) + len(study.fit))
-    keys = parse_fit(study, fit_spec(args, study))
+    keys = with_registration(study, parse_fit(study, fit_spec(args, study)))
     problem = build_problem(study, keys)
     if not problem.names:
         raise InputError(f"{study.path}: nothing to fit: {', '.join(keys)} requested, and "

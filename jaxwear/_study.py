@@ -23,12 +23,15 @@ from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
 
 @dataclass(frozen=True)
 class Profile:
-    """Measured wear profile(s): angle [rad], depth [m], revolution count of each row."""
+    """Measured wear profile(s): bushing-frame angle [rad], depth [m], revolution count of
+    each row; `angle_offset_deg`: the registration offset already added to the scan's
+    angles (the start and prior centre of a fitted `angle_offset_deg/EXP`)."""
 
     angle: np.ndarray
     depth: np.ndarray
     revolutions: np.ndarray
     path: str
+    angle_offset_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -179,24 +182,87 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
     return used, np.array(data)
 
 
-def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
-    """`angle_deg,depth_um[,revolutions]` (DESIGN §6); `depth_mm` may replace `depth_um`.
+NOISE_WARN_LEVELS = 5.0  # a depth below -5 noise levels is worth a look at the scan's zero
 
-    Depths may be negative: a scan is noise around zero outside the wear scar. The scan's
-    angle plus `angle_offset_deg` is the bushing-frame angle."""
-    header, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"],
-                          alternatives={"depth_um": ["depth_mm"]})
+
+def _header(path: Path) -> list[str]:
+    """The header names of a CSV file (errors are left to `_read_csv`)."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError):
+        return []
+    for line in text.splitlines():
+        if line.strip():
+            return [h.strip() for h in next(csv.reader([line]))]
+    return []
+
+
+def robust_noise(angle: np.ndarray, depth: np.ndarray, revolutions: np.ndarray) -> float:
+    """Noise level of profile rows [depth's unit], robust to the scar and to outliers.
+
+    Within each scan (rows of one revolution count, in angle order) each depth minus the
+    mean of its two neighbours (periodic) cancels a smooth profile and has variance 1.5 σ²
+    for white noise; σ = 1.4826 MAD / √1.5. NaN with fewer than 5 usable points."""
+    e = []
+    revs = np.where(np.isnan(revolutions), -1.0, revolutions)
+    for r in np.unique(revs):
+        m = revs == r
+        order = np.argsort(angle[m])
+        y = depth[m][order]
+        if len(y) >= 3:
+            e.append(y - 0.5 * (np.roll(y, 1) + np.roll(y, -1)))
+    e = np.concatenate(e) if e else np.zeros(0)
+    if len(e) < 5:
+        return math.nan
+    return float(1.4826 * np.median(np.abs(e - np.median(e))) / math.sqrt(1.5))
+
+
+def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
+    """A profile file (DESIGN §6, docs/measurements.md), one of:
+
+    - `angle_deg,depth_um[,revolutions]` (`depth_mm` may replace `depth_um`);
+    - `angle_deg,radius_before_um,radius_after_um[,revolutions]`: two raw scans of the bore
+      radius, before and after the test, at the same angles; depth = after - before.
+
+    Depths may be negative: a scan is noise around zero outside the wear scar. A depth
+    below -5 noise levels (noise estimated robustly from the rows, `robust_noise`) gets a
+    one-line warning on stderr. The scan's angle plus `angle_offset_deg` is the
+    bushing-frame angle."""
+    header = _header(path)
+    raw_scans = "radius_before_um" in header or "radius_after_um" in header
+    if raw_scans:
+        if "depth_um" in header or "depth_mm" in header:
+            raise InputError(f"{path}: line 1: give either a depth column (depth_um) or two "
+                             f"raw scans (radius_before_um,radius_after_um), not both")
+        used, a = _read_csv(path, ["angle_deg", "radius_before_um", "radius_after_um"],
+                            ["revolutions"])
+        depth = (a[:, 2] - a[:, 1]) * 1e-6  # wear opens the bore: the radius grows
+        rev_col = 3
+    else:
+        used, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"],
+                            alternatives={"depth_um": ["depth_mm"]})
+        depth = a[:, 1] * (1e-3 if used[1] == "depth_mm" else 1e-6)
+        rev_col = 2
     for i, ang in enumerate(a[:, 0], start=2):
         if not (0.0 <= ang < 360.0):
             raise InputError(f"{path}: line {i}: angle_deg {ang:g} outside [0, 360)")
-    depth = a[:, 1] * (1e-3 if header[1] == "depth_mm" else 1e-6)
-    revs = a[:, 2] if a.shape[1] > 2 else np.full(len(a), np.nan)
-    if a.shape[1] > 2:
+    has_revs = a.shape[1] > rev_col
+    revs = a[:, rev_col] if has_revs else np.full(len(a), np.nan)
+    if has_revs:
         for i, r in enumerate(revs, start=2):
             if not r > 0:
                 raise InputError(f"{path}: line {i}: revolutions {r:g} must be > 0")
+    sigma = robust_noise(a[:, 0], depth, revs)
+    if math.isfinite(sigma) and sigma > 0:
+        low = depth < -NOISE_WARN_LEVELS * sigma
+        if low.any():
+            j = int(np.argmin(depth))
+            print(f"warning: {path}: {int(low.sum())} depth(s) below -{NOISE_WARN_LEVELS:g} "
+                  f"noise levels (noise {sigma * 1e6:.3g} µm from neighbouring points; "
+                  f"lowest {depth[j] * 1e6:.3g} µm at line {j + 2}): check the scan's zero "
+                  f"and sign", file=sys.stderr)
     angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
-    return Profile(angle, depth, revs, str(path))
+    return Profile(angle, depth, revs, str(path), float(angle_offset_deg))
 
 
 def read_history(path: Path) -> History:
@@ -404,7 +470,8 @@ def load_study(path) -> Study:
                 r = profile.revolutions
                 if np.all(np.isnan(r)):
                     profile = Profile(profile.angle, profile.depth,
-                                      np.full(len(r), revs), profile.path)
+                                      np.full(len(r), revs), profile.path,
+                                      profile.angle_offset_deg)
                 elif np.max(r) > revs + 1e-9:
                     _fail(path, f"{where}: profile {e['profile']} has revolutions up to "
                                 f"{np.max(r):g} > experiment revolutions {revs:g}")

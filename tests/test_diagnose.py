@@ -1,5 +1,7 @@
 """`diagnose` on data with a known truth: synthetic studies made by `synth` with hidden
-effects (paper rig matrix, interrupted tests, 0.3 µm noise, small numerical grid).
+effects (paper rig matrix, interrupted tests, whole-bore scans with 0.3 µm zero-mean noise on
+every point, small numerical grid). The data are not the fit's own: `synth` computes the
+truth at 2x the study's nodes and steps and a tenth of its revolutions per update.
 
 Every study here has the same design, so the extended model compiles once (twice with
 the symmetric-contact study) for the whole module.
