@@ -35,6 +35,10 @@ from ._sweep import sweep as sweep  # noqa: E402
 from ._wear import WearResult as WearResult  # noqa: E402
 from ._wear import simulate as simulate  # noqa: E402
 from ._wear import wear_loop as wear_loop  # noqa: E402
+
+# Binds `jaxwear.diagnose` to the function (the package stays importable by name,
+# `from jaxwear.diagnose import Model`).
+from .diagnose import diagnose as diagnose  # noqa: E402
 from .effects import Effect as Effect  # noqa: E402
 from .effects import register_effect as register_effect  # noqa: E402
 

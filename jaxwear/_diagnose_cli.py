@@ -17,8 +17,8 @@ def _inputs(study):
 def write_outputs(diag, out_dir, json_file=None) -> dict:
     """Write diagnosis.json, report.html and residuals.csv under `out_dir` (and the JSON to
     `json_file` if given). Returns the JSON document."""
-    from ._html import report_html
     from ._report import OutputDir
+    from .diagnose._html import report_html
 
     out = OutputDir(out_dir, _inputs(diag.study))
     doc = diag.to_json()
@@ -45,8 +45,8 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
 
 
 def cmd_diagnose(args):
-    from ._diagnose import diagnose
     from ._study import load_study
+    from .diagnose import diagnose
 
     study = load_study(args.study)
     diag = diagnose(study, verbose=True)

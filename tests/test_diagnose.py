@@ -13,7 +13,9 @@ import pytest
 
 import jaxwear as jw
 from jaxwear._config import ModelConfig
-from jaxwear._diagnose import (
+from jaxwear._synth import PAPER_MATRIX, synthesize
+from jaxwear.cli import main
+from jaxwear.diagnose import (
     betainc,
     chi2_sf,
     diagnose,
@@ -22,8 +24,6 @@ from jaxwear._diagnose import (
     line_residuals,
     noise_level,
 )
-from jaxwear._synth import PAPER_MATRIX, synthesize
-from jaxwear.cli import main
 from jaxwear.effects import STRUCTURAL_CANDIDATES, get_effect
 
 SMALL = dict(nodes=64, steps_per_rev=72, revolutions_per_update=500)

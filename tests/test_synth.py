@@ -67,7 +67,7 @@ def test_written_study_is_a_valid_interrupted_test_design(written):
 
 def test_data_are_the_hidden_model_plus_the_stated_noise(written):
     """At the true parameters the residuals are white noise of the stated level."""
-    from jaxwear._diagnose import Model, lag1_autocorrelation, neighbour_pairs
+    from jaxwear.diagnose import Model, lag1_autocorrelation, neighbour_pairs
 
     out, res = written
     m = Model(load_study(out / "study.toml"))
@@ -97,7 +97,7 @@ def test_noise_free_data_reproduce_the_model_and_seeds_are_deterministic(tmp_pat
     for name, *_ in PAPER_MATRIX:
         assert (tmp_path / "a" / f"{name}.csv").read_text() == \
             (tmp_path / "b" / f"{name}.csv").read_text()
-    from jaxwear._diagnose import Model
+    from jaxwear.diagnose import Model
 
     m = Model(a.study)
     t = a.truth

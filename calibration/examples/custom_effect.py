@@ -38,9 +38,9 @@ jw.register_effect(DebrisAbrasion())
 
 def main(argv=None):
     from jaxwear._calibrate import calibrate
-    from jaxwear._diagnose import diagnose
     from jaxwear._diagnose_cli import write_outputs
     from jaxwear._synth import synthesize
+    from jaxwear.diagnose import diagnose
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=None, help="write the diagnosis report here")
