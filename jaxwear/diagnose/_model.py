@@ -26,7 +26,7 @@ class Model:
     evaluations = 0  # process-wide count of compiled-model evaluations (for progress)
 
     def __init__(self, study: Study, problem=None, *, candidates=None, contact=None):
-        from ._calibrate import build_problem, parse_fit
+        from .._calibrate import build_problem, parse_fit
 
         self.study = study
         if problem is None:

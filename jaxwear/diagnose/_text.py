@@ -23,7 +23,7 @@ def _fmt_value(v, se, unit=""):
 
 
 def _strength_text(diag: Diagnosis, fit: Fit, effect: str) -> str:
-    from ._calibrate import unit_of
+    from .._calibrate import unit_of
 
     if effect == "unsymmetric":
         return "no extra parameter"
