@@ -62,7 +62,6 @@ from ._screen import SHAPE_GRID, Screen, screen
 from ._stats import (
     ALPHA,
     Tests,
-    betainc,
     chi2_sf,
     f_sf,
     lag1_autocorrelation,
@@ -79,7 +78,7 @@ from ._verdict import diagnose
 
 __all__ = [
     "ALPHA", "AMBIGUOUS_LOG_BF", "METHOD_NOTE", "SHAPE_GRID", "STRONG_LOG_BF", "Candidate",
-    "Column", "Diagnosis", "Eval", "Extended", "Fit", "Model", "Screen", "Tests", "betainc",
+    "Column", "Diagnosis", "Eval", "Extended", "Fit", "Model", "Screen", "Tests",
     "candidate_names", "chi2_sf", "derived", "diagnose", "evidence", "evidence_from", "f_sf",
     "finish", "fit_masked", "lag1_autocorrelation", "line_residuals", "loo",
     "measurement_series", "neighbour_differences", "neighbour_pairs", "noise_level", "norm_sf",

@@ -82,89 +82,33 @@ def noise_level(e) -> tuple[float, float]:
     return float(np.sqrt(np.mean(e ** 2))), len(e) / _D2_DOF_FACTOR
 
 
-def _betacf(a, b, x):
-    """Continued fraction of the regularised incomplete beta function (Lentz)."""
-    tiny = 1e-300
-    qab, qap, qam = a + b, a + 1.0, a - 1.0
-    c, d = 1.0, 1.0 - qab * x / qap
-    d = 1.0 / (d if abs(d) > tiny else tiny)
-    h = d
-    for m in range(1, 400):
-        m2 = 2 * m
-        aa = m * (b - m) * x / ((qam + m2) * (a + m2))
-        d = 1.0 + aa * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + aa / c if abs(1.0 + aa / c) > tiny else tiny
-        h *= d * c
-        aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))
-        d = 1.0 + aa * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + aa / c if abs(1.0 + aa / c) > tiny else tiny
-        delta = d * c
-        h *= delta
-        if abs(delta - 1.0) < 1e-14:
-            break
-    return h
-
-
-def betainc(a: float, b: float, x: float) -> float:
-    """Regularised incomplete beta function I_x(a, b)."""
-    if x <= 0:
-        return 0.0
-    if x >= 1:
-        return 1.0
-    lbt = (math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x)
-           + b * math.log1p(-x))
-    if x < (a + 1) / (a + b + 2):
-        return math.exp(lbt) * _betacf(a, b, x) / a
-    return 1.0 - math.exp(lbt) * _betacf(b, a, 1 - x) / b
+# Tail probabilities from scipy.stats (imported on first use: it adds over a second to
+# `import jaxwear`, and only diagnose needs it).
 
 
 def f_sf(F: float, d1: float, d2: float) -> float:
-    """P(X > F) for X ~ F(d1, d2)."""
+    """P(X > F) for X ~ F(d1, d2); d2 = inf (noise level known) is chi-square(d1)/d1."""
+    from scipy import stats
+
     if not F > 0:
         return 1.0
-    if not math.isfinite(d2) or d2 > 1e7:  # σ known: chi-square(d1)/d1
+    if not math.isfinite(d2):
         return chi2_sf(F * d1, d1)
-    return betainc(d2 / 2, d1 / 2, d2 / (d2 + d1 * F))
+    return float(stats.f.sf(F, d1, d2))
 
 
 def chi2_sf(x: float, k: float) -> float:
-    """P(X > x) for X ~ chi-square(k) (regularised upper incomplete gamma)."""
-    if not x > 0:
-        return 1.0
-    a, z = k / 2.0, x / 2.0
-    if z < a + 1:  # series for the lower function
-        term = s = 1.0 / a
-        n = a
-        for _ in range(1000):
-            n += 1
-            term *= z / n
-            s += term
-            if abs(term) < abs(s) * 1e-15:
-                break
-        return max(0.0, 1.0 - s * math.exp(-z + a * math.log(z) - math.lgamma(a)))
-    # continued fraction for the upper function
-    tiny = 1e-300
-    b = z + 1 - a
-    c, d = 1 / tiny, 1 / b
-    h = d
-    for i in range(1, 1000):
-        an = -i * (i - a)
-        b += 2
-        d = an * d + b
-        d = 1 / (d if abs(d) > tiny else tiny)
-        c = b + an / c
-        c = c if abs(c) > tiny else tiny
-        delta = d * c
-        h *= delta
-        if abs(delta - 1) < 1e-15:
-            break
-    return math.exp(-z + a * math.log(z) - math.lgamma(a)) * h
+    """P(X > x) for X ~ chi-square(k)."""
+    from scipy import stats
+
+    return float(stats.chi2.sf(x, k)) if x > 0 else 1.0
 
 
 def norm_sf(z: float) -> float:
-    return 0.5 * math.erfc(z / math.sqrt(2.0))
+    """P(Z > z) for a standard normal Z."""
+    from scipy import stats
+
+    return float(stats.norm.sf(z))
 
 
 ALPHA = 1e-3  # level of every "is it noise?" decision (family-wise, Bonferroni inside)
