@@ -28,7 +28,7 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     rows = [(m.exp_names[e], x, t, y, pb, pa)
             for e, x, t, y, pb, pa in zip(m.row_exp, m.row_x, m.row_time, m.measured,
                                           diag.base.ev.pred, after)]
-    hist = m._is_max.all()
+    hist = m.is_max.all()
     out.write_csv("residuals.csv", ["experiment", "hours" if hist else "angle_deg",
                                     "hours" if hist else "revolutions", "measured_um",
                                     "base_um", "after_um"], rows)

@@ -74,8 +74,8 @@ def where_it_fails(model: Model, r) -> dict:
         per_time.append({"at": t, "rows": int(m.sum()), "mean_um": float(np.mean(r[m])),
                          "rmse_um": float(np.sqrt(np.mean(r[m] ** 2)))})
     per_angle = []
-    if not model._is_max.all():
-        prof = ~model._is_max
+    if not model.is_max.all():
+        prof = ~model.is_max
         for a in range(0, 360, 30):
             m = prof & (model.row_x >= a) & (model.row_x < a + 30)
             if m.any():

@@ -93,7 +93,7 @@ def _evaluate_ext(ext: Extended, u):
     return snaps, J, mres, worn, sliding
 
 
-@dataclass
+@dataclass(frozen=True)
 class Eval:
     """Extended model at u: rows and prior rows in µm, their Jacobian w.r.t. u."""
 

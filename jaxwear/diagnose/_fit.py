@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -14,7 +14,7 @@ from ._extended import Eval
 from ._model import Model
 
 
-@dataclass
+@dataclass(frozen=True)
 class Fit:
     """A fit of the extended model with the columns in `mask` free (the rest fixed)."""
 
@@ -144,5 +144,4 @@ def finish(model: Model, fit: Fit, noise_um: float) -> Fit:
                       for i in idx])
     se = np.full(len(vals), np.nan)
     se[idx] = np.sqrt(np.clip(np.diag(cov), 0, None)) * np.abs(deriv)
-    fit.cov_u, fit.values, fit.stderr = cov, vals, se
-    return fit
+    return replace(fit, cov_u=cov, values=vals, stderr=se)

@@ -64,7 +64,7 @@ def _fig_loo(diag) -> str | None:
 
 def _fig_residuals_angle(diag) -> str | None:
     m = diag.model
-    prof = ~m._is_max
+    prof = ~m.is_max
     if not prof.any():
         return None
     pl = plt()
@@ -146,7 +146,7 @@ def _fig_profiles(diag) -> str:
     for i, name in enumerate(m.exp_names):
         ax = axes[i // cols][i % cols]
         sel = m.row_exp == i
-        if m._is_max[sel].all():
+        if m.is_max[sel].all():
             x = m.row_time[sel]
             ax.plot(x, m.measured[sel], "ks", label="measured")
             ax.plot(x, diag.base.ev.pred[sel], "o-", label="base")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -23,9 +24,13 @@ class Model:
     (`calibrate` uses its first pass's RMSE).
     """
 
-    evaluations = 0  # process-wide count of compiled-model evaluations (for progress)
+    # process-wide counters of compiled-model evaluations (progress, benchmarks)
+    evaluations = 0
+    evaluation_s = 0.0  # wall time spent in them [s], compilations included
+    first_evaluation_s = 0.0  # the last evaluation that compiled (the first of its shape)
 
-    def __init__(self, study: Study, problem=None, *, candidates=None, contact=None):
+    def __init__(self, study: Study, problem=None, *, candidates=None, contact=None,
+                 noise_weight: float = 1.0):
         from .._calibrate import build_problem, parse_fit
 
         self.study = study
@@ -40,10 +45,11 @@ class Model:
             cfg_ext = STRUCTURAL_CANDIDATES["double_layer"].configure(cfg_ext)
         if contact is not None:
             cfg_ext = cfg_ext.replace(contact=contact)
+        self.contact = contact
         self.base_cfg = cfg
         columns, names, start = [], [], []
         specs = effect_parameter_specs()
-        for f, s in zip(problem.fits, np.asarray(problem.start)):
+        for f, s in problem.fitted():
             if f.key in specs:  # a strength of an effect the study switches on
                 lower, upper = specs[f.key].lower, specs[f.key].upper
             else:
@@ -52,7 +58,7 @@ class Model:
                                   lower, upper))
             names.append(f.name)
             start.append(float(s))
-        p0 = problem.params
+        p0, schedule, exp_names = problem.experiments()
         for cand in self.candidates:
             if cand == "unsymmetric":
                 continue
@@ -73,42 +79,59 @@ class Model:
         # backing thickness, which is zero in the single-layer base model.
         u0 = np.zeros(len(columns))
         self.ext = Extended(cfg=cfg_ext, columns=self.columns, params=p0,
-                            schedule=problem.schedule, start=jnp.asarray(start, jnp.float64))
+                            schedule=schedule, start=jnp.asarray(start, jnp.float64))
         self.ext = eqx.tree_at(lambda e: e.params, self.ext, self.ext.batched_params(u0))
-        d = problem.data
-        self.row_exp = np.asarray(d.exp)
-        self.row_snap = np.asarray(d.snap)
-        self._i0 = np.asarray(d.i0)
-        self._i1 = np.asarray(d.i1)
-        self._w = np.asarray(d.w)
-        self._is_max = np.asarray(d.is_max)
-        self.measured = np.asarray(d.depth_um)
+        d = problem.measured_rows()
+        self.row_exp = d["exp"]
+        self.row_snap = d["snap"]
+        self._i0 = d["i0"]
+        self._i1 = d["i1"]
+        self._w = d["w"]
+        self._is_max = d["is_max"]
+        self.measured = d["depth_um"]
         self.n = len(self.measured)
-        self.exp_names = list(problem.exp_names)
+        self.exp_names = list(exp_names)
         self.tolerance_um = float(study.clearance_tolerance_um)
-        self.nominal_mm = np.asarray(problem.nominal_clearance_mm)
+        self.nominal_mm = problem.nominal_clearances_mm()
         self.prior_cols = [i for i, c in enumerate(columns)
                            if c.key == "clearance_mm" and c.group == ""]
         if not math.isfinite(self.tolerance_um):
             self.prior_cols = []
         self.base_mask = np.array([c.group == "" for c in columns])
-        self.noise_weight = 1.0  # µm: prior rows are (c - c_nom)/τ times this
+        self.noise_weight = float(noise_weight)  # µm: prior rows are (c - c_nom)/τ times this
         self._rows_x, self._rows_t = _row_coordinates(study, d, self.row_exp,
                                                        self.row_snap)
+        self._frozen = True
+
+    def __setattr__(self, name, value):
+        # immutable once built: variants are new models (`with_contact`, `with_noise_weight`)
+        if getattr(self, "_frozen", False):
+            raise AttributeError(f"Model is immutable; cannot set {name!r}")
+        object.__setattr__(self, name, value)
+
+    @property
+    def is_max(self) -> np.ndarray:
+        """True for maximum-depth (history) rows, False for profile rows."""
+        return self._is_max
 
     def group_mask(self, groups) -> np.ndarray:
         """Free columns: the base parameters and those of the named candidates."""
         groups = set(groups)
         return np.array([c.group == "" or c.group in groups for c in self.columns])
 
-    def with_contact(self, contact: str) -> Model:
-        """The same model with another contact choice (one more compiled function)."""
-        other = object.__new__(Model)
-        other.__dict__.update(self.__dict__)
-        other.ext = Extended(cfg=self.ext.cfg.replace(contact=contact), columns=self.columns,
-                             params=self.ext.params, schedule=self.ext.schedule,
-                             start=self.ext.start)
-        return other
+    def _variant(self, contact, noise_weight) -> Model:
+        return Model(self.study, self.problem, candidates=self.candidates, contact=contact,
+                     noise_weight=noise_weight)
+
+    def with_contact(self, contact: str | None) -> Model:
+        """The same model with another contact choice (None: the study's; one more compiled
+        function per contact model)."""
+        return self._variant(contact, self.noise_weight)
+
+    def with_noise_weight(self, noise_um: float) -> Model:
+        """The same model with the clearance prior rows weighted by `noise_um` [µm] (the
+        same compiled function: the weight is applied on the host)."""
+        return self._variant(self.contact, noise_um)
 
     def values(self, u) -> np.ndarray:
         return np.asarray(self.ext.values(jnp.asarray(u, jnp.float64)))
@@ -132,9 +155,15 @@ class Model:
     def evaluate(self, u) -> Eval:
         """The model at u: rows, prior rows, Jacobian (one compiled call)."""
         Model.evaluations += 1
+        t0 = time.perf_counter()
+        n_compiled = _compiled_count()
         u = np.asarray(u, np.float64)
         snaps, J, mres, worn, sliding = _evaluate_ext(self.ext, jnp.asarray(u))
         snaps, J = np.asarray(snaps), np.asarray(J)
+        dt = time.perf_counter() - t0
+        Model.evaluation_s += dt
+        if _compiled_count() > n_compiled:
+            Model.first_evaluation_s = dt
         prof = snaps[self.row_exp, self.row_snap]  # (rows, N)
         Jp = J[self.row_exp, self.row_snap]  # (rows, N, P)
         rows = np.arange(self.n)
@@ -175,18 +204,18 @@ class Model:
         return self._rows_t
 
 
-def _row_coordinates(study: Study, data, row_exp, row_snap):
+def _compiled_count() -> int:
+    """How many versions of the evaluation are compiled (for the timing counters; -1 where
+    this jax/equinox does not say)."""
+    try:
+        return int(_evaluate_ext._cached._cache_size())
+    except AttributeError:
+        return -1
+
+
+def _row_coordinates(study: Study, data: dict, row_exp, row_snap):
     """Angle [deg] (profiles) or hours (histories) of each row, and its measurement time
     (revolutions or hours: the snapshot the row is compared with)."""
     points = [e.snapshot_points for e in study.experiments]
     t = np.array([points[e][s] for e, s in zip(row_exp, row_snap)], float)
-    x = getattr(data, "x", None)
-    if x is not None:
-        return np.asarray(x, float), t
-    x = []  # the calibration's row order: each experiment's profile rows, then its history
-    for e in study.experiments:
-        if e.profile is not None:
-            x += list(np.degrees(e.profile.angle))
-        if e.history is not None:
-            x += list(e.history.hours)
-    return np.asarray(x, float), t
+    return np.asarray(data["x"], float), t

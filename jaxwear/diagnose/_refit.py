@@ -4,6 +4,7 @@ that the wear loop's derivatives are stable."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -21,8 +22,7 @@ def _tests_for(model, fit, noise, nu, pairs, scores=None) -> Tests:
     t = run_tests(model, fit.ev.r, fit.k, noise, nu, pairs)
     if scores:
         best = min(scores, key=lambda s: s.p)
-        t.p_score = min(1.0, best.p * len(scores))
-        t.score_effect = best.effect
+        t = replace(t, p_score=min(1.0, best.p * len(scores)), score_effect=best.effect)
     return t
 
 
@@ -58,11 +58,11 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose) -> Fit:
         ev0 = from_fit.ev if same else mdl.evaluate(u0)
     f = fit_masked(mdl, mask, u0, label=label, groups=tuple(groups), ev0=ev0,
                    verbose=verbose)
-    f.contact = contact
+    f = replace(f, contact=contact)
     if not _derivatives_ok(mdl, f.ev):
-        f.unstable, f.converged = True, False
-        f.message += ("; the wear loop's derivatives are unstable here (lower "
-                      "revolutions_per_update): this fit is not reliable")
+        f = replace(f, unstable=True, converged=False, message=f.message + (
+            "; the wear loop's derivatives are unstable here (lower "
+            "revolutions_per_update): this fit is not reliable"))
         _log(verbose, f"    {label}: unstable derivatives, not used")
     return finish(mdl, f, noise)
 

@@ -15,7 +15,7 @@ from ._screen import Screen
 from ._stats import ALPHA, Tests
 
 
-@dataclass
+@dataclass(frozen=True)
 class Candidate:
     effect: str
     screen: Screen | None
@@ -29,7 +29,7 @@ class Candidate:
         return self.fit is not None
 
 
-@dataclass
+@dataclass(frozen=True)
 class Diagnosis:
     """Everything `diagnose` found; `to_json()` is the DESIGN §7 document."""
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -14,7 +14,7 @@ from ._stats import f_sf
 SHAPE_GRID = (0.1, 0.3, 1.0, 3.0, 10.0)  # multiples of a shape parameter's default tried
 
 
-@dataclass
+@dataclass(frozen=True)
 class Screen:
     """Score test of one candidate at a fit (linearised: one Gauss-Newton step).
 
@@ -95,7 +95,7 @@ def screen(model: Model, fit: Fit, noise_um: float, nu: float = math.inf, *,
                               {model.names[i]: float(vals[i]) for i in idx}, feasible)
         if best is not None:
             p = f_sf(best.score / best.df, best.df, nu) if best.score > 0 else 1.0
-            best.p = min(1.0, p * len(grid))
+            best = replace(best, p=min(1.0, p * len(grid)))
             out.append(best)
             share = (f", explains {100 * best.explained:.0f}% of the misfit"
                      if fit.rss > 1.5 * (model.n - fit.k) * noise_um ** 2 else "")

@@ -21,11 +21,11 @@ def measurement_series(model: Model) -> list:
     """
     out = []
     for e in range(len(model.exp_names)):
-        hist = np.flatnonzero((model.row_exp == e) & model._is_max)
+        hist = np.flatnonzero((model.row_exp == e) & model.is_max)
         if len(hist):
             order = np.argsort(model.row_time[hist])
             out.append((hist[order], model.row_time[hist][order], math.inf))
-        prof = (model.row_exp == e) & ~model._is_max
+        prof = (model.row_exp == e) & ~model.is_max
         for t in sorted(set(model.row_time[prof].tolist())):
             rows = np.flatnonzero(prof & (model.row_time == t))
             order = np.argsort(model.row_x[rows])
@@ -114,7 +114,7 @@ def norm_sf(z: float) -> float:
 ALPHA = 1e-3  # level of every "is it noise?" decision (family-wise, Bonferroni inside)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Tests:
     """Is the misfit noise? Two omnibus tests on the data residuals, and (optional) the
     score tests of the candidates not in the model.

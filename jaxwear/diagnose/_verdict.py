@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -24,6 +25,11 @@ from ._result import Candidate, Diagnosis
 from ._screen import screen
 from ._stats import ALPHA, neighbour_pairs
 from ._text import summarize_verdict
+
+# A refit is skipped when a candidate already fits to noise level and the skipped one's
+# score (the χ² its linearised refit would remove) is below this fraction of the χ² that
+# candidate removed.
+COMPARABLE = 0.5
 
 
 def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
@@ -46,7 +52,6 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         if contact not in models:
             _log(verbose, f"  compiling the model with {contact} contact")
             models[contact] = model.with_contact(contact)
-            models[contact].noise_weight = model.noise_weight
         return models[contact]
 
     # 1. the base model, as the study states it; the prior weighted with the noise level
@@ -63,8 +68,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     base = fit_masked(model, model.base_mask, u0, label="base", ev0=ev0, verbose=verbose)
     noise, nu = _noise(model, base, noise_um)
     if model.prior_cols:
-        for m_ in models.values():
-            m_.noise_weight = noise
+        model = model.with_noise_weight(noise)
+        models = {None: model}
         base = fit_masked(model, model.base_mask, base.ev.u, label="base", verbose=verbose)
         noise, nu = _noise(model, base, noise_um)
     base = finish(model, base, noise)
@@ -97,12 +102,23 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                 if i == 0 or (s_.p < ALPHA and s_.score >= 0.1 * live[0].score)][:max_refits]
         if "unsymmetric" in model.candidates:
             todo.append(("unsymmetric", None))
+        settled = None  # χ² improvement of a refit that reached noise level
         for name, scr in todo:
+            if settled is not None and scr is not None and scr.score < COMPARABLE * settled:
+                # a candidate already fits to noise level and this one's score is not
+                # comparable to what it removed: its refit cannot tie with it (the evidence
+                # gap would exceed ln 20), so it is not spent (issue 10: minutes, not hours)
+                _log(verbose, f"  {name}: not refitted (score {scr.score:.1f} < "
+                              f"{COMPARABLE:g} x {settled:.1f} of a fit at noise level)")
+                continue
             f = _refit(by_contact, base, [name], scr, noise, verbose)
             c = cands.get(name) or Candidate(name, None, None, 0.0, math.nan)
-            c.fit, c.rmse_um = f, f.rmse
-            c.evidence = evidence(model, f, base)
+            c = replace(c, fit=f, rmse_um=f.rmse, evidence=evidence(model, f, base))
             cands[name] = c
+            if (not f.unstable and c.evidence > STRONG_LOG_BF
+                    and not _tests_for(by_contact(f.contact), f, noise, nu, pairs).systematic):
+                gain = (q_base - _objective(f.ev)) / noise ** 2
+                settled = gain if settled is None else max(settled, gain)
         refitted = sorted([c for c in cands.values() if c.refit and not c.fit.unstable],
                           key=lambda c: -c.evidence)
         best = refitted[0] if refitted else None
@@ -111,9 +127,11 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         if systematic and best is not None and best.evidence > STRONG_LOG_BF:
             mdl = by_contact(best.fit.contact)
             rest = screen(mdl, best.fit, noise, nu)
-            best.tests = _tests_for(mdl, best.fit, noise, nu, pairs, rest)
-            for c in refitted[1:]:
-                c.tests = _tests_for(by_contact(c.fit.contact), c.fit, noise, nu, pairs)
+            best = replace(best, tests=_tests_for(mdl, best.fit, noise, nu, pairs, rest))
+            refitted = [best] + [
+                replace(c, tests=_tests_for(by_contact(c.fit.contact), c.fit, noise, nu, pairs))
+                for c in refitted[1:]]
+            cands.update({c.effect: c for c in refitted})
             if not best.tests.systematic:
                 status, effects, final, final_tests = "effect_found", [best.effect], \
                     best.fit, best.tests
@@ -139,7 +157,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             status = "unexplained"
             if best is not None:
                 mdl = by_contact(best.fit.contact)
-                best.tests = _tests_for(mdl, best.fit, noise, nu, pairs)
+                best = replace(best, tests=_tests_for(mdl, best.fit, noise, nu, pairs))
+                cands[best.effect] = best
     # best first: the verdict's model, then by evidence (refits and linearised screens)
     lead_label = final.label if final is not base else None
     ordered = sorted(cands.values(), key=lambda c: (c.effect != lead_label, -c.evidence))
@@ -148,8 +167,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                      effects=effects, partial=partial, alternatives=alternatives, final=final,
                      final_tests=final_tests, loo_before=loo(model, base),
                      loo_after=loo(by_contact(final.contact), final))
-    diag.summary = summarize_verdict(diag)
-    diag.wall_s = time.perf_counter() - t0
+    diag = replace(diag, summary=summarize_verdict(diag), wall_s=time.perf_counter() - t0)
     _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
                   + f" in {diag.wall_s:.1f} s ({Model.evaluations - evals0} model "
                     f"evaluations)")
