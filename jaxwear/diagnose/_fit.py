@@ -60,11 +60,12 @@ def _log(verbose, msg):
 
 
 def fit_masked(model: Model, mask, u0, *, label="base", groups=(), ev0: Eval | None = None,
-               max_evaluations: int = 40, verbose=False) -> Fit:
+               max_evaluations: int = 40, f_tol: float = 0.0, verbose=False) -> Fit:
     """Levenberg-Marquardt (Marquardt scaling, Nielsen damping) over the free columns,
     with bounds enforced by projection. Every trial is one evaluation of the compiled
     extended model. Stops when an accepted step changes the objective by < 1e-6 relative
-    or u by < 1e-8, or when no step reduces it."""
+    or by < `f_tol` [µm², the objective's unit], or u by < 1e-8, or when no step reduces
+    it, or after `max_evaluations`."""
     mask = np.asarray(mask, bool)
     lo, hi = model.bounds_u()
     u = np.clip(np.array(u0, np.float64), lo, hi)
@@ -112,6 +113,7 @@ def fit_masked(model: Model, mask, u0, *, label="base", groups=(), ev0: Eval | N
         rho = (F - F_t) / pred if pred > 0 else -1.0
         if F_t < F and rho > 0:
             rel = (F - F_t) / max(F, 1e-300)
+            F_old = F
             u, ev, F = trial, ev_t, F_t
             lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
             nu = 2.0
@@ -119,7 +121,8 @@ def fit_masked(model: Model, mask, u0, *, label="base", groups=(), ev0: Eval | N
                           f"({evals} evaluations, {time.perf_counter() - t0:.1f} s)")
             # 1e-6 of the objective is ~1e-3 of one noise variance here: far below what
             # the evidence or the standard errors resolve
-            if rel <= 1e-6 or np.max(np.abs(step)) <= 1e-8 * (1 + np.max(np.abs(u))):
+            if (rel <= 1e-6 or F_old - F <= f_tol
+                    or np.max(np.abs(step)) <= 1e-8 * (1 + np.max(np.abs(u)))):
                 message, converged = "converged", True
                 break
         else:

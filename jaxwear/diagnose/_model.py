@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -176,6 +177,13 @@ class Model:
             m = self._is_max
             pred = np.where(m, prof[rows, jmax], pred)
             Jr[m] = Jp[rows[m], jmax[m]]
+        r_prior, J_prior = self._prior_rows(u)
+        return Eval(u=u, pred=pred, r=pred - self.measured, J=Jr, r_prior=r_prior,
+                    J_prior=J_prior, snaps=snaps, max_residual=float(mres), worn=float(worn),
+                    sliding_m=np.asarray(sliding))
+
+    def _prior_rows(self, u):
+        """Clearance prior rows (c - c_nom)/τ · noise_weight [µm] and their Jacobian."""
         vals = self.values(u)
         r_prior, J_prior = [], []
         for i in self.prior_cols:
@@ -185,12 +193,13 @@ class Model:
             row = np.zeros(len(u))
             row[i] = k * (vals[i] if c.log else c.scale)
             J_prior.append(row)
-        P = len(u)
-        return Eval(u=u, pred=pred, r=pred - self.measured, J=Jr,
-                    r_prior=np.array(r_prior).reshape(-1),
-                    J_prior=np.array(J_prior).reshape(-1, P), snaps=snaps,
-                    max_residual=float(mres), worn=float(worn),
-                    sliding_m=np.asarray(sliding))
+        return np.array(r_prior).reshape(-1), np.array(J_prior).reshape(-1, len(u))
+
+    def reweigh(self, ev: Eval) -> Eval:
+        """`ev` (from a model with another prior weight) with this model's prior rows:
+        the compiled model does not depend on the weight, so no evaluation is needed."""
+        r_prior, J_prior = self._prior_rows(ev.u)
+        return replace(ev, r_prior=r_prior, J_prior=J_prior)
 
     # Row coordinates for the residual analysis
     @property

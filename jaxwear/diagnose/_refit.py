@@ -17,6 +17,13 @@ from ._result import Candidate
 from ._screen import Screen, screen
 from ._stats import Tests, neighbour_differences, noise_level, run_tests
 
+# A refit stops when an accepted step lowers the misfit by less than this many noise
+# variances (it moves the ln Bayes factor by half of that, far below the ln 20 that
+# separates candidates), or after this many evaluations (each one is a full run of every
+# experiment with its Jacobian: seconds at the default numerics).
+REFIT_F_TOL = 0.05
+REFIT_MAX_EVALUATIONS = 20
+
 
 def _tests_for(model, fit, noise, nu, pairs, scores=None) -> Tests:
     t = run_tests(model, fit.ev.r, fit.k, noise, nu, pairs)
@@ -57,6 +64,7 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose) -> Fit:
         u0 = from_fit.ev.u.copy()
         ev0 = from_fit.ev if same else mdl.evaluate(u0)
     f = fit_masked(mdl, mask, u0, label=label, groups=tuple(groups), ev0=ev0,
+                   max_evaluations=REFIT_MAX_EVALUATIONS, f_tol=REFIT_F_TOL * noise ** 2,
                    verbose=verbose)
     f = replace(f, contact=contact)
     if not _derivatives_ok(mdl, f.ev):
@@ -96,12 +104,14 @@ def _check_derivatives(model: Model, fit: Fit):
             f"derivatives; halve revolutions_per_update")
 
 
-def _noise(model: Model, fit: Fit, known: float | None = None):
+def _noise(model: Model, r, known: float | None = None):
+    """Noise level [µm] and its degrees of freedom from the neighbour differences of `r`
+    (residuals, or the data themselves: the smooth profile cancels), or `known`."""
     if known is not None:
         if not known > 0:
             raise InputError(f"noise_um must be > 0, got {known}")
         return float(known), math.inf
-    e, _ = neighbour_differences(model, fit.ev.r)
+    e, _ = neighbour_differences(model, r)
     if len(e) < 2:
         raise InputError(f"{model.study.path}: too few neighbouring points to estimate the "
                          f"noise level (need 3 or more points per profile or history)")

@@ -20,7 +20,7 @@ from ._evidence import (
 )
 from ._fit import _log, _objective, finish, fit_masked
 from ._model import Model
-from ._refit import _check_derivatives, _noise, _refit, _second_stage, _tests_for
+from ._refit import REFIT_F_TOL, _check_derivatives, _noise, _refit, _second_stage, _tests_for
 from ._result import Candidate, Diagnosis
 from ._screen import screen
 from ._stats import ALPHA, neighbour_pairs
@@ -54,7 +54,13 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             models[contact] = model.with_contact(contact)
         return models[contact]
 
-    # 1. the base model, as the study states it; the prior weighted with the noise level
+    # 1. the base model, as the study states it; the prior weighted with the noise level,
+    # first as the data's own neighbour differences give it (the smooth profile cancels;
+    # the model's residuals give the final value below, refitted only where they differ)
+    noise, nu = _noise(model, model.measured, noise_um)
+    if model.prior_cols:
+        model = model.with_noise_weight(noise)
+        models = {None: model}
     u0 = np.zeros(len(model.names))
     ev0 = model.evaluate(u0)
     kd = model.index.get("K_d_per_Pa")
@@ -65,13 +71,16 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             u0[kd] += math.log(a)  # depth is nearly proportional to K_d
             ev0 = None
     _log(verbose, f"  base fit ({int(model.base_mask.sum())} parameters)")
-    base = fit_masked(model, model.base_mask, u0, label="base", ev0=ev0, verbose=verbose)
-    noise, nu = _noise(model, base, noise_um)
-    if model.prior_cols:
+    base = fit_masked(model, model.base_mask, u0, label="base", ev0=ev0,
+                      f_tol=REFIT_F_TOL * noise ** 2, verbose=verbose)
+    noise_data, noise = noise, _noise(model, base.ev.r, noise_um)[0]
+    if model.prior_cols and abs(noise / noise_data - 1) > 0.1:
         model = model.with_noise_weight(noise)
         models = {None: model}
-        base = fit_masked(model, model.base_mask, base.ev.u, label="base", verbose=verbose)
-        noise, nu = _noise(model, base, noise_um)
+        base = fit_masked(model, model.base_mask, base.ev.u, label="base",
+                          ev0=model.reweigh(base.ev), f_tol=REFIT_F_TOL * noise ** 2,
+                          verbose=verbose)
+    noise, nu = _noise(model, base.ev.r, noise_um)
     base = finish(model, base, noise)
     _check_derivatives(model, base)
     pairs = neighbour_pairs(model)
