@@ -23,6 +23,7 @@ import argparse
 import json
 import math
 import os
+import pickle
 import sys
 import time
 from dataclasses import replace
@@ -38,15 +39,24 @@ HIDDEN = {"null": [], "running_in": ["running_in"], "speed_dependence": ["speed_
 
 
 def make_study(case: str, *, nodes: int, steps: int, M: float, fine: tuple, noise_um: float,
-               seed: int, angle_step_deg: float = 2.0):
+               seed: int, angle_step_deg: float = 2.0, cache: str | None = None):
     """The full-scan noisy study (in memory) and the truth."""
     from jaxwear._study import Profile
     from jaxwear._synth import synthesize
 
     fn, fs, fm = fine
-    res = synthesize(HIDDEN[case], "paper", noise_um=0.0, seed=seed,
-                     numerics=dict(nodes=fn, steps_per_rev=fs, revolutions_per_update=fm),
-                     angle_step_deg=angle_step_deg)
+    cached = Path(cache) / f"truth-{case}-{seed}-{fn}x{fs}-M{fm:g}.pickle" if cache else None
+    if cached is not None and cached.exists():
+        with open(cached, "rb") as f:
+            res = pickle.load(f)
+    else:
+        res = synthesize(HIDDEN[case], "paper", noise_um=0.0, seed=seed,
+                         numerics=dict(nodes=fn, steps_per_rev=fs, revolutions_per_update=fm),
+                         angle_step_deg=angle_step_deg)
+        if cached is not None:
+            cached.parent.mkdir(parents=True, exist_ok=True)
+            with open(cached, "wb") as f:
+                pickle.dump(res, f)
     rng = np.random.default_rng(seed + 1000)
     ang = np.arange(0.0, 360.0, angle_step_deg)
     exps = []
@@ -81,6 +91,7 @@ def main(argv=None):
     ap.add_argument("--noise-um", type=float, default=0.3)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", help="append the result as one JSON line to this file")
+    ap.add_argument("--truth-cache", help="folder to keep the noise-free truth in between runs")
     a = ap.parse_args(argv)
 
     import jaxwear  # noqa: F401  (float64)
@@ -90,7 +101,7 @@ def main(argv=None):
     t = time.perf_counter()
     study, truth = make_study(a.case, nodes=a.nodes, steps=a.steps, M=a.M,
                               fine=(a.fine_nodes, a.fine_steps, a.fine_M),
-                              noise_um=a.noise_um, seed=a.seed)
+                              noise_um=a.noise_um, seed=a.seed, cache=a.truth_cache)
     t_synth = time.perf_counter() - t
     n0, s0 = Model.evaluations, Model.evaluation_s
     t, cpu = time.perf_counter(), time.process_time()
