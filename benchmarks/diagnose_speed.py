@@ -92,9 +92,17 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", help="append the result as one JSON line to this file")
     ap.add_argument("--truth-cache", help="folder to keep the noise-free truth in between runs")
+    ap.add_argument("--compilation-cache", help="JAX persistent compilation cache folder (as "
+                    "the CLI uses one): a second run with the same shapes skips compiling")
     a = ap.parse_args(argv)
 
+    import jax
+
     import jaxwear  # noqa: F401  (float64)
+
+    if a.compilation_cache:
+        jax.config.update("jax_compilation_cache_dir", a.compilation_cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     from jaxwear.diagnose import Model, diagnose
 
     load0 = os.getloadavg()
@@ -119,7 +127,7 @@ def main(argv=None):
            "synth_s": round(t_synth, 1), "hidden": truth["hidden"],
            "load_before": [round(x, 2) for x in load0],
            "load_after": [round(x, 2) for x in os.getloadavg()],
-           "cpus": os.cpu_count()}
+           "cpus": os.cpu_count(), "compilation_cache": bool(a.compilation_cache)}
     print(json.dumps(out))
     if a.json:
         with open(a.json, "a", encoding="utf-8") as f:

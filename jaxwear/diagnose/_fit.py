@@ -64,7 +64,8 @@ def fit_masked(model: Model, mask, u0, *, label="base", groups=(), ev0: Eval | N
     """Levenberg-Marquardt (Marquardt scaling, Nielsen damping) over the free columns,
     with bounds enforced by projection. Every trial is one evaluation of the compiled
     extended model. Stops when an accepted step changes the objective by < 1e-6 relative
-    or by < `f_tol` [µm², the objective's unit], or u by < 1e-8, or when no step reduces
+    or by < `f_tol` [µm², the objective's unit], or when the Gauss-Newton step would lower
+    it by < `f_tol` (checked before evaluating it), or u by < 1e-8, or when no step reduces
     it, or after `max_evaluations`."""
     mask = np.asarray(mask, bool)
     lo, hi = model.bounds_u()
@@ -101,6 +102,15 @@ def fit_masked(model: Model, mask, u0, *, label="base", groups=(), ev0: Eval | N
         if lam > 1e16:
             message, converged = "converged (no step reduces the misfit)", True
             break
+        if f_tol > 0:
+            # Gauss-Newton decrement g'A⁻¹g over the components free to move: what a full
+            # step could still remove. Below the tolerance the trial is not worth its
+            # evaluation (near the minimum the linearisation is accurate).
+            k = ~(at_lo | at_hi)
+            s_gn = np.linalg.lstsq(A[np.ix_(k, k)], -g[k], rcond=None)[0]
+            if -float(g[k] @ s_gn) < f_tol:
+                message, converged = "converged (predicted decrease below tolerance)", True
+                break
         D = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
         step = np.linalg.lstsq(A + lam * np.diag(D), -g, rcond=None)[0]
         trial = u.copy()
