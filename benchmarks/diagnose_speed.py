@@ -1,6 +1,6 @@
 """How long `diagnose` takes on a 5-experiment full-circumference study (issue 10, Speed).
 
-    python benchmarks/diagnose_speed.py [--case null|running_in|...] [--nodes 360]
+    python benchmarks/diagnose_speed.py [--case null|running_in|outside|...] [--nodes 360]
         [--steps 360] [--fine-nodes 540] [--fine-steps 540] [--fine-M 50] [--json FILE]
 
 The study: the paper's rig matrix (5 experiments, interrupted at 2000/5000/10000/15000
@@ -35,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 HIDDEN = {"null": [], "running_in": ["running_in"], "speed_dependence": ["speed_dependence"],
           "friction": ["friction"], "creep": ["creep"],
-          "pressure_exponent": ["pressure_exponent"], "unsymmetric": ["unsymmetric"]}
+          "pressure_exponent": ["pressure_exponent"], "unsymmetric": ["unsymmetric"],
+          "outside": []}  # null truth plus wear no candidate makes (see `make_study`)
 
 
 def make_study(case: str, *, nodes: int, steps: int, M: float, fine: tuple, noise_um: float,
@@ -45,7 +46,8 @@ def make_study(case: str, *, nodes: int, steps: int, M: float, fine: tuple, nois
     from jaxwear._synth import synthesize
 
     fn, fs, fm = fine
-    cached = Path(cache) / f"truth-{case}-{seed}-{fn}x{fs}-M{fm:g}.pickle" if cache else None
+    tag = "+".join(HIDDEN[case]) or "null"
+    cached = Path(cache) / f"truth-{tag}-{seed}-{fn}x{fs}-M{fm:g}.pickle" if cache else None
     if cached is not None and cached.exists():
         with open(cached, "rb") as f:
             res = pickle.load(f)
@@ -68,6 +70,12 @@ def make_study(case: str, *, nodes: int, steps: int, M: float, fine: tuple, nois
             truth = np.zeros(len(ang))  # outside the scar the true depth is zero
             idx = np.rint(np.degrees(p.angle[m]) / angle_step_deg).astype(int) % len(ang)
             truth[idx] = p.depth[m] * 1e6
+            if case == "outside":
+                # physics outside the library: a narrow pit 40° past the deepest point,
+                # growing with revolutions (1 µm per 10⁴ rev, 4° wide)
+                a0 = ang[np.argmax(truth)] + 40.0
+                d = (ang - a0 + 180.0) % 360.0 - 180.0
+                truth = truth + rev / 1e4 * np.exp(-0.5 * (d / 4.0) ** 2)
             rows_a.append(np.radians(ang))
             rows_d.append((truth + noise_um * rng.standard_normal(len(ang))) * 1e-6)
             rows_r.append(np.full(len(ang), rev))
