@@ -339,6 +339,28 @@ class Problem(eqx.Module):
     def residuals(self, u, noise_um):
         return jnp.concatenate([self.data_residuals(u), self.prior_residuals(u, noise_um)])
 
+    # The interface `jaxwear.diagnose` builds its extended model from (host-side copies).
+
+    def fitted(self) -> list[tuple[FitParameter, float]]:
+        """The fitted parameters with their start values (user units)."""
+        return list(zip(self.fits, np.asarray(self.start).tolist()))
+
+    def experiments(self) -> tuple[Params, Schedule, tuple[str, ...]]:
+        """Batched parameters (SI), batched schedules and names of the experiments."""
+        return self.params, self.schedule, self.exp_names
+
+    def measured_rows(self) -> dict[str, np.ndarray]:
+        """The data rows as numpy arrays: `exp`, `snap` (indices), `i0`, `i1`, `w` (profile
+        interpolation between nodes), `is_max` (history rows), `depth_um`, `x` (angle [deg]
+        or hours)."""
+        d = self.data
+        return {k: np.asarray(getattr(d, k))
+                for k in ("exp", "snap", "i0", "i1", "w", "is_max", "depth_um", "x")}
+
+    def nominal_clearances_mm(self) -> np.ndarray:
+        """The study's clearance of each experiment [mm] (the prior's centre)."""
+        return np.asarray(self.nominal_clearance_mm)
+
 
 def build_problem(study: Study, keys: list[str], start: dict | None = None) -> Problem:
     """The least-squares problem for fitting study keys `keys` (see `parse_fit`).

@@ -18,8 +18,8 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     """Write diagnosis.json, report.html and residuals.csv under `out_dir` (a folder, or the
     `OutputDir` from `open_diagnose_outputs`) and the JSON to `json_file` if given. Returns
     the JSON document."""
-    from ._html import report_html
     from ._io import OutputDir
+    from .diagnose._html import report_html
 
     out = out_dir if isinstance(out_dir, OutputDir) else open_diagnose_outputs(
         diag.study, out_dir, json_file)
@@ -30,7 +30,7 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     rows = [(m.exp_names[e], x, t, y, pb, pa)
             for e, x, t, y, pb, pa in zip(m.row_exp, m.row_x, m.row_time, m.measured,
                                           diag.base.ev.pred, after)]
-    hist = m._is_max.all()
+    hist = m.is_max.all()
     out.write_csv("residuals.csv", ["experiment", "hours" if hist else "angle_deg",
                                     "hours" if hist else "revolutions", "measured_um",
                                     "base_um", "after_um"], rows)
@@ -41,8 +41,8 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
 
 def cmd_diagnose(args):
     from ._budget import check_work
-    from ._diagnose import diagnose
     from ._study import load_study
+    from .diagnose import diagnose
 
     study = load_study(args.study)
     out = open_diagnose_outputs(study, args.out, args.json)

@@ -236,7 +236,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
 
     **Returns:** `SynthResult` with the study as written and the truth.
     """
-    from ._diagnose import Model
+    from .diagnose import Model
 
     if not (noise_um >= 0 and math.isfinite(noise_um)):
         raise InputError(f"--noise-um must be >= 0, got {noise_um}")

@@ -4,6 +4,7 @@ The estimate is checked against the schedule the wear loop really builds (an upp
 tight to the snapshot count) and against hand counts; the refusals name the key to change.
 """
 
+import importlib
 import math
 
 import pytest
@@ -87,7 +88,7 @@ def test_upper_bound_of_the_real_duty_cycle_schedule(tmp_path, M, hours):
 @pytest.fixture
 def forbid_work(monkeypatch):
     import jaxwear._calibrate_cli as cal
-    import jaxwear._diagnose as dia
+    dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
     import jaxwear._sensitivity as sen
     import jaxwear._simulate_study as sim
     import jaxwear._sweep as swe

@@ -10,6 +10,7 @@ lines, unsorted or repeated angles, negative depths) must load and give the same
 """
 
 import contextlib
+import importlib
 import io
 import math
 import os
@@ -261,7 +262,7 @@ class _Loaded(BaseException):
 @pytest.fixture
 def engines_stubbed(monkeypatch):
     import jaxwear._calibrate_cli as cal
-    import jaxwear._diagnose as dia
+    dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
     import jaxwear._sensitivity as sen
     import jaxwear._simulate_study as sim
     import jaxwear._sweep as swe

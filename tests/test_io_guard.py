@@ -6,6 +6,7 @@ replacing the verb's engine with a function that fails the test if it is called:
 code of 2 (not 1) and untouched inputs mean the guard refused first.
 """
 
+import importlib
 import os
 import subprocess
 import sys
@@ -49,7 +50,7 @@ def _no_work(*a, **k):
 @pytest.fixture
 def forbid_work(monkeypatch):
     import jaxwear._calibrate_cli as cal
-    import jaxwear._diagnose as dia
+    dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
     import jaxwear._sensitivity as sen
     import jaxwear._simulate_study as sim
     import jaxwear._sweep as swe

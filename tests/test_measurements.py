@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from jaxwear._calibrate import calibrate
-from jaxwear._diagnose import diagnose
 from jaxwear._study import load_study
 from jaxwear._synth import synthesize
+from jaxwear.diagnose import diagnose
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import numpy_reference as ref  # noqa: E402
