@@ -24,6 +24,8 @@ from ._mechanism import crank_slider_forces as crank_slider_forces  # noqa: E402
 from ._parallel import sharded_vmap as sharded_vmap  # noqa: E402
 from ._params import Params as Params  # noqa: E402
 from ._params import preset as preset  # noqa: E402
+from ._predict import PredictResult as PredictResult  # noqa: E402
+from ._predict import predict as predict  # noqa: E402
 from ._schedule import Schedule as Schedule  # noqa: E402
 from ._schedule import make_schedule as make_schedule  # noqa: E402
 from ._sensitivity import Sensitivities as Sensitivities  # noqa: E402
