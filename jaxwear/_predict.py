@@ -206,13 +206,14 @@ def _last_count(e: Experiment) -> float:
     return float(max(pts)) if pts else float(e.hours or e.revolutions)
 
 
-def forecast_points(study: Study, e: Experiment, at: list[float], n_dense: int = 48
-                    ) -> np.ndarray:
+def forecast_points(study: Study, e: Experiment, at: list[float], n_dense: int = 48,
+                    life: bool = True) -> np.ndarray:
     """Snapshot points of one experiment: the `at` points, the measured points, a fan-chart
-    grid to max(at) and a life grid to 10x the last measured count (sorted, unique)."""
+    grid to max(at) and (with `life`) a life grid to 10x the last measured count (sorted,
+    unique)."""
     crank = study.config.driver != "oscillating"
     top = max(at)
-    horizon = max(LIFE_HORIZON * _last_count(e), top)
+    horizon = max(LIFE_HORIZON * _last_count(e), top) if life else top
     pts = np.concatenate([np.asarray(at, float), np.asarray(e.snapshot_points, float),
                           np.linspace(0, top, n_dense // 2 + 1)[1:],
                           np.linspace(0, horizon, n_dense + 1)[1:]])
@@ -353,7 +354,7 @@ def _check_args(study, at, train_until, level, limit_um, method, noise_um):
 def predict(study: Study, at, *, train_until: float | None = None, level: float = 0.9,
             limit_um: float | None = None, method: str = "laplace", fit_spec=None,
             noise_um: float | None = None, verbose: bool = False, nuts_options=None,
-            n_dense: int = 48) -> PredictResult:
+            n_dense: int = 48, life: bool = True) -> PredictResult:
     """Forecast every experiment's maximum depth at `at` with central bands at `level`.
 
     **Arguments:**
@@ -367,6 +368,8 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
       else K_d,clearance; enabled effects' strengths are always added).
     - `noise_um`: measurement noise σ [µm] if known; default: estimated from the residuals.
     - `nuts_options`: dict for method "nuts" (see `_predict_nuts.run_nuts`).
+    - `n_dense`: points of the forecast grid (fan chart, life search); `life=False` skips
+      the life estimate (and the forecast to 10x the last measured count).
 
     **Returns:** a `PredictResult` (`.to_json()` is the DESIGN §7 document).
     """
@@ -410,7 +413,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     if null_dirs.shape[1]:
         flags.append(f"{null_dirs.shape[1]} parameter direction(s) not determined by the "
                      f"training data and prior: forecasts that depend on them have no band")
-    points = [forecast_points(study, e, at, n_dense) for e in study.experiments]
+    points = [forecast_points(study, e, at, n_dense, life) for e in study.experiments]
     fprob = forecast_problem(study, result, keys, points)
     _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points (compiles the "
                   f"forecast model)")
@@ -426,7 +429,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         snaps = J = None
     return _assemble(study, train, at, points, limit_um, level, method, unit, train_until,
                      result, cov, null_dirs, noise, noise_um is not None, dof, q, flags,
-                     snaps, J, draws, extra)
+                     snaps, J, draws, extra, life)
 
 
 def stable_update(study: Study, result: FitResult) -> float:
@@ -458,7 +461,8 @@ def _param_table(result: FitResult, cov, q):
 
 
 def _assemble(study, train, at, points, limit_um, level, method, unit, train_until, result,
-              cov, null_dirs, noise, noise_given, dof, q, flags, snaps, J, draws, extra):
+              cov, null_dirs, noise, noise_given, dof, q, flags, snaps, J, draws, extra,
+              life=True):
     preds, lives, curves, profiles, measured = [], [], {}, {}, {}
     trained_on = []
     alpha = (1 - level) / 2
@@ -509,21 +513,21 @@ def _assemble(study, train, at, points, limit_um, level, method, unit, train_unt
         def fin(v):
             return np.where(np.isfinite(v), v, np.inf)[life_mask]
 
-        lives.append(life_of(e.name, pts[life_mask], fin(depth), fin(p_lo), fin(p_hi),
-                             limit_um, unit, horizon))
+        if life:
+            lives.append(life_of(e.name, pts[life_mask], fin(depth), fin(p_lo), fin(p_hi),
+                                 limit_um, unit, horizon))
         j = int(np.argmin(np.abs(pts - max(at))))
         if draws is None:
             prof = snaps[ei, j]
             sdm, sdp = _band(J[ei, j], cov, null_dirs, noise, q)
             plo, phi, clo, chi = prof - q * sdp, prof + q * sdp, prof - q * sdm, prof + q * sdm
-        elif "profile_um" in draws:
-            pr = draws["profile_um"][:, ei]
+        else:
+            pr = draws["snapshots_um"][:, ei, j]  # (draws, N)
             prof = np.median(pr, axis=0)
             clo, chi = np.quantile(pr, alpha, axis=0), np.quantile(pr, 1 - alpha, axis=0)
-            yy = draws["profile_new_um"][:, ei]
+            yy = pr + draws["noise"][:, None] * np.random.default_rng(ei).standard_normal(
+                pr.shape)
             plo, phi = np.quantile(yy, alpha, axis=0), np.quantile(yy, 1 - alpha, axis=0)
-        else:
-            prof = None
         if prof is not None:
             n = len(prof)
             profiles[e.name] = {"at": float(pts[j]), "angle_deg": np.arange(n) * 360.0 / n,
