@@ -202,3 +202,34 @@ def test_cli_refuses_to_overwrite_an_input(study_path, tmp_path, capsys):
                  "--json", str(csv)])
     assert code == 2 and "input" in capsys.readouterr().err
     assert csv.read_text() == before
+
+
+def test_cli_nuts_writes_posterior_and_diagnostics(study_path, tmp_path, capsys):
+    """Short NUTS run through the CLI: the InferenceData file holds every fitted parameter,
+    R-hat and ESS are reported, and the posterior of K_d holds the truth."""
+    from jaxwear._predict_nuts import _arviz
+
+    out = tmp_path / "nuts"
+    code = main(["predict", str(study_path), "--at", "3000", "--train-until", "2000",
+                 "--method", "nuts", "--draws", "40", "--warmup", "40", "--chains", "2",
+                 "--out", str(out), "--json", str(tmp_path / "p.json")])
+    assert code == 0, capsys.readouterr().err
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert doc["method"] == "nuts"
+    nuts = doc["nuts"]
+    assert nuts["max_r_hat"] is not None and nuts["min_ess_bulk"] > 0
+    post = nuts["posterior"]
+    assert post["K_d_per_Pa"]["lower"] < K_D_TRUE < post["K_d_per_Pa"]["upper"]
+    idata = _arviz().from_netcdf(str(out / "posterior.nc"))
+    assert set(idata.posterior.data_vars) == {"K_d_per_Pa", "clearance_mm:i276",
+                                              "clearance_mm:b148", "noise_um"}
+    assert idata.posterior["K_d_per_Pa"].shape == (2, 40)
+    for p in doc["predictions"]:
+        assert p["lower_um"] < p["depth_um"] < p["upper_um"]
+
+
+def test_cli_nuts_refuses_beyond_the_time_limit(study_path, tmp_path, capsys):
+    code = main(["predict", str(study_path), "--at", "3000", "--method", "nuts",
+                 "--max-minutes", "0.001", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--max-minutes" in err, err
