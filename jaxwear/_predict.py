@@ -214,10 +214,10 @@ def forecast_points(study: Study, e: Experiment, at: list[float], n_dense: int =
     crank = study.config.driver != "oscillating"
     top = max(at)
     horizon = max(LIFE_HORIZON * _last_count(e), top) if life else top
-    pts = np.concatenate([np.asarray(at, float), np.asarray(e.snapshot_points, float),
-                          np.linspace(0, top, n_dense // 2 + 1)[1:],
-                          np.linspace(0, horizon, n_dense + 1)[1:]])
-    pts = np.round(pts) if crank else np.round(pts, 6)
+    grid = np.concatenate([np.linspace(0, top, n_dense // 2 + 1)[1:],
+                           np.linspace(0, horizon, n_dense + 1)[1:]])
+    grid = np.round(grid) if crank else np.round(grid, 6)  # whole revolutions
+    pts = np.concatenate([np.asarray(at, float), np.asarray(e.snapshot_points, float), grid])
     return np.unique(pts[pts > 0])
 
 
