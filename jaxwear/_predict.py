@@ -444,12 +444,14 @@ def stable_update(study: Study, result: FitResult) -> float:
         {"K_d_per_Pa": vals["K_d_per_Pa"]}), study.config) for e in study.experiments)
 
 
-def _param_table(result: FitResult, cov, q):
+def _param_table(result: FitResult, cov, q, null_dirs):
     prob = result.problem
     vals = np.asarray(result.values)
+    # a parameter with a component along an undetermined direction has no standard error
+    unknown = np.sum(null_dirs ** 2, axis=1) > 1e-6
     out = {}
     for i, (name, f) in enumerate(zip(result.names, prob.fits)):
-        se_u = math.sqrt(max(cov[i, i], 0.0))
+        se_u = math.inf if unknown[i] else math.sqrt(max(cov[i, i], 0.0))
         if f.log:
             se, lo, hi = vals[i] * se_u, vals[i] * math.exp(-q * se_u), vals[i] * math.exp(q * se_u)
         else:
@@ -536,7 +538,7 @@ def _assemble(study, train, at, points, limit_um, level, method, unit, train_unt
     return PredictResult(level=float(level), method=method, unit=unit,
                          train_until=None if train_until is None else float(train_until),
                          trained_on=trained_on, predictions=preds, life=lives,
-                         parameters=_param_table(result, cov, q), noise_um=float(noise),
+                         parameters=_param_table(result, cov, q, null_dirs), noise_um=float(noise),
                          noise_given=noise_given, dof=int(dof), quantile=float(q),
                          fit_converged=bool(result.converged), fit_message=result.message,
                          flags=flags, curves=curves, profiles=profiles, measured=measured,
