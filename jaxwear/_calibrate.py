@@ -14,6 +14,10 @@ of their start, nested effect strengths linearly around their "off" value in uni
 typical scale. The clearance-tolerance prior of DESIGN §6 adds one residual per fitted
 clearance, (c - c_nominal)/τ, in units of the noise level (estimated from a first pass);
 τ = inf gives zero rows (free clearances), τ = 0 removes the clearances from the fit.
+With `[fit] angle_tolerance_deg` > 0 each profile's angular registration is fitted too
+(`angle_offset_deg/EXP`, linear, started at the given offset, the same kind of prior row):
+the model is read at the shifted angles by a periodic interpolation differentiable in the
+offset (docs/measurements.md).
 
 Robust start: depth is nearly proportional to K_d, so before the iteration K_d is divided
 by 10 until the model no longer wears through the layer, then rescaled so that the model's
@@ -82,12 +86,13 @@ def parse_fit(study: Study, fit: str | list[str] | None) -> list[str]:
     """Study keys to fit from `--fit` (aliases K_d, clearance) plus enabled effects' strengths."""
     items = fit.split(",") if isinstance(fit, str) else list(fit or [])
     items = [s.strip() for s in items if s.strip()] or ["K_d", "clearance"]
-    alias = {"K_d": "K_d_per_Pa", "clearance": "clearance_mm"}
+    alias = {"K_d": "K_d_per_Pa", "clearance": "clearance_mm",
+             "angle_offset": "angle_offset_deg"}
     specs = effect_parameter_specs()
     keys = []
     for it in items:
         key = alias.get(it, it)
-        if key not in PARAMETER_KEYS and key not in specs:
+        if key not in PARAMETER_KEYS and key not in specs and key != "angle_offset_deg":
             raise InputError(f"--fit: unknown parameter {it!r}; expected K_d, clearance or a "
                              f"study key such as spring_N_per_m")
         keys.append(key)
@@ -96,6 +101,14 @@ def parse_fit(study: Study, fit: str | list[str] | None) -> list[str]:
             if k not in keys:
                 keys.append(k)
     return list(dict.fromkeys(keys))
+
+
+def with_registration(study: Study, keys: list[str]) -> list[str]:
+    """`keys` plus the scans' angular registration (`angle_offset_deg`, one per profile
+    experiment) when the study's `[fit] angle_tolerance_deg` is > 0."""
+    if study.angle_tolerance_deg > 0 and "angle_offset_deg" not in keys:
+        return [*keys, "angle_offset_deg"]
+    return list(keys)
 
 
 def fit_parameters(study: Study, keys: list[str]) -> list[FitParameter]:
@@ -107,6 +120,12 @@ def fit_parameters(study: Study, keys: list[str]) -> list[FitParameter]:
                 continue  # fixed at nominal by the prior's zero width
             for i, e in enumerate(study.experiments):
                 out.append(FitParameter(f"clearance_mm/{e.name}", key, i, True, 1.0))
+        elif key == "angle_offset_deg":
+            if not study.angle_tolerance_deg > 0:
+                continue  # registration known: fixed at the given offset
+            for i, e in enumerate(study.experiments):
+                if e.profile is not None:  # a history (maximum depth) has no angle
+                    out.append(FitParameter(f"angle_offset_deg/{e.name}", key, i, False, 1.0))
         elif key in specs:
             s = specs[key]
             out.append(FitParameter(key, key, None, s.log, s.scale))
@@ -126,6 +145,8 @@ class Data(eqx.Module):
     is_max: jax.Array  # True: maximum depth (history rows)
     depth_um: jax.Array  # measured [µm]
     x: jax.Array  # angle [deg] (profiles) or hours (history), for reports only
+    angle: jax.Array  # bushing-frame angle at the given registration [rad] (0: history)
+    offset_fit: jax.Array  # index of the row's fitted angle offset among the fits, or -1
 
 
 def _stack(trees):
@@ -152,9 +173,11 @@ def _schedules(study: Study, plist: list[Params]) -> Schedule:
     return _stack(padded)
 
 
-def _data(study: Study) -> Data:
+def _data(study: Study, fits=()) -> Data:
     n = study.config.nodes
-    rows = {k: [] for k in ("exp", "snap", "i0", "i1", "w", "is_max", "depth_um", "x")}
+    offset_fit = {f.experiment: i for i, f in enumerate(fits) if f.key == "angle_offset_deg"}
+    rows = {k: [] for k in ("exp", "snap", "i0", "i1", "w", "is_max", "depth_um", "x",
+                            "angle", "offset_fit")}
     for ei, e in enumerate(study.experiments):
         points = e.snapshot_points
         if e.profile is not None:
@@ -168,19 +191,24 @@ def _data(study: Study) -> Data:
                 rows["w"].append(x[j] - np.floor(x[j])), rows["is_max"].append(False)
                 rows["depth_um"].append(e.profile.depth[j] * 1e6)
                 rows["x"].append(float(np.degrees(e.profile.angle[j])))
+                rows["angle"].append(float(e.profile.angle[j]))
+                rows["offset_fit"].append(offset_fit.get(ei, -1))
         if e.history is not None:
             for t, d in zip(e.history.hours, e.history.depth):
                 rows["exp"].append(ei), rows["snap"].append(points.index(float(t)))
                 rows["i0"].append(0), rows["i1"].append(0), rows["w"].append(0.0)
                 rows["is_max"].append(True), rows["depth_um"].append(d * 1e6)
                 rows["x"].append(float(t))
+                rows["angle"].append(0.0), rows["offset_fit"].append(-1)
     if not rows["exp"]:
         raise InputError(f"{study.path}: no measured data (profile or history) to fit")
     return Data(exp=jnp.asarray(rows["exp"]), snap=jnp.asarray(rows["snap"]),
                 i0=jnp.asarray(rows["i0"]), i1=jnp.asarray(rows["i1"]),
                 w=jnp.asarray(rows["w"], jnp.float64), is_max=jnp.asarray(rows["is_max"]),
                 depth_um=jnp.asarray(rows["depth_um"], jnp.float64),
-                x=jnp.asarray(rows["x"], jnp.float64))
+                x=jnp.asarray(rows["x"], jnp.float64),
+                angle=jnp.asarray(rows["angle"], jnp.float64),
+                offset_fit=jnp.asarray(rows["offset_fit"], jnp.int32))
 
 
 class Problem(eqx.Module):
@@ -200,6 +228,8 @@ class Problem(eqx.Module):
     start: jax.Array  # start values of the fitted parameters, user units (p,)
     nominal_clearance_mm: jax.Array  # (experiments,)
     tolerance_um: jax.Array  # clearance prior's standard deviation (inf: no prior)
+    nominal_angle_deg: jax.Array  # given registration offsets (experiments,)
+    angle_tolerance_deg: jax.Array  # their prior's standard deviation
 
     @property
     def n_data(self) -> int:
@@ -207,9 +237,14 @@ class Problem(eqx.Module):
 
     @property
     def has_prior(self) -> bool:
-        """True when fitted clearances carry a finite-width prior (the fit needs 2 passes)."""
-        return math.isfinite(float(self.tolerance_um)) and any(
-            f.key == "clearance_mm" for f in self.fits)
+        """True when fitted clearances or angle offsets carry a finite-width prior (the fit
+        needs 2 passes)."""
+        return (math.isfinite(float(self.tolerance_um)) and any(
+            f.key == "clearance_mm" for f in self.fits)) or self.fits_angles
+
+    @property
+    def fits_angles(self) -> bool:
+        return any(f.key == "angle_offset_deg" for f in self.fits)
 
     def values(self, u):
         """Fitted parameters in user units from u (p,)."""
@@ -236,6 +271,8 @@ class Problem(eqx.Module):
         n_exp = len(self.exp_names)
         updates: dict = {}
         for i, f in enumerate(self.fits):
+            if f.key == "angle_offset_deg":
+                continue  # a property of the measurement, not of the joint
             si = vals[i] * key_to_si(f.key)
             cur = updates.get(f.key, p.get(f.key))
             if f.experiment is None:
@@ -252,17 +289,36 @@ class Problem(eqx.Module):
                           (self.batched_params(u), self.schedule))
         return res.snapshots * 1e6, res
 
-    def predict_from(self, snaps_um):
-        """Model depth at every measured row [µm] from snapshots (experiments, snaps, nodes)."""
+    def predict_from(self, snaps_um, u=None):
+        """Model depth at every measured row [µm] from snapshots (experiments, snaps, nodes).
+
+        With fitted angle offsets (and u given), each profile row is read at its angle
+        shifted by (fitted - given) offset, by periodic linear interpolation written so that
+        it is differentiable in the offset: the weight w is smooth in the angle and the node
+        indices (floor) are locally constant, so d(depth)/d(offset) is the slope of the
+        profile between the two nodes."""
         d = self.data
         prof = snaps_um[d.exp, d.snap]  # (rows, nodes)
-        at = jnp.take_along_axis(prof, d.i0[:, None], 1)[:, 0] * (1 - d.w) + \
-            jnp.take_along_axis(prof, d.i1[:, None], 1)[:, 0] * d.w
+        if self.fits_angles and u is not None:
+            n = prof.shape[1]
+            vals = self.values(u)
+            k = jnp.clip(d.offset_fit, 0, None)
+            shift = jnp.where(d.offset_fit >= 0,
+                              vals[k] - self.nominal_angle_deg[d.exp], 0.0)  # deg
+            x = jnp.mod((d.angle + jnp.deg2rad(shift)) / (2 * jnp.pi) * n, n)
+            fl = jnp.floor(x)
+            i0 = fl.astype(jnp.int32) % n
+            i1 = (i0 + 1) % n
+            w = x - fl
+        else:
+            i0, i1, w = d.i0, d.i1, d.w
+        at = jnp.take_along_axis(prof, i0[:, None], 1)[:, 0] * (1 - w) + \
+            jnp.take_along_axis(prof, i1[:, None], 1)[:, 0] * w
         return jnp.where(d.is_max, jnp.max(prof, axis=1), at)
 
     def predict(self, u):
         """Model depth at every measured row [µm]."""
-        return self.predict_from(self.snapshots(u)[0])
+        return self.predict_from(self.snapshots(u)[0], u)
 
     def data_residuals(self, u):
         return self.predict(u) - self.data.depth_um
@@ -275,10 +331,35 @@ class Problem(eqx.Module):
         vals = self.values(u)
         out = [(vals[i] - self.nominal_clearance_mm[f.experiment]) * 1e3 / self.tolerance_um
                for i, f in enumerate(self.fits) if f.key == "clearance_mm"]
+        # angle offsets: (δ - δ_given)/τ_angle, the same Gaussian prior as the clearances
+        out += [(vals[i] - self.nominal_angle_deg[f.experiment]) / self.angle_tolerance_deg
+                for i, f in enumerate(self.fits) if f.key == "angle_offset_deg"]
         return noise_um * jnp.stack(out) if out else jnp.zeros(0)
 
     def residuals(self, u, noise_um):
         return jnp.concatenate([self.data_residuals(u), self.prior_residuals(u, noise_um)])
+
+    # The interface `jaxwear.diagnose` builds its extended model from (host-side copies).
+
+    def fitted(self) -> list[tuple[FitParameter, float]]:
+        """The fitted parameters with their start values (user units)."""
+        return list(zip(self.fits, np.asarray(self.start).tolist()))
+
+    def experiments(self) -> tuple[Params, Schedule, tuple[str, ...]]:
+        """Batched parameters (SI), batched schedules and names of the experiments."""
+        return self.params, self.schedule, self.exp_names
+
+    def measured_rows(self) -> dict[str, np.ndarray]:
+        """The data rows as numpy arrays: `exp`, `snap` (indices), `i0`, `i1`, `w` (profile
+        interpolation between nodes), `is_max` (history rows), `depth_um`, `x` (angle [deg]
+        or hours)."""
+        d = self.data
+        return {k: np.asarray(getattr(d, k))
+                for k in ("exp", "snap", "i0", "i1", "w", "is_max", "depth_um", "x")}
+
+    def nominal_clearances_mm(self) -> np.ndarray:
+        """The study's clearance of each experiment [mm] (the prior's centre)."""
+        return np.asarray(self.nominal_clearance_mm)
 
 
 def build_problem(study: Study, keys: list[str], start: dict | None = None) -> Problem:
@@ -289,6 +370,8 @@ def build_problem(study: Study, keys: list[str], start: dict | None = None) -> P
     fits = fit_parameters(study, keys)
     plist = [study.params(e) for e in study.experiments]
     nominal = [float(p.clearance) * 1e3 for p in plist]
+    nominal_angle = [e.profile.angle_offset_deg if e.profile is not None else 0.0
+                     for e in study.experiments]
     start = dict(start or {})
     unknown = sorted(set(start) - {f.name for f in fits})
     if unknown:
@@ -299,6 +382,8 @@ def build_problem(study: Study, keys: list[str], start: dict | None = None) -> P
     for f in fits:
         if f.name in start:
             s0.append(float(start[f.name]))
+        elif f.key == "angle_offset_deg":
+            s0.append(nominal_angle[f.experiment])  # the given registration
         elif f.experiment is not None:
             s0.append(float(plist[f.experiment].get(f.key)) / key_to_si(f.key))
         elif f.key in specs and not f.log:
@@ -310,10 +395,13 @@ def build_problem(study: Study, keys: list[str], start: dict | None = None) -> P
             raise InputError(f"start value of {f.name} must be > 0 to fit it, got {v}")
     return Problem(cfg=study.config, fits=tuple(fits), names=tuple(f.name for f in fits),
                    exp_names=tuple(e.name for e in study.experiments),
-                   params=_stack(plist), schedule=_schedules(study, plist), data=_data(study),
-                   start=jnp.asarray(s0, jnp.float64),
+                   params=_stack(plist), schedule=_schedules(study, plist),
+                   data=_data(study, fits), start=jnp.asarray(s0, jnp.float64),
                    nominal_clearance_mm=jnp.asarray(nominal),
-                   tolerance_um=jnp.asarray(study.clearance_tolerance_um, jnp.float64))
+                   tolerance_um=jnp.asarray(study.clearance_tolerance_um, jnp.float64),
+                   nominal_angle_deg=jnp.asarray(nominal_angle, jnp.float64),
+                   angle_tolerance_deg=jnp.asarray(study.angle_tolerance_deg or 1.0,
+                                                   jnp.float64))
 
 
 class Evaluation(eqx.Module):
@@ -337,7 +425,7 @@ class Evaluation(eqx.Module):
 def _evaluate_jit(problem: Problem, u, noise_um) -> Evaluation:
     def f(v):
         snaps, res = problem.snapshots(v)
-        pred = problem.predict_from(snaps)
+        pred = problem.predict_from(snaps, v)
         r = jnp.concatenate([pred - problem.data.depth_um, problem.prior_residuals(v, noise_um)])
         return r, (r, pred, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle))
 
@@ -726,6 +814,6 @@ def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=Fal
 
     **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
     """
-    keys = parse_fit(study, fit_spec)
+    keys = with_registration(study, parse_fit(study, fit_spec))
     problem = build_problem(study, keys, start)
     return fit(problem, max_steps=max_steps, verbose=verbose, engine=engine)

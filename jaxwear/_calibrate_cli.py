@@ -13,26 +13,15 @@ cannot run at all (e.g. the model wears through the layer whatever K_d).
 
 from __future__ import annotations
 
-import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from ._calibrate import FitResult, build_problem, fit, parse_fit, unit_of
+from ._calibrate import FitResult, build_problem, fit, parse_fit, unit_of, with_registration
 from ._errors import InputError
 
 DEFAULT_FIT = "K_d,clearance"
-
-
-def _inputs(study):
-    files = [Path(study.path)]
-    for e in study.experiments:
-        for d in (e.profile, e.history):
-            if d is not None:
-                files.append(Path(d.path))
-    return files
 
 
 def fit_spec(args, study) -> str | list[str]:
@@ -156,31 +145,30 @@ def plot_fits(out, study, result: FitResult):
         bot.set_ylabel("residual [µm]")
         bot.grid(alpha=0.3)
         fig.tight_layout()
-        p = out.path(f"fit_{e.name}.png")
-        fig.savefig(p, dpi=110)
+        p = out.savefig(fig, f"fit_{e.name}.png")
         pl.close(fig)
         paths.append(p)
     return paths
 
 
-def write_json_file(path, doc, inputs) -> Path:
-    """Write `doc` to `path` (parents created), never over an input file."""
-    p = Path(path)
-    if p.resolve() in {Path(i).resolve() for i in inputs}:
-        raise InputError(f"{p}: refusing to overwrite an input file; choose another --json")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(doc, indent=2))
-    return p
+def calibrate_outputs(study) -> list[str]:
+    """Every file name `cmd_calibrate` writes under --out (for the output guard)."""
+    from ._io import per_experiment
+
+    return ["calibration.json", "fit_residuals.csv", "fitted_profiles.csv",
+            *per_experiment(study, "fit_{}.png")]
 
 
 def cmd_calibrate(args):
-    from ._report import OutputDir
+    from ._budget import check_work
+    from ._io import open_outputs
     from ._study import load_study
 
     study = load_study(args.study)
-    inputs = _inputs(study)
-    out = OutputDir(args.out, inputs)
-    keys = parse_fit(study, fit_spec(args, study))
+    out = open_outputs(study, args.out, planned=calibrate_outputs(study),
+                       json_file=getattr(args, "json", None))
+    check_work(study, tangents=1 + len(study.experiments) + len(study.fit))
+    keys = with_registration(study, parse_fit(study, fit_spec(args, study)))
     problem = build_problem(study, keys)
     if not problem.names:
         raise InputError(f"{study.path}: nothing to fit: {', '.join(keys)} requested, and "
@@ -198,8 +186,8 @@ def cmd_calibrate(args):
     print(f"calibrate: fit took {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     doc = result.to_json()
     written = [out.write_json("calibration.json", doc)]
-    if getattr(args, "json", None):
-        written.append(write_json_file(args.json, doc, inputs))
+    if out.json_file is not None:
+        written.append(out.write_json_file(doc))
     write_tables(out, study, result)
     written += plot_fits(out, study, result)
     print(summary_text(result, str(study.path)))

@@ -34,6 +34,8 @@ def add_verbs(sub):
     y.add_argument("--conditions", default="paper", help="'paper' or a study file")
     y.add_argument("--noise-um", type=float, default=0.3)
     y.add_argument("--seed", type=int, default=0)
+    y.add_argument("--angle-offset-deg", type=float, default=0.0,
+                   help="registration offset of every scan [deg] (truth.json only)")
     y.add_argument("--out", required=True)
     y.set_defaults(func=_lazy("_synth", "cmd_synth"))
 

@@ -4,23 +4,25 @@ from __future__ import annotations
 
 from pathlib import Path
 
+DIAGNOSE_OUTPUTS = ("diagnosis.json", "residuals.csv", "report.html")
 
-def _inputs(study):
-    files = [study.path]
-    for e in study.experiments:
-        for d in (e.profile, e.history):
-            if d is not None and d.path:
-                files.append(Path(d.path))
-    return files
+
+def open_diagnose_outputs(study, out_dir, json_file=None):
+    """The output guard of `diagnose` (before any work)."""
+    from ._io import open_outputs
+
+    return open_outputs(study, out_dir, planned=DIAGNOSE_OUTPUTS, json_file=json_file)
 
 
 def write_outputs(diag, out_dir, json_file=None) -> dict:
-    """Write diagnosis.json, report.html and residuals.csv under `out_dir` (and the JSON to
-    `json_file` if given). Returns the JSON document."""
-    from ._html import report_html
-    from ._report import OutputDir
+    """Write diagnosis.json, report.html and residuals.csv under `out_dir` (a folder, or the
+    `OutputDir` from `open_diagnose_outputs`) and the JSON to `json_file` if given. Returns
+    the JSON document."""
+    from ._io import OutputDir
+    from .diagnose._html import report_html
 
-    out = OutputDir(out_dir, _inputs(diag.study))
+    out = out_dir if isinstance(out_dir, OutputDir) else open_diagnose_outputs(
+        diag.study, out_dir, json_file)
     doc = diag.to_json()
     out.write_json("diagnosis.json", doc)
     m = diag.model
@@ -28,29 +30,25 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     rows = [(m.exp_names[e], x, t, y, pb, pa)
             for e, x, t, y, pb, pa in zip(m.row_exp, m.row_x, m.row_time, m.measured,
                                           diag.base.ev.pred, after)]
-    hist = m._is_max.all()
+    hist = m.is_max.all()
     out.write_csv("residuals.csv", ["experiment", "hours" if hist else "angle_deg",
                                     "hours" if hist else "revolutions", "measured_um",
                                     "base_um", "after_um"], rows)
-    out.path("report.html").write_text(report_html(diag, doc), encoding="utf-8")
-    if json_file:
-        p = Path(json_file)
-        if p.resolve() in {Path(f).resolve() for f in _inputs(diag.study)}:
-            from ._errors import InputError
-
-            raise InputError(f"{p}: refusing to overwrite an input file; choose another --json")
-        p.parent.mkdir(parents=True, exist_ok=True)
-        out.write_json(p.resolve(), doc)
+    out.write_text("report.html", report_html(diag, doc))
+    out.write_json_file(doc)
     return doc
 
 
 def cmd_diagnose(args):
-    from ._diagnose import diagnose
+    from ._budget import check_work
     from ._study import load_study
+    from .diagnose import diagnose
 
     study = load_study(args.study)
+    out = open_diagnose_outputs(study, args.out, args.json)
+    check_work(study, tangents=1 + len(study.experiments) + 4)  # + a candidate's strengths
     diag = diagnose(study, verbose=True)
-    doc = write_outputs(diag, args.out, args.json)
+    doc = write_outputs(diag, out)
     v = doc["verdict"]
     name = " + ".join(v["effects"]) if v["effects"] else "none"
     print(f"verdict: {v['status']} (missing effect: {name}); base RMSE "

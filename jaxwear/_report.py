@@ -1,49 +1,17 @@
 """Files and figures written by the CLI: CSV tables, JSON summaries, PNG plots.
 
-Outputs go under the user's `--out` folder and never replace an input file.
+Outputs go under the user's `--out` folder, never replace an input file and are written
+atomically (`_io`).
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import math
-from pathlib import Path
 
 import numpy as np
 
-
-class OutputDir:
-    """An output folder that refuses to overwrite the study's input files."""
-
-    def __init__(self, root, inputs=()):
-        self.root = Path(root)
-        self.root.mkdir(parents=True, exist_ok=True)
-        self._inputs = {Path(p).resolve() for p in inputs}
-
-    def path(self, name: str) -> Path:
-        p = self.root / name
-        if p.resolve() in self._inputs:
-            from ._errors import InputError
-
-            raise InputError(f"{p}: refusing to overwrite an input file; choose another --out")
-        return p
-
-    def write_csv(self, name: str, header: list[str], rows) -> Path:
-        p = self.path(name)
-        with p.open("w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(header)
-            for r in rows:
-                w.writerow([_fmt(x) for x in r])
-        return p
-
-    def write_json(self, name_or_path, obj) -> Path:
-        p = Path(name_or_path)
-        p = self.path(name_or_path) if not p.is_absolute() and p.parent == Path(".") else p
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(obj, indent=2, default=_json_default))
-        return p
+from ._io import OutputDir as OutputDir  # noqa: F401  (where the verbs used to find it)
+from ._io import save_figure
 
 
 def _fmt(x):
@@ -95,7 +63,7 @@ def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     pl.close(fig)
 
 
@@ -117,7 +85,7 @@ def plot_load(path, name, fx, fy, angle_rad):
     a2.set_ylim(0, 360)
     a2.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     pl.close(fig)
 
 
@@ -133,7 +101,7 @@ def plot_pressure_map(path, title, pressure_pa):
     ax.set_title(title)
     fig.colorbar(im, ax=ax, label="contact pressure [MPa]")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     pl.close(fig)
 
 
@@ -149,5 +117,5 @@ def plot_history(path, name, hours, depth_mm, measured=None):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     pl.close(fig)

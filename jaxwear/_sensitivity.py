@@ -176,6 +176,7 @@ def study_sensitivities(study, *, progress: bool = False) -> dict:
 
 
 def _bar_chart(path, results: dict):
+    from ._io import save_figure
     from ._report import plt
 
     pl = plt()
@@ -200,19 +201,22 @@ def _bar_chart(path, results: dict):
     if len(names) > 1:
         axes[1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     pl.close(fig)
+
+
+SENSITIVITY_OUTPUTS = ("sensitivity.csv", "sensitivity.json", "sensitivity.png")
 
 
 def cmd_sensitivity(args):
     """`jaxwear sensitivity STUDY.toml [--out DIR]`: every experiment of the study."""
-    from ._report import OutputDir
+    from ._budget import check_work
+    from ._io import open_outputs
     from ._study import load_study
 
     study = load_study(args.study)
-    inputs = [study.path] + [d.path for e in study.experiments
-                             for d in (e.profile, e.history) if d is not None]
-    out = OutputDir(args.out, inputs)
+    out = open_outputs(study, args.out, planned=SENSITIVITY_OUTPUTS)
+    check_work(study, tangents=len(PARAMETER_KEYS))
     print(f"sensitivity: {len(study.experiments)} experiments, forward-mode autodiff through "
           f"the wear loop (the first compiles it)", file=sys.stderr, flush=True)
     results = study_sensitivities(study, progress=True)

@@ -6,15 +6,15 @@ import sys
 import time
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
-from ._contact import solve_contact, stiffness_per_area
 from ._study import Experiment, Study
 from ._wear import (
     WearResult,
     build_schedule,
     check_result,
-    node_area,
+    cycle_increment,
     simulate,
     stable_amplification,
 )
@@ -60,17 +60,24 @@ def run_experiment(study: Study, exp: Experiment, *, M=None, check=True,
 
 
 @eqx.filter_jit
-def _pressure(p, cfg, h, load, angle):
-    k = stiffness_per_area(h, p, cfg.double_layer)
-    return solve_contact(load, angle, h, p.clearance, k, node_area(p, cfg.nodes),
-                         contact=cfg.contact).pressure
+def _pressure(p, cfg, h, hist, regime):
+    # The contact call of the wear itself (friction and every effect's contact terms), so
+    # that the plotted pressure is the pressure that wore the bore.
+    return cycle_increment(p, cfg, hist, regime, h, jnp.zeros(()))[2].pressure
 
 
 def last_cycle_pressure(study: Study, exp: Experiment, res: WearResult, regime: int = 0):
     """Pressure map (steps, nodes) [Pa] of the last cycle, on the final profile."""
-    hist = res.history
-    return np.asarray(_pressure(study.params(exp), study.config, res.depth,
-                                hist.load[regime], hist.angle[regime]))
+    return np.asarray(_pressure(study.params(exp), study.config, res.depth, res.history,
+                                regime))
+
+
+def simulate_outputs(study: Study) -> list[str]:
+    """Every file name `simulate_study` may write (for the output guard)."""
+    from ._io import per_experiment
+
+    return ["profiles.csv", "snapshots.csv", "summary.json", *per_experiment(
+        study, "profile_{}.png", "load_{}.png", "pressure_{}.png", "history_{}.png")]
 
 
 def simulate_study(study: Study, out=None, plots=True) -> dict:

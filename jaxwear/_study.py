@@ -23,12 +23,15 @@ from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
 
 @dataclass(frozen=True)
 class Profile:
-    """Measured wear profile(s): angle [rad], depth [m], revolution count of each row."""
+    """Measured wear profile(s): bushing-frame angle [rad], depth [m], revolution count of
+    each row; `angle_offset_deg`: the registration offset already added to the scan's
+    angles (the start and prior centre of a fitted `angle_offset_deg/EXP`)."""
 
     angle: np.ndarray
     depth: np.ndarray
     revolutions: np.ndarray
     path: str
+    angle_offset_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -99,7 +102,10 @@ def _fail(path, msg):
 def _number(path, where, value, *, positive=False, integer=False, nonneg=False):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         _fail(path, f"{where} must be a number, got {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # TOML integers have no size limit in tomllib
+        v = math.inf
     if not math.isfinite(v):
         _fail(path, f"{where} must be finite, got {value!r}")
     if positive and not v > 0:
@@ -129,6 +135,8 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
     with those columns)."""
     if not path.exists():
         raise InputError(f"{path}: data file not found")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a data file")
     try:
         text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not data
     except (OSError, UnicodeDecodeError) as e:
@@ -174,24 +182,87 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
     return used, np.array(data)
 
 
-def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
-    """`angle_deg,depth_um[,revolutions]` (DESIGN §6); `depth_mm` may replace `depth_um`.
+NOISE_WARN_LEVELS = 5.0  # a depth below -5 noise levels is worth a look at the scan's zero
 
-    Depths may be negative: a scan is noise around zero outside the wear scar. The scan's
-    angle plus `angle_offset_deg` is the bushing-frame angle."""
-    header, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"],
-                          alternatives={"depth_um": ["depth_mm"]})
+
+def _header(path: Path) -> list[str]:
+    """The header names of a CSV file (errors are left to `_read_csv`)."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError):
+        return []
+    for line in text.splitlines():
+        if line.strip():
+            return [h.strip() for h in next(csv.reader([line]))]
+    return []
+
+
+def robust_noise(angle: np.ndarray, depth: np.ndarray, revolutions: np.ndarray) -> float:
+    """Noise level of profile rows [depth's unit], robust to the scar and to outliers.
+
+    Within each scan (rows of one revolution count, in angle order) each depth minus the
+    mean of its two neighbours (periodic) cancels a smooth profile and has variance 1.5 σ²
+    for white noise; σ = 1.4826 MAD / √1.5. NaN with fewer than 5 usable points."""
+    e = []
+    revs = np.where(np.isnan(revolutions), -1.0, revolutions)
+    for r in np.unique(revs):
+        m = revs == r
+        order = np.argsort(angle[m])
+        y = depth[m][order]
+        if len(y) >= 3:
+            e.append(y - 0.5 * (np.roll(y, 1) + np.roll(y, -1)))
+    e = np.concatenate(e) if e else np.zeros(0)
+    if len(e) < 5:
+        return math.nan
+    return float(1.4826 * np.median(np.abs(e - np.median(e))) / math.sqrt(1.5))
+
+
+def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
+    """A profile file (DESIGN §6, docs/measurements.md), one of:
+
+    - `angle_deg,depth_um[,revolutions]` (`depth_mm` may replace `depth_um`);
+    - `angle_deg,radius_before_um,radius_after_um[,revolutions]`: two raw scans of the bore
+      radius, before and after the test, at the same angles; depth = after - before.
+
+    Depths may be negative: a scan is noise around zero outside the wear scar. A depth
+    below -5 noise levels (noise estimated robustly from the rows, `robust_noise`) gets a
+    one-line warning on stderr. The scan's angle plus `angle_offset_deg` is the
+    bushing-frame angle."""
+    header = _header(path)
+    raw_scans = "radius_before_um" in header or "radius_after_um" in header
+    if raw_scans:
+        if "depth_um" in header or "depth_mm" in header:
+            raise InputError(f"{path}: line 1: give either a depth column (depth_um) or two "
+                             f"raw scans (radius_before_um,radius_after_um), not both")
+        used, a = _read_csv(path, ["angle_deg", "radius_before_um", "radius_after_um"],
+                            ["revolutions"])
+        depth = (a[:, 2] - a[:, 1]) * 1e-6  # wear opens the bore: the radius grows
+        rev_col = 3
+    else:
+        used, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"],
+                            alternatives={"depth_um": ["depth_mm"]})
+        depth = a[:, 1] * (1e-3 if used[1] == "depth_mm" else 1e-6)
+        rev_col = 2
     for i, ang in enumerate(a[:, 0], start=2):
         if not (0.0 <= ang < 360.0):
             raise InputError(f"{path}: line {i}: angle_deg {ang:g} outside [0, 360)")
-    depth = a[:, 1] * (1e-3 if header[1] == "depth_mm" else 1e-6)
-    revs = a[:, 2] if a.shape[1] > 2 else np.full(len(a), np.nan)
-    if a.shape[1] > 2:
+    has_revs = a.shape[1] > rev_col
+    revs = a[:, rev_col] if has_revs else np.full(len(a), np.nan)
+    if has_revs:
         for i, r in enumerate(revs, start=2):
             if not r > 0:
                 raise InputError(f"{path}: line {i}: revolutions {r:g} must be > 0")
+    sigma = robust_noise(a[:, 0], depth, revs)
+    if math.isfinite(sigma) and sigma > 0:
+        low = depth < -NOISE_WARN_LEVELS * sigma
+        if low.any():
+            j = int(np.argmin(depth))
+            print(f"warning: {path}: {int(low.sum())} depth(s) below -{NOISE_WARN_LEVELS:g} "
+                  f"noise levels (noise {sigma * 1e6:.3g} µm from neighbouring points; "
+                  f"lowest {depth[j] * 1e6:.3g} µm at line {j + 2}): check the scan's zero "
+                  f"and sign", file=sys.stderr)
     angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
-    return Profile(angle, depth, revs, str(path))
+    return Profile(angle, depth, revs, str(path), float(angle_offset_deg))
 
 
 def read_history(path: Path) -> History:
@@ -239,6 +310,15 @@ def _check_geometry(path, where, params: Params):
                     f"{rb * 2e3:g} mm)")
     if not float(params.layer_poisson) < 0.5:
         _fail(path, f"{where}: layer_poisson_ratio must be < 0.5")
+
+
+def _data_file(path: Path, where: str, name: str):
+    """A data file named by the study must be a file beside it (or under its folder)."""
+    f = path.parent / name
+    if not f.exists():
+        _fail(path, f"{where}: data file {name!r} not found (looked for {f})")
+    if not f.is_file():
+        _fail(path, f"{where}: {name!r} is not a file (looked for {f})")
 
 
 def load_study(path) -> Study:
@@ -336,6 +416,8 @@ def load_study(path) -> Study:
         tol = math.inf
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:
         _fail(path, f"fit.clearance_tolerance_um must be a number >= 0 (or inf), got {tol!r}")
+    if isinstance(tol, int) and tol > 1e300:
+        tol = math.inf  # a huge whole number means no prior, like "inf"
     angle_tol = _number(path, "fit.angle_tolerance_deg", fit.get("angle_tolerance_deg", 0.0),
                         nonneg=True)
     fit_params = fit.get("parameters", [])
@@ -366,13 +448,15 @@ def load_study(path) -> Study:
                 _fail(path, f"{where}.speed_rpm must be > 0, got {e['speed_rpm']!r}")
         profile = history = None
         if "profile" in e:
-            if not isinstance(e["profile"], str):
-                _fail(path, f"{where}.profile must be a file name")
+            if not isinstance(e["profile"], str) or not e["profile"].strip():
+                _fail(path, f"{where}.profile must be a file name, got {e['profile']!r}")
             offset = _number(path, f"{where}.angle_offset_deg", e.get("angle_offset_deg", 0.0))
+            _data_file(path, f"{where}.profile", e["profile"])
             profile = read_profile(path.parent / e["profile"], offset)
         if "history" in e:
-            if not isinstance(e["history"], str):
-                _fail(path, f"{where}.history must be a file name")
+            if not isinstance(e["history"], str) or not e["history"].strip():
+                _fail(path, f"{where}.history must be a file name, got {e['history']!r}")
+            _data_file(path, f"{where}.history", e["history"])
             history = read_history(path.parent / e["history"])
         revs = hours = None
         if config.driver == "crank_slider" and history is not None:
@@ -386,7 +470,8 @@ def load_study(path) -> Study:
                 r = profile.revolutions
                 if np.all(np.isnan(r)):
                     profile = Profile(profile.angle, profile.depth,
-                                      np.full(len(r), revs), profile.path)
+                                      np.full(len(r), revs), profile.path,
+                                      profile.angle_offset_deg)
                 elif np.max(r) > revs + 1e-9:
                     _fail(path, f"{where}: profile {e['profile']} has revolutions up to "
                                 f"{np.max(r):g} > experiment revolutions {revs:g}")

@@ -201,6 +201,9 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         depth_um=depth_um.reshape(shape + (nodes,)))
 
 
+MAX_POINTS = 100_000  # grid points of one sweep (each is a whole wear simulation)
+
+
 def parse_range(option: str, text: str) -> np.ndarray:
     """`START:STOP:COUNT` (inclusive, evenly spaced), `A,B,C` or a single value."""
     text = str(text).strip()
@@ -210,18 +213,25 @@ def parse_range(option: str, text: str) -> np.ndarray:
             count = int(n)
             if count < 1 or str(count) != n.strip():
                 raise ValueError
-            vals = np.linspace(float(a), float(b), count)
+            a, b = float(a), float(b)
         else:
+            count = None
             vals = np.array([float(x) for x in text.split(",")])
     except ValueError:
         raise InputError(f"{option} {text!r}: expected START:STOP:COUNT (e.g. 100:300:21), "
                          f"a comma-separated list or one value") from None
+    if count is not None:
+        if count > MAX_POINTS:
+            raise InputError(f"{option} {text!r}: {count} values; at most {MAX_POINTS} per "
+                             f"sweep")
+        vals = np.linspace(a, b, count)
     if not np.all(np.isfinite(vals)):
         raise InputError(f"{option} {text!r}: values must be finite")
     return vals
 
 
 def _heatmap(path, title, label, res: SweepResult, z):
+    from ._io import save_figure
     from ._report import plt
 
     pl = plt()
@@ -246,13 +256,17 @@ def _heatmap(path, title, label, res: SweepResult, z):
         ax.grid(alpha=0.3)
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     pl.close(fig)
+
+
+SWEEP_OUTPUTS = ("sweep.csv", "sweep_peak_depth.png", "sweep_worn_volume.png")
 
 
 def cmd_sweep(args):
     """`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11`."""
-    from ._report import OutputDir
+    from ._budget import check_work
+    from ._io import open_outputs
     from ._study import load_study
 
     study = load_study(args.study)
@@ -270,9 +284,12 @@ def cmd_sweep(args):
     if not grid:
         raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
                          "--clearance-mm START:STOP:COUNT")
-    inputs = [study.path] + [d.path for e in study.experiments
-                             for d in (e.profile, e.history) if d is not None]
-    out = OutputDir(args.out, inputs)
+    total = math.prod(len(v) for v in grid.values())
+    if total > MAX_POINTS:
+        raise InputError(f"sweep: {total} grid points; at most {MAX_POINTS} (each is a whole "
+                         f"wear simulation): give fewer values")
+    out = open_outputs(study, args.out, planned=SWEEP_OUTPUTS)
+    check_work(study)
     total = math.prod(len(v) for v in grid.values())
     what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
     print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first chunk "

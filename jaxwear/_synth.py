@@ -7,19 +7,26 @@ effects switched on, as a careful experimenter would have measured them:
   2000, 5000, 10000 and, for the 15000-rev test, 15000), because some effects (running-in
   above all) leave almost no trace in a final profile alone: K_d and the clearances absorb
   them. Oscillating (boom-type) conditions are measured as maximum depth every 5 h.
-- **The wear scar, every 2°.** An optical profiler scans the worn arc: rows at whole
-  multiples of `angle_step_deg` where the true depth is at least 3 noise levels (outside
-  the scar there is nothing to measure, and a depth file has no negative depths).
+- **The whole bore, every 2°.** A profilometer scans the whole circumference: outside
+  the wear scar the rows are noise around zero (negative depths included). The scan's 0° is
+  registered to the bushing only to within a few degrees: `angle_offset_deg` (default 0)
+  shifts every scan, and the study does not state it.
 - **Real specimens.** Each experiment's actual clearance differs from its nominal value by a
   Gaussian machining tolerance (σ = the study's `clearance_tolerance_um`, default 5 µm); the
   study states the nominal value. The true K_d differs from the study's start value by a
   log-normal factor (σ = 15 %).
-- **Noise.** Gaussian, `noise_um` (default 0.3 µm), independent per row.
+- **Noise.** Gaussian, zero mean, `noise_um` (default 0.3 µm), independent per row, never
+  clipped.
+- **Real parts are not discretised.** The truth is computed at finer numerics than the study
+  states: 2x its nodes and steps per revolution, and the fixed-M paper integrator at a tenth
+  of its revolutions per update. A fit therefore faces the discretisation mismatch that real
+  data bring (no "inverse crime"); what it cannot explain at noise level is either missing
+  physics or discretisation error, and the validation (docs/diagnose_validation.md) measures
+  how often the latter raises a false alarm.
 
-The truth (effects and strengths, true K_d and clearances, seed) goes to `truth.json` next to
-the study, which does not reference it. The data are made by the same discretisation the
-study states ([numerics]), so a study with no hidden effect is fitted to noise level by the
-base model: what is left is what is missing.
+The truth (effects and strengths, true K_d and clearances, registration offsets, both
+numerics, seed) goes to `truth.json` next to the study, which does not reference it. `--out`
+never replaces an input (the conditions study or its data files).
 """
 
 from __future__ import annotations
@@ -32,8 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ._budget import check_work
 from ._config import ModelConfig
 from ._errors import InputError
+from ._io import OutputDir, open_outputs, per_experiment
 from ._study import Experiment, History, Profile, Study, load_study
 from .effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
 
@@ -167,9 +176,41 @@ def _with_placeholder_data(study: Study, step_deg: float) -> Study:
     return study.with_experiments(exps)
 
 
+def _interp_periodic(profile, nodes_deg_step, angle_deg):
+    """Periodic linear interpolation of node values (node k at k·step degrees)."""
+    n = len(profile)
+    x = np.mod(np.asarray(angle_deg, float) / nodes_deg_step, n)
+    i0 = np.floor(x).astype(int) % n
+    w = x - np.floor(x)
+    return profile[i0] * (1 - w) + profile[(i0 + 1) % n] * w
+
+
+_snapshots_jit = None
+
+
+def _true_snapshots(model, u):
+    """Snapshots [µm] (E, S, N) and the worn-through flag of the model at u, no Jacobian."""
+    global _snapshots_jit
+    if _snapshots_jit is None:
+        import equinox as eqx
+        import jax.numpy as jnp
+
+        @eqx.filter_jit
+        def f(ext, u):
+            snaps, res = ext.snapshots(u)
+            return snaps, jnp.max(res.worn_through_cycle)
+
+        _snapshots_jit = f
+    import jax.numpy as jnp
+
+    snaps, worn = _snapshots_jit(model.ext, jnp.asarray(u, jnp.float64))
+    return np.asarray(snaps), float(worn)
+
+
 def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: int = 0,
                out=None, numerics=None, angle_step_deg: float = 2.0, kd_sd: float = 0.15,
-               perturb=None, verbose: bool = False) -> SynthResult:
+               perturb=None, verbose: bool = False, angle_offset_deg: float = 0.0,
+               refine: int = 2, refine_updates: int = 10) -> SynthResult:
     """Make a study with data from the model with `hidden` effects switched on.
 
     **Arguments:**
@@ -177,22 +218,40 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
       `{effect: {key: value}}` (values in the keys' units); empty for null data.
     - `conditions`: `"paper"` (the rig matrix), a study file or a `Study`; its data (if
       any) fix the measurement points, else they are planned as described above.
-    - `noise_um`: measurement noise σ [µm]; `seed`: random seed.
+    - `noise_um`: measurement noise σ [µm] on every row; `seed`: random seed.
     - `out`: folder to write `study.toml`, one CSV per experiment and `truth.json` (None:
-      nothing is written). `numerics`: overrides of nodes / steps_per_rev /
-      revolutions_per_update. `angle_step_deg`: profile spacing [deg].
+      nothing is written); it must not hold an input of the conditions (`InputError`).
+      `numerics`: overrides of nodes / steps_per_rev / revolutions_per_update (the study's).
+      `angle_step_deg`: profile spacing [deg].
+    - `angle_offset_deg`: registration offset of every scan [deg]: the row at scan angle a
+      measures the bushing at a + offset. Written to truth.json, not to the study.
+    - `refine`, `refine_updates`: the truth runs at `refine` x the study's nodes and steps
+      per revolution and at revolutions_per_update / `refine_updates` (fixed-M paper
+      integrator). `refine=1, refine_updates=1` gives data from the very discretisation the
+      study states (only for checking the noise itself: fits on such data commit the
+      inverse crime).
     - `perturb(exp_name, points, angle_deg, depth_um) -> depth_um`: optional physics from
-      outside the library added to the true profiles before noise (for tests).
+      outside the library added to the true profiles before noise (for tests); angles are
+      bushing-frame angles.
 
     **Returns:** `SynthResult` with the study as written and the truth.
     """
-    from ._diagnose import Model
+    from .diagnose import Model
 
     if not (noise_um >= 0 and math.isfinite(noise_um)):
         raise InputError(f"--noise-um must be >= 0, got {noise_um}")
+    if not math.isfinite(angle_offset_deg):
+        raise InputError(f"--angle-offset-deg must be finite, got {angle_offset_deg}")
+    if int(refine) < 1 or int(refine_updates) < 1:
+        raise InputError("refine and refine_updates must be whole numbers >= 1")
     hid = hidden if isinstance(hidden, dict) else parse_hidden(hidden)
     hid = {k: dict(v) for k, v in hid.items()}  # filled in below; the caller's stays
     base = _conditions(conditions, numerics)
+    outdir = None
+    if out is not None:  # before any work: the study and CSVs must not replace an input
+        outdir = out if isinstance(out, OutputDir) else open_outputs(
+            base, out, planned=synth_outputs(base))
+    check_work(base)
     rng = np.random.default_rng(seed)
     written_cfg = base.config
     if "unsymmetric" in hid:  # the study states the traditional contact it is missing
@@ -203,7 +262,12 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
         if name in written_cfg.effects:
             raise InputError(f"--hidden {name}: the conditions already switch it on")
     planned = _with_placeholder_data(replace(base, config=written_cfg), angle_step_deg)
-    model = Model(planned)
+    # The truth at finer numerics: real parts are not discretised at the study's grid.
+    fine_cfg = written_cfg.replace(nodes=written_cfg.nodes * int(refine),
+                                   steps_per_rev=written_cfg.steps_per_rev * int(refine))
+    fine = replace(planned, config=fine_cfg, integrator="paper",
+                   revolutions_per_update=planned.revolutions_per_update / int(refine_updates))
+    model = Model(fine)
     truth_model = model.with_contact("unsymmetric") if "unsymmetric" in hid else model
     tol_um = planned.clearance_tolerance_um if math.isfinite(
         planned.clearance_tolerance_um) else 5.0
@@ -212,7 +276,10 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
              "seed": seed, "clearance_mm": {}, "numerics": {
                  "nodes": written_cfg.nodes, "steps_per_rev": written_cfg.steps_per_rev,
                  "revolutions_per_update": planned.revolutions_per_update},
-             "angle_step_deg": angle_step_deg}
+             "truth_numerics": {"nodes": fine_cfg.nodes, "steps_per_rev": fine_cfg.steps_per_rev,
+                                "revolutions_per_update": fine.revolutions_per_update,
+                                "integrator": "paper"},
+             "angle_step_deg": angle_step_deg, "angle_offset_deg": {}}
     for i, name in enumerate(model.names):
         c = model.columns[i]
         start = float(model.ext.start[i])
@@ -235,45 +302,41 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
             params.setdefault(key, float(truth_model.values(u)[model.index[key]]))
         truth["hidden"][eff] = dict(params)
     if verbose:
-        print(f"synth: evaluating the true model ({len(planned.experiments)} experiments)",
+        print(f"synth: evaluating the true model ({len(planned.experiments)} experiments, "
+              f"{fine_cfg.nodes} nodes x {fine_cfg.steps_per_rev} steps, "
+              f"{fine.revolutions_per_update:g} revolutions per update)",
               file=sys.stderr, flush=True)
-    ev = truth_model.evaluate(u)
-    if not ev.usable:
+    snaps, worn = _true_snapshots(truth_model, u)  # (E, S, N) µm
+    if not (worn < 0 and np.all(np.isfinite(snaps))):
         raise InputError("the hidden model wears through the layer (or is not finite) for "
                          "these conditions; choose a smaller strength")
-    snaps = ev.snaps  # (E, S, N) µm
-    nodes = planned.config.nodes
-    node_deg = np.arange(nodes + 1) * 360.0 / nodes
+    step = 360.0 / fine_cfg.nodes
     exps = []
-    thresh = 3.0 * noise_um
     for ei, e in enumerate(planned.experiments):
         pts = e.snapshot_points
         if planned.config.driver == "oscillating":
             depth = snaps[ei, :len(pts)].max(axis=1)
             if perturb is not None:
                 depth = np.asarray(perturb(e.name, pts, None, depth), float)
-            y = np.maximum(depth + noise_um * rng.standard_normal(len(pts)), 0.0)
+            y = depth + noise_um * rng.standard_normal(len(pts))
             exps.append((e, {"hours": np.array(pts), "depth_mm": y * 1e-3}))
             continue
-        ang = np.arange(0.0, 360.0, angle_step_deg)
+        truth["angle_offset_deg"][e.name] = float(angle_offset_deg)
+        ang = np.arange(0.0, 360.0, angle_step_deg)  # the scan's own angles
+        bushing = np.mod(ang + angle_offset_deg, 360.0)
         rows = []
         for si, s in enumerate(pts):
-            prof = snaps[ei, si]
-            d = np.interp(ang, node_deg, np.r_[prof, prof[0]])
+            d = _interp_periodic(snaps[ei, si], step, bushing)
             if perturb is not None:
-                d = np.asarray(perturb(e.name, s, ang, d), float)
-            keep = d >= max(thresh, 1e-9)
-            y = np.maximum(d[keep] + noise_um * rng.standard_normal(int(keep.sum())), 0.0)
-            rows += [(a, v, s) for a, v in zip(ang[keep], y)]
-        if not rows:
-            raise InputError(f"experiment {e.name!r}: no point of the scar is deeper than "
-                             f"3 noise levels; nothing to measure")
+                d = np.asarray(perturb(e.name, s, bushing, d), float)
+            y = d + noise_um * rng.standard_normal(len(ang))  # every point, zero mean
+            rows += [(a, v, s) for a, v in zip(ang, y)]
         exps.append((e, {"rows": rows}))
     truth["K_d_start_per_Pa"] = float(model.ext.start[model.index["K_d_per_Pa"]])
     study_written = _as_study(planned, written_cfg, exps)
     path = None
     if out is not None:
-        path = _write(Path(out), planned, written_cfg, exps, truth)
+        path = _write(outdir, planned, written_cfg, exps, truth)
         study_written = load_study(path)
     return SynthResult(study_written, path, truth)
 
@@ -314,8 +377,12 @@ def _toml_value(v):
     return repr(float(v)) if not float(v).is_integer() or abs(v) >= 1e15 else f"{v:g}"
 
 
-def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
-    out.mkdir(parents=True, exist_ok=True)
+def synth_outputs(conditions: Study) -> list[str]:
+    """Every file name `synthesize(out=...)` writes (for the output guard)."""
+    return ["study.toml", "truth.json", *per_experiment(conditions, "{}.csv")]
+
+
+def _write(out: OutputDir, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
     lines = ["# Written by `jaxwear synth`: data from a model with hidden effects.",
              "# The truth is in truth.json (not referenced by this study).",
              "[model]", f"preset = {_toml_value(planned.preset)}",
@@ -336,6 +403,8 @@ def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
               "[fit]", f"clearance_tolerance_um = {_toml_value(planned.clearance_tolerance_um)}"
               if math.isfinite(planned.clearance_tolerance_um)
               else 'clearance_tolerance_um = "inf"']
+    if planned.angle_tolerance_deg > 0:
+        lines.append(f"angle_tolerance_deg = {_toml_value(planned.angle_tolerance_deg)}")
     for e, data in exps:
         lines += ["", "[[experiment]]", f"name = {_toml_value(e.name)}"]
         for k, v in e.overrides.items():
@@ -344,27 +413,22 @@ def _write(out: Path, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
         if "rows" in data:
             lines.append(f"revolutions = {_toml_value(e.revolutions)}")
             lines.append(f"profile = {_toml_value(fname)}")
-            with (out / fname).open("w") as f:
-                f.write("angle_deg,depth_um,revolutions\n")
-                for a, d, s in data["rows"]:
-                    f.write(f"{a:g},{d:.4f},{s:g}\n")
+            out.write_text(fname, "angle_deg,depth_um,revolutions\n" + "".join(
+                f"{a:g},{d:.4f},{s:g}\n" for a, d, s in data["rows"]))
         else:
             lines.append(f"hours = {_toml_value(e.hours)}")
             lines.append(f"history = {_toml_value(fname)}")
-            with (out / fname).open("w") as f:
-                f.write("hours,depth_mm\n")
-                for t, d in zip(data["hours"], data["depth_mm"]):
-                    f.write(f"{t:g},{d:.6f}\n")
-    path = out / "study.toml"
-    path.write_text("\n".join(lines) + "\n")
-    (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")
-    return path
+            out.write_text(fname, "hours,depth_mm\n" + "".join(
+                f"{t:g},{d:.6f}\n" for t, d in zip(data["hours"], data["depth_mm"])))
+    # the CSVs first: a study file under its final name always has its data beside it
+    out.write_text("truth.json", json.dumps(truth, indent=2) + "\n")
+    return out.write_text("study.toml", "\n".join(lines) + "\n")
 
 
 def cmd_synth(args):
     """`jaxwear synth --hidden EFFECT[=STRENGTH] ... --out DIR`."""
     res = synthesize(args.hidden, args.conditions, noise_um=args.noise_um, seed=args.seed,
-                     out=args.out, verbose=True)
+                     out=args.out, angle_offset_deg=args.angle_offset_deg, verbose=True)
     n = sum(len(e.profile.angle) if e.profile is not None else len(e.history.hours)
             for e in res.study.experiments)
     hidden = ", ".join(f"{k}({', '.join(f'{kk}={vv:g}' for kk, vv in v.items())})"

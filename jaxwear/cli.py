@@ -28,22 +28,15 @@ def _enable_cache():
         pass
 
 
-def _inputs(study):
-    files = [study.path]
-    for e in study.experiments:
-        for d in (e.profile, e.history):
-            if d is not None:
-                files.append(Path(d.path))
-    return files
-
-
 def cmd_simulate(args):
-    from ._report import OutputDir
-    from ._simulate_study import simulate_study
+    from ._budget import check_work
+    from ._io import open_outputs
+    from ._simulate_study import simulate_outputs, simulate_study
     from ._study import load_study
 
     study = load_study(args.study)
-    out = OutputDir(args.out, _inputs(study))
+    out = open_outputs(study, args.out, planned=simulate_outputs(study))
+    check_work(study)
     simulate_study(study, out)
     print(f"wrote {out.root / 'profiles.csv'}")
 

@@ -1,5 +1,7 @@
 """`diagnose` on data with a known truth: synthetic studies made by `synth` with hidden
-effects (paper rig matrix, interrupted tests, 0.3 µm noise, small numerical grid).
+effects (paper rig matrix, interrupted tests, whole-bore scans with 0.3 µm zero-mean noise on
+every point, small numerical grid). The data are not the fit's own: `synth` computes the
+truth at 2x the study's nodes and steps and a tenth of its revolutions per update.
 
 Every study here has the same design, so the extended model compiles once (twice with
 the symmetric-contact study) for the whole module.
@@ -13,17 +15,17 @@ import pytest
 
 import jaxwear as jw
 from jaxwear._config import ModelConfig
-from jaxwear._diagnose import (
-    betainc,
+from jaxwear._synth import PAPER_MATRIX, synthesize
+from jaxwear.cli import main
+from jaxwear.diagnose import (
     chi2_sf,
     diagnose,
     f_sf,
     lag1_autocorrelation,
     line_residuals,
     noise_level,
+    norm_sf,
 )
-from jaxwear._synth import PAPER_MATRIX, synthesize
-from jaxwear.cli import main
 from jaxwear.effects import STRUCTURAL_CANDIDATES, get_effect
 
 SMALL = dict(nodes=64, steps_per_rev=72, revolutions_per_update=500)
@@ -46,10 +48,24 @@ def test_distribution_functions_against_closed_forms():
         assert chi2_sf(x, 1) == pytest.approx(math.erfc(math.sqrt(x / 2)), rel=1e-10)
         assert f_sf(x, 2, 2) == pytest.approx(1 / (1 + x), rel=1e-10)  # F(2,2)
         assert f_sf(x, 3, math.inf) == pytest.approx(chi2_sf(3 * x, 3), rel=1e-12)
-    for a, b, x in ((2.0, 3.0, 0.3), (0.7, 5.5, 0.9), (40.0, 12.0, 0.8)):
-        assert betainc(a, b, x) == pytest.approx(1 - betainc(b, a, 1 - x), abs=1e-12)
-    assert betainc(1.0, 1.0, 0.37) == pytest.approx(0.37, rel=1e-12)
-    assert betainc(2.0, 1.0, 0.5) == pytest.approx(0.25, rel=1e-12)  # x^2
+        assert norm_sf(x) == pytest.approx(0.5 * math.erfc(x / math.sqrt(2)), rel=1e-12)
+    assert f_sf(0.0, 3, 10) == 1.0 and chi2_sf(-1.0, 4) == 1.0
+
+
+def test_p_values_used_match_scipy_stats():
+    """The tails the tests use, at the points they are used (a chi-square ratio near 1 with
+    thousands of points, a score test in the far tail, a one-sided autocorrelation z)."""
+    from scipy import stats
+
+    for F, d1, d2 in ((1.02, 2000, 3000.0), (1.3, 350, 512.5), (40.0, 1, 900.0),
+                      (8.0, 2, 4000.0)):
+        assert f_sf(F, d1, d2) == pytest.approx(stats.f.sf(F, d1, d2), rel=1e-9)
+    for F, d1 in ((1.5, 3), (25.0, 1)):  # noise level given: chi-square(d1)/d1
+        assert f_sf(F, d1, math.inf) == pytest.approx(stats.chi2.sf(F * d1, d1), rel=1e-9)
+    for x, k in ((2.5, 1), (30.0, 4), (1500.0, 1400)):
+        assert chi2_sf(x, k) == pytest.approx(stats.chi2.sf(x, k), rel=1e-9)
+    for z in (-1.0, 0.5, 3.1, 9.0):
+        assert norm_sf(z) == pytest.approx(stats.norm.sf(z), rel=1e-9)
 
 
 def test_neighbour_noise_estimate_and_autocorrelation_on_known_series():

@@ -150,8 +150,8 @@ def test_strength_gradients_finite_at_off_and_match_finite_differences(small_mod
 def small_model():
     """The extended model of a small synthetic rig study (shared compile with the
     diagnose tests), at the true parameters of null data."""
-    from jaxwear._diagnose import Model
     from jaxwear._synth import synthesize
+    from jaxwear.diagnose import Model
 
     res = synthesize([], "paper", noise_um=0.3, seed=3, numerics=dict(
         nodes=64, steps_per_rev=72, revolutions_per_update=500))
@@ -170,7 +170,7 @@ class _Humidity(Effect):
 
 
 def test_register_custom_effect_and_contracts():
-    from jaxwear._diagnose import candidate_names
+    from jaxwear.diagnose import candidate_names
 
     try:
         register_effect(_Humidity())

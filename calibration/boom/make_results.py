@@ -24,9 +24,9 @@ def main(argv=None):
     ap.add_argument("--out", default="out/boom-diagnose")
     args = ap.parse_args(argv)
 
-    from jaxwear._diagnose import diagnose
     from jaxwear._diagnose_cli import write_outputs
     from jaxwear._study import load_study
+    from jaxwear.diagnose import diagnose
 
     study = load_study(HERE / "study.toml")
     diag = diagnose(study, verbose=True)

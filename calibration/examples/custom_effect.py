@@ -12,16 +12,15 @@ import argparse
 import tempfile
 
 import jaxwear as jw
-from jaxwear.effects import Effect, EffectParameter
 
 
 # ---- the effect: 15 lines ------------------------------------------------------------
-class DebrisAbrasion(Effect):
+class DebrisAbrasion(jw.Effect):
     """K_d → K_d (1 + g S/S_ref), S the accumulated sliding distance, S_ref = 100 m.
     Signature: depth grows faster than the base model late in each test."""
 
     name = "debris"
-    parameters = {"debris_gain": EffectParameter(
+    parameters = {"debris_gain": jw.EffectParameter(
         to_si=1.0, default=0.0, off=0.0, lower=0.0, upper=20.0,
         doc="g: extra wear per 100 m of sliding [-]", scale=0.1, realistic=0.5)}
     signature = "wear accelerating with sliding distance (late profiles deeper than predicted)"
@@ -37,25 +36,20 @@ jw.register_effect(DebrisAbrasion())
 
 
 def main(argv=None):
-    from jaxwear._calibrate import calibrate
-    from jaxwear._diagnose import diagnose
-    from jaxwear._diagnose_cli import write_outputs
-    from jaxwear._synth import synthesize
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=None, help="write the diagnosis report here")
     args = ap.parse_args(argv)
     small = dict(nodes=64, steps_per_rev=72, revolutions_per_update=500)
     with tempfile.TemporaryDirectory() as tmp:
         # 1. a virtual rig hides the new effect at its realistic strength (g = 0.5)
-        res = synthesize(["debris"], "paper", noise_um=0.3, seed=1, numerics=small, out=tmp)
+        res = jw.synthesize(["debris"], "paper", noise_um=0.3, seed=1, numerics=small, out=tmp)
         # 2. diagnose the study as written (base model): the new effect is a candidate
-        diag = diagnose(res.study, verbose=True)
+        diag = jw.diagnose(res.study, verbose=True)
         print("verdict:", diag.status, diag.effects)
         if args.out:
-            write_outputs(diag, args.out)
+            jw.write_diagnosis(diag, args.out)
         # 3. calibrate with the effect switched on: its strength is fitted with K_d, clearances
-        fit = calibrate(res.study.with_config(effects=("debris",)))
+        fit = jw.calibrate(res.study.with_config(effects=("debris",)))
         g = fit.parameters_json()["debris_gain"]
         print(f"calibrate: debris_gain = {g['value']:.3f} ± {g['stderr']:.3f} "
               f"(truth {res.truth['hidden']['debris']['debris_gain']}); "

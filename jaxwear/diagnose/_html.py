@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from ._report import plt
+from .._report import plt
 
 
 def _png(fig) -> str:
@@ -43,7 +43,7 @@ def _before_after_bars(diag, names, before, after, ylabel, title, height, noise_
 
 
 def _fig_rmse(diag) -> str:
-    from ._diagnose import rmse_per_experiment
+    from ._evidence import rmse_per_experiment
 
     m = diag.model
     before = rmse_per_experiment(m, diag.base.ev.r)
@@ -64,7 +64,7 @@ def _fig_loo(diag) -> str | None:
 
 def _fig_residuals_angle(diag) -> str | None:
     m = diag.model
-    prof = ~m._is_max
+    prof = ~m.is_max
     if not prof.any():
         return None
     pl = plt()
@@ -88,7 +88,7 @@ def _fig_residuals_angle(diag) -> str | None:
 
 
 def _fig_residuals_time(diag) -> str:
-    from ._diagnose import where_it_fails
+    from ._evidence import where_it_fails
 
     pl = plt()
     fig, ax = pl.subplots(figsize=(7, 3.4))
@@ -111,7 +111,7 @@ def _fig_residuals_time(diag) -> str:
 
 
 def _fig_speed_clearance(diag) -> str | None:
-    from ._diagnose import where_it_fails
+    from ._evidence import where_it_fails
 
     w = where_it_fails(diag.model, diag.base.ev.r)["per_experiment"]
     if len(w) < 2:
@@ -146,7 +146,7 @@ def _fig_profiles(diag) -> str:
     for i, name in enumerate(m.exp_names):
         ax = axes[i // cols][i % cols]
         sel = m.row_exp == i
-        if m._is_max[sel].all():
+        if m.is_max[sel].all():
             x = m.row_time[sel]
             ax.plot(x, m.measured[sel], "ks", label="measured")
             ax.plot(x, diag.base.ev.pred[sel], "o-", label="base")

@@ -1,0 +1,169 @@
+"""Work that cannot finish is refused up front: an estimate of a study's work and memory.
+
+A study is cheap to read and can be impossible to run: `revolutions = 1e15` asks for 10¹³
+wear updates, `nodes = 100000000` for arrays of steps × nodes floats far beyond any memory.
+`check_work` estimates, before any computation, from quantities every integrator has:
+
+- wear updates per experiment: the paper integrator (fixed M = `revolutions_per_update`,
+  eq 23) makes at most ceil(cycles / M) updates, plus one per further duty-cycle segment
+  and one per snapshot (each may split an update); cycles = revolutions, or
+  hours × 3600 / swing_period_s for the oscillating joint.
+- contact work: updates × nodes × steps_per_rev contact node-steps (one Newton solve per
+  step over all nodes). Measured throughput on one CPU core pair: ~4-6e7 node-steps/s (rig,
+  360 × 360 and 128 × 128, M = 100); the time in the message assumes 3e7/s.
+- memory: the per-cycle arrays (steps × nodes float64, about `LIVE_ARRAYS` of them alive in
+  a contact solve), times (1 + tangents) for a forward-mode Jacobian with `tangents`
+  columns, plus the host-side schedule of the paper integrator (~160 bytes per update).
+
+Limits (raise them for a bigger machine or a GPU; document in README):
+`JAXWEAR_MAX_WORK` contact node-steps per evaluation (default 1e11, about an hour on a CPU),
+`JAXWEAR_MAX_MEMORY_GB` (default 80 % of the physical memory).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+from ._errors import InputError
+
+DEFAULT_MAX_WORK = 1e11  # contact node-steps per model evaluation
+NODE_STEPS_PER_S = 3e7  # conservative CPU throughput, for the time in the message
+LIVE_ARRAYS = 12  # (steps, nodes) float64 arrays alive in one vectorised contact solve
+SCHEDULE_BYTES_PER_UPDATE = 160  # 4 Python float lists, then 4 arrays
+# The adaptive integrator (issue on integration) bounds its steps by its own cap; until the
+# wear loop follows `[numerics] integrator = "adaptive"`, every study runs the fixed-M loop
+# and is estimated as such. Set True when the adaptive loop lands.
+ADAPTIVE_LOOP = False
+ADAPTIVE_MAX_STEPS = 4096
+
+
+@dataclass(frozen=True)
+class WorkEstimate:
+    """Estimate for the most expensive experiment of a study (one model evaluation)."""
+
+    experiment: str
+    cycles: float  # revolutions or swing cycles
+    updates: float  # wear updates (or integrator steps)
+    node_steps: float  # updates × nodes × steps_per_rev
+    memory_bytes: float
+    nodes: int
+    steps_per_rev: int
+
+    @property
+    def seconds(self) -> float:
+        return self.node_steps / NODE_STEPS_PER_S
+
+
+def _cycles_and_segments(study, exp) -> tuple[float, float]:
+    cfg = study.config
+    if cfg.driver == "oscillating":
+        period = float(study.params(exp).swing_period)
+        hours = float(exp.hours or 0.0)
+        per_block = sum(b.duration_h for b in cfg.duty_cycle)
+        segments = math.ceil(hours / per_block) * len(cfg.duty_cycle) if per_block > 0 else 1
+        return hours * 3600.0 / period, float(segments)
+    return float(exp.revolutions or 0.0), 1.0
+
+
+def wear_updates(study, exp) -> tuple[float, float]:
+    """(cycles, wear updates) of one experiment, from the quantities every integrator has."""
+    cycles, segments = _cycles_and_segments(study, exp)
+    M = float(study.revolutions_per_update)
+    snaps = float(len(exp.snapshot_points))
+    by_m = math.ceil(cycles / M) if math.isfinite(cycles / M) else math.inf
+    if ADAPTIVE_LOOP and getattr(study, "integrator", "paper") == "adaptive":
+        return cycles, min(by_m, ADAPTIVE_MAX_STEPS) + segments + snaps
+    # Σ_segments ceil(c_s / M) ≤ ceil(cycles / M) + segments - 1; a snapshot splits one more
+    return cycles, by_m + segments - 1 + snaps
+
+
+def estimate_work(study, *, tangents: int = 0) -> WorkEstimate:
+    """The most expensive experiment's work and memory for one evaluation of the model
+    (with `tangents` forward-mode Jacobian columns)."""
+    cfg = study.config
+    per_cycle = float(cfg.nodes) * float(cfg.steps_per_rev)
+    worst = None
+    for exp in study.experiments:
+        cycles, updates = wear_updates(study, exp)
+        schedule = 0.0 if ADAPTIVE_LOOP and study.integrator == "adaptive" else updates
+        mem = (8.0 * per_cycle * LIVE_ARRAYS * (1 + tangents)
+               + SCHEDULE_BYTES_PER_UPDATE * schedule)
+        est = WorkEstimate(exp.name, cycles, updates, updates * per_cycle, mem, cfg.nodes,
+                           cfg.steps_per_rev)
+        if worst is None or (est.node_steps, est.memory_bytes) > (worst.node_steps,
+                                                                  worst.memory_bytes):
+            worst = est
+    return worst
+
+
+def _limit(name: str, default: float) -> float:
+    raw = os.environ.get(name)
+    if raw is None or not raw.strip():
+        return default
+    try:
+        v = float(raw)
+    except ValueError:
+        raise InputError(f"environment variable {name}={raw!r} must be a number") from None
+    if not v > 0:
+        raise InputError(f"environment variable {name}={raw!r} must be > 0")
+    return v
+
+
+def _physical_memory() -> float:
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 16e9
+
+
+def max_work() -> float:
+    return _limit("JAXWEAR_MAX_WORK", DEFAULT_MAX_WORK)
+
+
+def max_memory_bytes() -> float:
+    return _limit("JAXWEAR_MAX_MEMORY_GB", 0.8 * _physical_memory() / 1e9) * 1e9
+
+
+def _duration(s: float) -> str:
+    if not math.isfinite(s):
+        return "forever"
+    for unit, size in (("years", 3.15e7), ("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if s >= size:
+            return f"~{s / size:.3g} {unit}"
+    return f"~{s:.3g} s"
+
+
+def check_work(study, *, tangents: int = 0) -> WorkEstimate:
+    """Raise `InputError` (exit 2) when one evaluation of the study's model would exceed the
+    work or memory limit; the message gives the estimate and the keys to change."""
+    est = estimate_work(study, tangents=tangents)
+    if est is None:
+        return est
+    osc = study.config.driver == "oscillating"
+    what = "hours" if osc else "revolutions"
+    paper = not (ADAPTIVE_LOOP and study.integrator == "adaptive")
+    keys = f"lower `{what}`" + (", raise `numerics.revolutions_per_update`" if paper else "")
+    where = f"{study.path}: experiment {est.experiment!r}"
+    work_limit, mem_limit = max_work(), max_memory_bytes()
+    problems, env = [], []
+    if not est.node_steps <= work_limit:
+        problems.append(
+            f"too much work to finish: {est.updates:.3g} wear updates × {est.nodes} nodes × "
+            f"{est.steps_per_rev} steps_per_rev = {est.node_steps:.3g} contact node-steps "
+            f"({_duration(est.seconds)} at {NODE_STEPS_PER_S:.0e}/s; limit {work_limit:.3g})")
+        env.append("JAXWEAR_MAX_WORK")
+    if not est.memory_bytes <= mem_limit:
+        problems.append(
+            f"needs ~{est.memory_bytes / 1e9:.3g} GB of memory ({est.nodes} nodes × "
+            f"{est.steps_per_rev} steps_per_rev arrays"
+            + (f" × {1 + tangents} Jacobian columns" if tangents else "")
+            + (f", {est.updates:.3g} updates in the schedule" if paper else "")
+            + f"; limit {mem_limit / 1e9:.3g} GB)")
+        env.append("JAXWEAR_MAX_MEMORY_GB")
+    if problems:
+        raise InputError(f"{where}: {'; and '.join(problems)}. {keys[0].upper() + keys[1:]}, "
+                         f"or lower `numerics.nodes` / `numerics.steps_per_rev`; or raise "
+                         f"the limit with {' / '.join(env)}")
+    return est

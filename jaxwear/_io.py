@@ -1,0 +1,189 @@
+"""Outputs of the command line: never over an input, never half written.
+
+Every verb opens its outputs with one call before any work,
+
+    out = open_outputs(study, args.out, planned=[...], json_file=args.json)
+
+which refuses (`InputError`, exit 2) an output folder that is a file, and any planned output
+(a file under `--out`, or `--json FILE`) that would replace an input file: the study, its
+profile/history CSVs (for `synth`, the conditions study and its data). Names not planned are
+checked again when written. Every file is written to a temporary name in its folder and
+renamed over the final name (`os.replace`, atomic on POSIX and Windows), so an interrupted
+run leaves the previous file or none, never half a file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+from ._errors import InputError
+
+
+def input_files(study) -> list[Path]:
+    """The files a study was read from: the study file and its profile/history CSVs (those
+    that exist; a study made in memory, like synth's paper conditions, has none)."""
+    files = [Path(study.path)] if getattr(study, "path", None) else []
+    for e in study.experiments:
+        for d in (e.profile, e.history):
+            if d is not None and d.path:
+                files.append(Path(d.path))
+    return [f for f in files if f.is_file()]
+
+
+def _key(p: Path):
+    """(device, inode) of an existing file (catches hard links), else its resolved path."""
+    try:
+        st = p.stat()
+        return ("inode", st.st_dev, st.st_ino)
+    except OSError:
+        return ("path", p.resolve())
+
+
+class OutputDir:
+    """An output folder whose writes never replace an input file and are atomic.
+
+    - `root`: the folder (created; an existing file there is bad input).
+    - `inputs`: files that must not be replaced.
+    - `planned`: file names under `root` the verb will write; checked now, before any work.
+    - `json_file`: the `--json FILE` path, if any; checked now too.
+    """
+
+    def __init__(self, root, inputs: Iterable = (), *, planned: Iterable[str] = (),
+                 json_file=None):
+        self.root = Path(root)
+        self._inputs = {_key(Path(p)) for p in inputs}
+        self.json_file = Path(json_file) if json_file else None
+        if self.root.exists() and not self.root.is_dir():
+            raise InputError(f"{self.root}: --out must be a folder, and this is a file"
+                             + (" (an input of this run)" if self._is_input(self.root) else ""))
+        for name in planned:
+            self._check(self.root / name, "--out")
+        if self.json_file is not None:
+            self._check(self.json_file, "--json")
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise InputError(f"{self.root}: cannot create the output folder ({e.strerror})"
+                             ) from None
+
+    def _is_input(self, p: Path) -> bool:
+        return _key(p) in self._inputs or ("path", p.resolve()) in self._inputs
+
+    def _check(self, p: Path, option: str) -> Path:
+        if self._is_input(p):
+            raise InputError(f"{p}: refusing to replace an input file of this run; choose "
+                             f"another {option}")
+        return p
+
+    def path(self, name: str) -> Path:
+        """`root/name`, refused if it is an input file."""
+        return self._check(self.root / name, "--out")
+
+    def _target(self, name_or_path) -> Path:
+        p = Path(name_or_path)
+        if p.is_absolute() or p.parent != Path("."):
+            return self._check(p, "--json")
+        return self.path(str(p))
+
+    def write_text(self, name: str, text: str) -> Path:
+        p = self._target(name)
+        atomic_write(p, text)
+        return p
+
+    def write_csv(self, name: str, header: list[str], rows) -> Path:
+        from ._report import _fmt
+
+        p = self.path(name)
+        with atomic_open(p, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            for r in rows:
+                w.writerow([_fmt(x) for x in r])
+        return p
+
+    def write_json(self, name_or_path, obj) -> Path:
+        """JSON to `root/name`, or to a path with a folder (`--json FILE`; folders made)."""
+        from ._report import _json_default
+
+        p = self._target(name_or_path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(p, json.dumps(obj, indent=2, default=_json_default) + "\n")
+        return p
+
+    def write_json_file(self, obj) -> Path | None:
+        """The `--json FILE` given at construction (None when there was none)."""
+        if self.json_file is None:
+            return None
+        # relative to the working folder, not to --out
+        return self.write_json(self.json_file.resolve(), obj)
+
+    def savefig(self, fig, name: str, dpi: int = 110) -> Path:
+        p = self.path(name)
+        save_figure(fig, p, dpi)
+        return p
+
+
+def open_outputs(study, out, *, planned: Iterable[str] = (), json_file=None,
+                 extra_inputs: Iterable = ()) -> OutputDir:
+    """The one call of every verb, before any work: `open_outputs(study, args.out,
+    planned=[...], json_file=args.json)`. Raises `InputError` (exit 2) when an output would
+    replace one of the study's input files."""
+    return OutputDir(out, [*input_files(study), *extra_inputs], planned=planned,
+                     json_file=json_file)
+
+
+def per_experiment(study, *patterns: str) -> list[str]:
+    """File names `pattern.format(name)` for every experiment of the study."""
+    return [p.format(e.name) for e in study.experiments for p in patterns]
+
+
+_UMASK = None
+
+
+def _mode() -> int:
+    # mkstemp makes 0600 files; a written output should get the usual 0666 & ~umask.
+    global _UMASK
+    if _UMASK is None:
+        _UMASK = os.umask(0)
+        os.umask(_UMASK)
+    return 0o666 & ~_UMASK
+
+
+@contextlib.contextmanager
+def atomic_open(path, mode: str = "w", **kw):
+    """Open a temporary file beside `path`; on success it replaces `path`, on any error
+    (or interrupt) it is removed and `path` is left as it was."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        if "b" not in mode:
+            kw.setdefault("encoding", "utf-8")
+        with os.fdopen(fd, mode, **kw) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, _mode())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write(path, data: str | bytes) -> None:
+    """Write `data` (text as UTF-8) to `path` through a temporary file and a rename."""
+    with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as f:
+        f.write(data)
+
+
+def save_figure(fig, path, dpi: int = 110) -> None:
+    """`fig.savefig` through a temporary file (format from the suffix)."""
+    path = Path(path)
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format=path.suffix.lstrip(".") or "png", dpi=dpi)

@@ -1,0 +1,138 @@
+"""Refits of the leading candidates (single and pairs), the noise level, and the check
+that the wear loop's derivatives are stable."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from .._errors import InputError
+from ._evidence import STRONG_LOG_BF, evidence
+from ._extended import Eval
+from ._fit import Fit, _log, _objective, finish, fit_masked
+from ._model import Model
+from ._result import Candidate
+from ._screen import Screen, screen
+from ._stats import Tests, neighbour_differences, noise_level, run_tests
+
+# A refit stops when an accepted step lowers the misfit by less than this many noise
+# variances (it moves the ln Bayes factor by half of that, far below the ln 20 that
+# separates candidates), or after this many evaluations (each one is a full run of every
+# experiment with its Jacobian: seconds at the default numerics).
+REFIT_F_TOL = 0.05
+REFIT_MAX_EVALUATIONS = 20
+
+
+def _tests_for(model, fit, noise, nu, pairs, scores=None) -> Tests:
+    t = run_tests(model, fit.ev.r, fit.k, noise, nu, pairs)
+    if scores:
+        best = min(scores, key=lambda s: s.p)
+        t = replace(t, p_score=min(1.0, best.p * len(scores)), score_effect=best.effect)
+    return t
+
+
+def _start_for(model: Model, fit: Fit, scr: Screen | None) -> np.ndarray:
+    u = fit.ev.u.copy()
+    if scr is not None:
+        for k, v in scr.start.items():
+            u[model.index[k]] = model.u_of(k, v)
+    return u
+
+
+def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose) -> Fit:
+    contact = "unsymmetric" if "unsymmetric" in groups else None
+    mdl = by_contact(contact)
+    mask = mdl.group_mask([g for g in groups if g != "unsymmetric"])
+    label = "+".join(groups)
+    _log(verbose, f"  refit with {label}")
+    # Start at the screen's (capped) step with K_d rescaled to the data; where that is
+    # worse than the fit we come from, start from that fit instead (strength off): a
+    # refit can then only improve on it.
+    u0 = _start_for(mdl, from_fit, scr)
+    ev0 = mdl.evaluate(u0)
+    kd = mdl.index.get("K_d_per_Pa")
+    if kd is not None and mask[kd] and ev0.usable:
+        d = ev0.pred
+        a = float(d @ mdl.measured) / max(float(d @ d), 1e-300)
+        if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
+            u0[kd] += math.log(a)
+            ev0 = mdl.evaluate(u0)
+    same = contact == from_fit.contact
+    if not ev0.usable or (same and _objective(ev0) > _objective(from_fit.ev)):
+        u0 = from_fit.ev.u.copy()
+        ev0 = from_fit.ev if same else mdl.evaluate(u0)
+    f = fit_masked(mdl, mask, u0, label=label, groups=tuple(groups), ev0=ev0,
+                   max_evaluations=REFIT_MAX_EVALUATIONS, f_tol=REFIT_F_TOL * noise ** 2,
+                   verbose=verbose)
+    f = replace(f, contact=contact)
+    if not _derivatives_ok(mdl, f.ev):
+        f = replace(f, unstable=True, converged=False, message=f.message + (
+            "; the wear loop's derivatives are unstable here (lower "
+            "revolutions_per_update): this fit is not reliable"))
+        _log(verbose, f"    {label}: unstable derivatives, not used")
+    return finish(mdl, f, noise)
+
+
+def _derivative_ratio(model: Model, ev: Eval) -> float:
+    """(d·∂d/∂ln K_d)/(d·d): about 1, since depth is nearly proportional to K_d."""
+    k = model.index.get("K_d_per_Pa")
+    if k is None or model.columns[k].group != "" or not model.columns[k].log:
+        return 1.0
+    d, j = ev.pred, ev.J[:, k]
+    if not np.all(np.isfinite(j)):
+        return math.nan
+    return float(d @ j) / max(float(d @ d), 1e-300)
+
+
+def _derivatives_ok(model: Model, ev: Eval) -> bool:
+    return 0.2 < _derivative_ratio(model, ev) < 5.0
+
+
+def _check_derivatives(model: Model, fit: Fit):
+    """A Jacobian far from d depth/d ln K_d ≈ depth means the forward-mode derivative of the
+    wear loop is unstable (too many revolutions per update for a fast-wearing joint): the
+    fits would be meaningless, so stop and say what to change."""
+    ratio = _derivative_ratio(model, fit.ev)
+    if not 0.2 < ratio < 5.0:
+        raise InputError(
+            f"{model.study.path}: numerics.revolutions_per_update = "
+            f"{model.study.revolutions_per_update:g} is too large for this joint: the "
+            f"derivative of depth with respect to K_d is {ratio:.3g} times the depth "
+            f"(expected about 1), so the amplified wear updates are unstable for "
+            f"derivatives; halve revolutions_per_update")
+
+
+def _noise(model: Model, r, known: float | None = None):
+    """Noise level [µm] and its degrees of freedom from the neighbour differences of `r`
+    (residuals, or the data themselves: the smooth profile cancels), or `known`."""
+    if known is not None:
+        if not known > 0:
+            raise InputError(f"noise_um must be > 0, got {known}")
+        return float(known), math.inf
+    e, _ = neighbour_differences(model, r)
+    if len(e) < 2:
+        raise InputError(f"{model.study.path}: too few neighbouring points to estimate the "
+                         f"noise level (need 3 or more points per profile or history)")
+    return noise_level(e)
+
+
+def _second_stage(model, by_contact, best: Candidate, rest, noise, nu, pairs, max_refits,
+                  verbose):
+    """With the first effect in, look for a second one that brings the misfit to noise."""
+    tries = [(s_.effect, s_) for s_ in rest if s_.feasible and s_.score > 0]
+    tries = tries[:max(1, max_refits - 1)]
+    if "unsymmetric" in model.candidates and best.effect != "unsymmetric":
+        tries.append(("unsymmetric", None))
+    results = []
+    for name, scr in tries:
+        f = _refit(by_contact, best.fit, [best.effect, name], scr, noise, verbose)
+        mdl = by_contact(f.contact)
+        t = _tests_for(mdl, f, noise, nu, pairs, screen(mdl, f, noise, nu))
+        results.append((evidence(model, f, best.fit), f, t))
+    results = [x for x in results if not x[1].unstable]
+    results.sort(key=lambda x: -x[0])
+    if results and results[0][0] > STRONG_LOG_BF and not results[0][2].systematic:
+        return results[0][1], results[0][2]
+    return None

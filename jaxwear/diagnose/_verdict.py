@@ -1,0 +1,183 @@
+"""`diagnose`: base fit, screen, refits, verdict (the steps of the package docstring)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from .._errors import InputError
+from .._study import Study
+from ._evidence import (
+    AMBIGUOUS_LOG_BF,
+    EXPLAINED_FOR_SECOND_STAGE,
+    STRONG_LOG_BF,
+    evidence,
+    evidence_from,
+    loo,
+)
+from ._fit import _log, _objective, finish, fit_masked
+from ._model import Model
+from ._refit import REFIT_F_TOL, _check_derivatives, _noise, _refit, _second_stage, _tests_for
+from ._result import Candidate, Diagnosis
+from ._screen import screen
+from ._stats import ALPHA, neighbour_pairs
+from ._text import summarize_verdict
+
+# A refit is skipped when a candidate already fits to noise level and the skipped one's
+# score (the χ² its linearised refit would remove) is below this fraction of the χ² that
+# candidate removed.
+COMPARABLE = 0.5
+
+
+def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
+             noise_um: float | None = None) -> Diagnosis:
+    """Diagnose a study (module docstring). Progress on stderr when `verbose`.
+
+    `noise_um`: a known measurement noise level [µm]; default: estimated from the data.
+    """
+    t0 = time.perf_counter()
+    evals0 = Model.evaluations
+    _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
+    model = Model(study)
+    if model.n < 3:
+        raise InputError(f"{study.path}: diagnose needs at least 3 measured points")
+    _log(verbose, f"  {model.n} data rows; candidates: {', '.join(model.candidates) or 'none'}"
+                  " (the first evaluation compiles the extended model)")
+    models = {None: model}
+
+    def by_contact(contact):
+        if contact not in models:
+            _log(verbose, f"  compiling the model with {contact} contact")
+            models[contact] = model.with_contact(contact)
+        return models[contact]
+
+    # 1. the base model, as the study states it; the prior weighted with the noise level,
+    # first as the data's own neighbour differences give it (the smooth profile cancels;
+    # the model's residuals give the final value below, refitted only where they differ)
+    noise, nu = _noise(model, model.measured, noise_um)
+    if model.prior_cols:
+        model = model.with_noise_weight(noise)
+        models = {None: model}
+    u0 = np.zeros(len(model.names))
+    ev0 = model.evaluate(u0)
+    kd = model.index.get("K_d_per_Pa")
+    if kd is not None and ev0.usable:
+        d = ev0.pred
+        a = float(d @ model.measured) / max(float(d @ d), 1e-300)
+        if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
+            u0[kd] += math.log(a)  # depth is nearly proportional to K_d
+            ev0 = None
+    _log(verbose, f"  base fit ({int(model.base_mask.sum())} parameters)")
+    base = fit_masked(model, model.base_mask, u0, label="base", ev0=ev0,
+                      f_tol=REFIT_F_TOL * noise ** 2, verbose=verbose)
+    noise_data, noise = noise, _noise(model, base.ev.r, noise_um)[0]
+    if model.prior_cols and abs(noise / noise_data - 1) > 0.1:
+        model = model.with_noise_weight(noise)
+        models = {None: model}
+        base = fit_masked(model, model.base_mask, base.ev.u, label="base",
+                          ev0=model.reweigh(base.ev), f_tol=REFIT_F_TOL * noise ** 2,
+                          verbose=verbose)
+    noise, nu = _noise(model, base.ev.r, noise_um)
+    base = finish(model, base, noise)
+    _check_derivatives(model, base)
+    pairs = neighbour_pairs(model)
+    _log(verbose, f"  base RMSE {base.rmse:.4f} µm, noise {noise:.4f} µm (ν = {nu:.4g})")
+
+    # 2-3. is it noise? score tests of every candidate at the base fit
+    scores = screen(model, base, noise, nu, verbose=verbose)
+    base_tests = _tests_for(model, base, noise, nu, pairs, scores)
+    _log(verbose, f"  base: chi-square ratio {base_tests.ratio:.3f} (p {base_tests.p_chi2:.1e})"
+                  f", lag-1 autocorrelation {base_tests.rho:.3f} "
+                  f"(p {base_tests.p_autocorr:.1e}), best score p {base_tests.p_score:.1e}")
+    q_base = _objective(base.ev)
+    cands = {}
+    for s_ in scores:
+        q_lin = max(q_base - s_.delta_rss, 1e-12 * q_base)
+        cands[s_.effect] = Candidate(
+            s_.effect, s_, None, evidence_from(model.n, q_base, q_lin, len(s_.start)),
+            math.sqrt(max(base.rss - s_.delta_rss, 0.0) / model.n))
+    status, effects, partial, alternatives = "adequate", [], [], []
+    final, final_tests = base, base_tests
+    promising = [c for c in cands.values() if c.evidence > STRONG_LOG_BF]
+    if base_tests.systematic or promising:
+        # refit the leading candidates (and the parameter-free structural ones)
+        # the leader always; others only where their own score test is significant and
+        # not negligible next to the leader's (a refit costs ~10 model evaluations)
+        live = [s_ for s_ in scores if s_.feasible and s_.score > 0]
+        todo = [(s_.effect, s_) for i, s_ in enumerate(live)
+                if i == 0 or (s_.p < ALPHA and s_.score >= 0.1 * live[0].score)][:max_refits]
+        if "unsymmetric" in model.candidates:
+            todo.append(("unsymmetric", None))
+        settled = None  # χ² improvement of a refit that reached noise level
+        for name, scr in todo:
+            if settled is not None and scr is not None and scr.score < COMPARABLE * settled:
+                # a candidate already fits to noise level and this one's score is not
+                # comparable to what it removed: its refit cannot tie with it (the evidence
+                # gap would exceed ln 20), so it is not spent (issue 10: minutes, not hours)
+                _log(verbose, f"  {name}: not refitted (score {scr.score:.1f} < "
+                              f"{COMPARABLE:g} x {settled:.1f} of a fit at noise level)")
+                continue
+            f = _refit(by_contact, base, [name], scr, noise, verbose)
+            c = cands.get(name) or Candidate(name, None, None, 0.0, math.nan)
+            c = replace(c, fit=f, rmse_um=f.rmse, evidence=evidence(model, f, base))
+            cands[name] = c
+            if (not f.unstable and c.evidence > STRONG_LOG_BF
+                    and not _tests_for(by_contact(f.contact), f, noise, nu, pairs).systematic):
+                gain = (q_base - _objective(f.ev)) / noise ** 2
+                settled = gain if settled is None else max(settled, gain)
+        refitted = sorted([c for c in cands.values() if c.refit and not c.fit.unstable],
+                          key=lambda c: -c.evidence)
+        best = refitted[0] if refitted else None
+        systematic = base_tests.systematic or (best is not None
+                                               and best.evidence > STRONG_LOG_BF)
+        if systematic and best is not None and best.evidence > STRONG_LOG_BF:
+            mdl = by_contact(best.fit.contact)
+            rest = screen(mdl, best.fit, noise, nu)
+            best = replace(best, tests=_tests_for(mdl, best.fit, noise, nu, pairs, rest))
+            refitted = [best] + [
+                replace(c, tests=_tests_for(by_contact(c.fit.contact), c.fit, noise, nu, pairs))
+                for c in refitted[1:]]
+            cands.update({c.effect: c for c in refitted})
+            if not best.tests.systematic:
+                status, effects, final, final_tests = "effect_found", [best.effect], \
+                    best.fit, best.tests
+                alternatives = [c.effect for c in refitted[1:]
+                                if not c.tests.systematic
+                                and best.evidence - c.evidence < AMBIGUOUS_LOG_BF]
+            else:
+                explained = (q_base - _objective(best.fit.ev)) / max(
+                    q_base - (model.n - base.k) * noise ** 2, 1e-300)
+                status, partial, final, final_tests = "unexplained", [best.effect], \
+                    best.fit, best.tests
+                if explained >= EXPLAINED_FOR_SECOND_STAGE:
+                    found = _second_stage(model, by_contact, best, rest, noise, nu, pairs,
+                                          max_refits, verbose)
+                    if found is not None:
+                        pair_fit, pair_tests = found
+                        status, effects, partial = "effect_found", list(pair_fit.groups), []
+                        final, final_tests = pair_fit, pair_tests
+                        cands[pair_fit.label] = Candidate(
+                            pair_fit.label, None, pair_fit, evidence(model, pair_fit, base),
+                            pair_fit.rmse, pair_tests)
+        elif systematic:
+            status = "unexplained"
+            if best is not None:
+                mdl = by_contact(best.fit.contact)
+                best = replace(best, tests=_tests_for(mdl, best.fit, noise, nu, pairs))
+                cands[best.effect] = best
+    # best first: the verdict's model, then by evidence (refits and linearised screens)
+    lead_label = final.label if final is not base else None
+    ordered = sorted(cands.values(), key=lambda c: (c.effect != lead_label, -c.evidence))
+    diag = Diagnosis(study=study, model=model, noise_um=noise, noise_dof=nu, base=base,
+                     base_tests=base_tests, screens=scores, candidates=ordered, status=status,
+                     effects=effects, partial=partial, alternatives=alternatives, final=final,
+                     final_tests=final_tests, loo_before=loo(model, base),
+                     loo_after=loo(by_contact(final.contact), final))
+    diag = replace(diag, summary=summarize_verdict(diag), wall_s=time.perf_counter() - t0)
+    _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
+                  + f" in {diag.wall_s:.1f} s ({Model.evaluations - evals0} model "
+                    f"evaluations)")
+    return diag

@@ -1,0 +1,46 @@
+"""The pressure plots of `simulate` come from the contact call of the wear itself.
+
+Issue 12: `_simulate_study._pressure` solved the contact without friction, so the pressure
+maps of a friction study left friction out. Independent fact used here: with Coulomb
+friction μ the normal pressures carry only the normal part of the load, so for a narrow
+contact zone their resultant is |W| / sqrt(1 + μ²) (the friction traction μ p carries the
+rest); without friction it is |W| (equilibrium, eq 15).
+"""
+
+from types import SimpleNamespace
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxwear as jw
+from jaxwear._simulate_study import last_cycle_pressure
+from jaxwear._study import Experiment, Study
+from jaxwear._wear import node_area
+
+NODES, STEPS = 64, 48
+
+
+def _study(mu):
+    effects = ("friction",) if mu else ()
+    cfg = jw.ModelConfig(nodes=NODES, steps_per_rev=STEPS, effects=effects)
+    params = {"friction_coefficient": mu} if mu else {}
+    exp = Experiment("a", {}, revolutions=100.0)
+    return Study(path=None, preset="rig", config=cfg, parameters=params, experiments=(exp,))
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.3])
+def test_pressure_map_carries_the_normal_part_of_the_load(mu):
+    study = _study(mu)
+    exp = study.experiments[0]
+    p = study.params(exp)
+    hist = jw.load_history(p, study.config)
+    res = SimpleNamespace(depth=jnp.zeros(NODES), history=hist)  # unworn bore
+    P = last_cycle_pressure(study, exp, res)  # (steps, nodes) Pa
+    th = 2 * np.pi * np.arange(NODES) / NODES
+    A = float(node_area(p, NODES))
+    resultant = np.hypot(P @ np.cos(th), P @ np.sin(th)) * A
+    W = np.abs(np.asarray(hist.load[0]))
+    ok = W > 0.2 * W.max()
+    ratio = resultant[ok] / W[ok]
+    assert np.allclose(ratio, 1 / np.sqrt(1 + mu**2), rtol=0.02), ratio.min()
