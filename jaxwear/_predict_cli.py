@@ -72,7 +72,16 @@ def parse_at(text: str) -> list[float]:
     return [_num("--at", s, positive=True) for s in items]
 
 
-def write_outputs(out, study, res, inputs):
+def predict_outputs(study, method: str) -> list[str]:
+    """Every file name `predict` writes under --out (for the output guard)."""
+    from ._io import per_experiment
+
+    names = ["prediction.json", "predictions.csv", "forecast_curves.csv",
+             *per_experiment(study, "fan_{}.png", "profile_{}.png")]
+    return names + (["posterior.nc"] if method == "nuts" else [])
+
+
+def write_outputs(out, study, res):
     """predictions.csv, forecast_curves.csv, the plots; returns the paths written."""
     from ._report import json_float
 
@@ -134,8 +143,7 @@ def plot_fans(out, res):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper left")
         fig.tight_layout()
-        p = out.path(f"fan_{name}.png")
-        fig.savefig(p, dpi=110)
+        p = out.savefig(fig, f"fan_{name}.png")
         pl.close(fig)
         paths.append(p)
     return paths
@@ -176,8 +184,7 @@ def plot_profiles(out, study, res):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
         fig.tight_layout()
-        p = out.path(f"profile_{name}.png")
-        fig.savefig(p, dpi=110)
+        p = out.savefig(fig, f"profile_{name}.png")
         pl.close(fig)
         paths.append(p)
     return paths
@@ -207,9 +214,9 @@ def summary_text(res) -> str:
 
 
 def cmd_predict(args):
-    from ._calibrate_cli import _inputs, write_json_file
+    from ._budget import check_work
+    from ._io import open_outputs
     from ._predict import predict
-    from ._report import OutputDir
     from ._study import load_study
 
     at = parse_at(args.at)
@@ -227,13 +234,10 @@ def cmd_predict(args):
                     seed=_num("--seed", args.seed, integer=True),
                     max_minutes=_num("--max-minutes", args.max_minutes, positive=True))
     study = load_study(args.study)
-    inputs = _inputs(study)
-    out = OutputDir(args.out, inputs)
-    if args.json:  # refuse before hours of work, not after
-        from pathlib import Path
-
-        if Path(args.json).resolve() in {p.resolve() for p in inputs}:
-            raise InputError(f"--json {args.json}: refusing to overwrite an input file")
+    # refuse an output over an input, and work that cannot finish, before hours of work
+    out = open_outputs(study, args.out, planned=predict_outputs(study, args.method),
+                       json_file=args.json)
+    check_work(study, tangents=1 + len(study.experiments) + len(study.fit))
     from ._simulate_study import amplification_warnings
 
     for line in amplification_warnings(study):
@@ -247,8 +251,8 @@ def cmd_predict(args):
     doc = res.to_json()
     written = [out.write_json("prediction.json", doc)]
     if args.json:
-        written.append(write_json_file(args.json, doc, inputs))
-    written += write_outputs(out, study, res, inputs)
+        written.append(out.write_json_file(doc))
+    written += write_outputs(out, study, res)
     print(summary_text(res))
     print(f"wrote {written[0]}; tables and plots in {out.root}")
     return res
