@@ -33,6 +33,8 @@ from ._parallel import sharded_fn as sharded_fn  # noqa: E402
 from ._parallel import sharded_vmap as sharded_vmap  # noqa: E402
 from ._params import Params as Params  # noqa: E402
 from ._params import preset as preset  # noqa: E402
+from ._predict import PredictResult as PredictResult  # noqa: E402
+from ._predict import predict as predict  # noqa: E402
 from ._schedule import Schedule as Schedule  # noqa: E402
 from ._schedule import make_schedule as make_schedule  # noqa: E402
 from ._sensitivity import Sensitivities as Sensitivities  # noqa: E402
@@ -63,11 +65,12 @@ __version__ = "0.1.0"
 # private (underscore modules) and may change without notice.
 __all__ = [
     "ContactSolution", "DutyBlock", "Effect", "EffectParameter", "Experiment", "FitError",
-    "FitResult", "InputError", "LoadHistory", "ModelConfig", "Params", "Schedule",
+    "FitResult", "InputError", "LoadHistory", "ModelConfig", "Params", "PredictResult",
+    "Schedule",
     "Sensitivities", "Study", "SweepResult", "SynthResult", "WearResult", "WorkEstimate",
     "WornThroughError", "build_schedule", "calibrate", "check_work", "crank_slider_forces",
     "diagnose", "estimate_work", "input_files", "load_history", "load_study", "make_schedule",
-    "open_outputs", "points_mesh", "preset", "register_effect", "sensitivities",
+    "open_outputs", "points_mesh", "predict", "preset", "register_effect", "sensitivities",
     "sharded_fn", "sharded_vmap", "simulate", "solve_contact", "stiffness_per_area",
     "study_sensitivities", "sweep", "synthesize", "wear_loop", "write_diagnosis",
 ]

@@ -50,3 +50,7 @@ def add_verbs(sub):
     n.add_argument("study")
     n.add_argument("--out", default="jaxwear_out")
     n.set_defaults(func=_lazy("_sensitivity", "cmd_sensitivity"))
+
+    from ._predict_cli import add_parser as add_predict
+
+    add_predict(sub, _lazy)

@@ -1,0 +1,545 @@
+"""Forecasts of wear and remaining life with stated uncertainty: `jaxwear.predict` (DESIGN §7).
+
+The study is calibrated (as `calibrate` does, with its effects) on the measurements at or
+before `train_until`; the fitted model is then run to every forecast point, and its
+uncertainty is carried there.
+
+`laplace` (default): the fit's Gauss-Newton covariance C of the parameters u (the residual
+variance σ̂² of the data rows and the clearance prior's rows, DESIGN §6) is pushed through
+the model by the exact Jacobian g = ∂(max depth)/∂u at each forecast point (`jacfwd`
+through the wear loop): var_model = g C gᵀ. Two bands:
+- confidence band (where the model's depth is): depth ± q √var_model;
+- prediction band (where a new measurement will fall): depth ± q √(var_model + σ²), which
+  is the one reported as `lower_um/upper_um`.
+q is the Student-t quantile with the residual degrees of freedom n - p when σ is estimated
+from the residuals (exact for a linear model with Gaussian noise, and it matters when n - p
+is a handful), the normal quantile when the noise level is given (`noise_um`).
+
+Life: the first count at which the forecast maximum depth reaches `limit_um` (default: the
+layer thickness), with the interval given by the prediction band's crossings (upper band
+→ earliest, lower band → latest). Searched up to 10x the experiment's last measured count;
+not reached there gives `at = None` with a `reason`.
+
+`nuts` (`_predict_nuts.py`): a posterior by NUTS through the same differentiable model.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field, replace
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from ._calibrate import FitResult, build_problem, fit, parse_fit
+from ._errors import InputError
+from ._study import Experiment, History, Profile, Study
+
+LIFE_HORIZON = 10.0  # life is searched up to this multiple of the last measured count
+METHODS = ("laplace", "nuts")
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Maximum depth forecast at one point. `at` in `unit` (revolutions or hours); depths µm.
+    `lower_um/upper_um`: prediction band (a new measurement); `conf_*`: the model's depth."""
+
+    experiment: str
+    at: float
+    unit: str
+    depth_um: float
+    lower_um: float
+    upper_um: float
+    measured_um: float | None
+    conf_lower_um: float
+    conf_upper_um: float
+    sd_model_um: float
+    sd_prediction_um: float
+
+    def to_json(self) -> dict:
+        return {k: _jf(v) if isinstance(v, float) else v for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class Life:
+    """When the maximum depth reaches `limit_um`: `at` (central forecast), `lower`/`upper`
+    (prediction band's crossings), in `unit`; None where not reached, with `reason`."""
+
+    experiment: str
+    limit_um: float
+    at: float | None
+    lower: float | None
+    upper: float | None
+    unit: str
+    reason: str | None = None
+
+    def to_json(self) -> dict:
+        d = {k: _jf(v) if isinstance(v, float) else v for k, v in self.__dict__.items()}
+        if d["reason"] is None:
+            d.pop("reason")
+        return d
+
+
+@dataclass(frozen=True)
+class Curve:
+    """Forecast vs count for one experiment (fan chart): arrays (points,)."""
+
+    at: np.ndarray
+    depth_um: np.ndarray
+    lower_um: np.ndarray
+    upper_um: np.ndarray
+    conf_lower_um: np.ndarray
+    conf_upper_um: np.ndarray
+    valid: np.ndarray  # False once the layer is worn through (or not finite)
+
+
+@dataclass(frozen=True)
+class PredictResult:
+    """Outcome of `predict`. `to_json()` gives the DESIGN §7 document plus diagnostics."""
+
+    level: float
+    method: str
+    unit: str
+    train_until: float | None
+    trained_on: list
+    predictions: list[Prediction]
+    life: list[Life]
+    parameters: dict  # name -> {value, stderr, lower, upper, unit}
+    noise_um: float
+    noise_given: bool
+    dof: int
+    quantile: float
+    fit_converged: bool
+    fit_message: str
+    flags: list
+    curves: dict = field(repr=False)  # experiment -> Curve
+    profiles: dict = field(repr=False)  # experiment -> dict of arrays (last --at point)
+    measured: dict = field(repr=False)  # experiment -> (points, max depth µm, trained?)
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        doc = {
+            "level": self.level,
+            "method": self.method,
+            "trained_on": self.trained_on,
+            "predictions": [p.to_json() for p in self.predictions],
+            "life": [x.to_json() for x in self.life],
+            "unit": self.unit,
+            "train_until": self.train_until,
+            "bands": {"lower_um/upper_um": "prediction band: where a new measurement of the "
+                                            "maximum depth falls (model and noise)",
+                      "conf_lower_um/conf_upper_um": "confidence band: the model's depth "
+                                                     "(parameter uncertainty only)"},
+            "parameters": self.parameters,
+            "noise_um": _jf(self.noise_um),
+            "noise": "given" if self.noise_given else "estimated from the training residuals",
+            "dof": self.dof,
+            "quantile": _jf(self.quantile),
+            "fit": {"converged": self.fit_converged, "message": self.fit_message},
+            "flags": list(self.flags),
+        }
+        doc.update(self.extra)
+        return doc
+
+
+def _jf(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _log(verbose, msg):
+    if verbose:
+        print(msg, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------- training subset, forecast
+
+
+def unit_of_study(study: Study) -> str:
+    return "hours" if study.config.driver == "oscillating" else "revolutions"
+
+
+def training_study(study: Study, train_until: float | None) -> Study:
+    """The study with only the measurements at or before `train_until` (revolutions for a
+    crank-slider study, hours for an oscillating one). Experiments keep their place even when
+    none of their rows remain: their clearance is then known from the prior only."""
+    if train_until is None:
+        return study
+    lim = float(train_until) * (1 + 1e-12)
+    exps = []
+    for e in study.experiments:
+        prof, hist = e.profile, e.history
+        if prof is not None:
+            keep = np.asarray(prof.revolutions) <= lim
+            prof = replace(prof, angle=prof.angle[keep], depth=prof.depth[keep],
+                           revolutions=prof.revolutions[keep]) if keep.any() else None
+        if hist is not None:
+            keep = np.asarray(hist.hours) <= lim
+            hist = replace(hist, hours=hist.hours[keep],
+                           depth=hist.depth[keep]) if keep.any() else None
+        exps.append(replace(e, profile=prof, history=hist))
+    if all(e.profile is None and e.history is None for e in exps):
+        raise InputError(f"--train-until {train_until:g}: no measurement of {study.path} is "
+                         f"at or before it (unit: {unit_of_study(study)})")
+    return study.with_experiments(exps)
+
+
+def measured_max(e: Experiment) -> tuple[np.ndarray, np.ndarray]:
+    """Measured maximum depth per measured point [µm] (history rows, or a scan's deepest row)."""
+    if e.history is not None:
+        return np.asarray(e.history.hours, float), np.asarray(e.history.depth) * 1e6
+    if e.profile is not None:
+        pts = np.array(e.snapshot_points)
+        r = np.asarray(e.profile.revolutions)
+        return pts, np.array([np.max(e.profile.depth[r == s]) * 1e6 for s in pts])
+    return np.zeros(0), np.zeros(0)
+
+
+def _last_count(e: Experiment) -> float:
+    pts = e.snapshot_points
+    return float(max(pts)) if pts else float(e.hours or e.revolutions)
+
+
+def forecast_points(study: Study, e: Experiment, at: list[float], n_dense: int = 48,
+                    life: bool = True) -> np.ndarray:
+    """Snapshot points of one experiment: the `at` points, the measured points, a fan-chart
+    grid to max(at) and (with `life`) a life grid to 10x the last measured count (sorted,
+    unique)."""
+    crank = study.config.driver != "oscillating"
+    top = max(at)
+    horizon = max(LIFE_HORIZON * _last_count(e), top) if life else top
+    grid = np.concatenate([np.linspace(0, top, n_dense // 2 + 1)[1:],
+                           np.linspace(0, horizon, n_dense + 1)[1:]])
+    grid = np.round(grid) if crank else np.round(grid, 6)  # whole revolutions
+    pts = np.concatenate([np.asarray(at, float), np.asarray(e.snapshot_points, float), grid])
+    return np.unique(pts[pts > 0])
+
+
+def forecast_study(study: Study, points: list[np.ndarray]) -> Study:
+    """The study with placeholder rows at `points` per experiment (so that `build_problem`
+    makes one snapshot per point); the rows' values are never used."""
+    exps = []
+    for e, pts in zip(study.experiments, points):
+        pts = np.asarray(pts, float)
+        z = np.zeros(len(pts))
+        if study.config.driver == "oscillating":
+            exps.append(replace(e, hours=float(pts.max()), profile=None,
+                                history=History(hours=pts, depth=z, path="<forecast>")))
+        else:
+            exps.append(replace(e, revolutions=float(pts.max()), history=None,
+                                profile=Profile(angle=z, depth=z, revolutions=pts,
+                                                path="<forecast>")))
+    return study.with_experiments(exps)
+
+
+@eqx.filter_jit
+def _forecast_jit(problem, u):
+    """Snapshots (E, S, N) [µm] and their exact Jacobian (E, S, N, p) w.r.t. u."""
+    def f(v):
+        snaps, _ = problem.snapshots(v)
+        return snaps, snaps
+
+    J, snaps = jax.jacfwd(f, has_aux=True)(u)
+    return snaps, J
+
+
+def forecast_problem(study: Study, result: FitResult, keys, points):
+    """A problem over the forecast points whose u = 0 is the fitted parameter vector."""
+    start = dict(zip(result.names, (float(v) for v in result.values)))
+    prob = build_problem(forecast_study(study, points), keys, start)
+    if list(prob.names) != list(result.names):  # same study keys → same parameters
+        raise RuntimeError(f"forecast parameters {prob.names} differ from the fit's "
+                           f"{result.names}")
+    return prob
+
+
+# ---------------------------------------------------------------- covariance, quantiles
+
+
+def t_quantile(level: float, dof: float) -> float:
+    """Two-sided central quantile: Student-t with `dof` (normal when dof is inf)."""
+    p = 0.5 + level / 2
+    return float(stats.norm.ppf(p) if not math.isfinite(dof) else stats.t.ppf(p, dof))
+
+
+def parameter_covariance(result: FitResult, noise_um: float):
+    """Covariance of u at the fit (p, p) with the data rows weighted by 1/noise² and the
+    clearance prior's rows in units of τ; and the mask of unidentified parameters.
+
+    Directions the data and prior do not determine (null space of the information) are left
+    out (pseudo-inverse); they are flagged, and a forecast that depends on them is
+    reported with an infinite band."""
+    prob = result.problem
+    n = prob.n_data
+    Jd = np.asarray(result.jacobian)[:n] / noise_um
+    Jp = np.asarray(jax.jacfwd(lambda v: prob.prior_residuals(v, 1.0))(jnp.asarray(result.u)))
+    H = Jd.T @ Jd + (Jp.T @ Jp if Jp.size else 0.0)
+    w, V = np.linalg.eigh(H)
+    null = w <= 1e-10 * max(float(np.max(w)), 1e-300)
+    inv = np.where(null, 0.0, 1.0 / np.where(null, 1.0, w))
+    return (V * inv) @ V.T, V[:, null]
+
+
+def _band(g, cov, null_dirs, noise, q):
+    """(sd_model, sd_prediction) for gradient rows g (..., p)."""
+    var = np.einsum("...i,ij,...j->...", g, cov, g)
+    sd = np.sqrt(np.clip(var, 0, None))
+    if null_dirs.shape[1]:
+        # a forecast that moves along an undetermined direction has no finite band
+        leak = np.linalg.norm(g @ null_dirs, axis=-1) > 1e-6 * np.maximum(
+            np.linalg.norm(g, axis=-1), 1e-300)
+        sd = np.where(leak, np.inf, sd)
+    return sd, np.sqrt(sd ** 2 + noise ** 2)
+
+
+def first_crossing(t, y, limit):
+    """First t at which y reaches `limit` (linear interpolation from (0, 0)); None if never.
+    Non-finite y counts as reached at its point (the layer is worn through there)."""
+    tt = np.concatenate([[0.0], t])
+    yy = np.concatenate([[0.0], y])
+    for k in range(1, len(tt)):
+        if not np.isfinite(yy[k]):
+            return float(tt[k])
+        if yy[k] >= limit:
+            y0 = yy[k - 1]
+            return float(tt[k - 1] + (limit - y0) / (yy[k] - y0) * (tt[k] - tt[k - 1]))
+    return None
+
+
+def life_of(name, t, depth, lower, upper, limit, unit, horizon) -> Life:
+    at = first_crossing(t, depth, limit)
+    lo = first_crossing(t, upper, limit)
+    hi = first_crossing(t, lower, limit)
+    reason = None
+    if at is None:
+        reason = (f"the forecast does not reach {limit:g} µm within {LIFE_HORIZON:g}x the last "
+                  f"measured count ({horizon:g} {unit})")
+    elif hi is None:
+        reason = (f"the lower band does not reach {limit:g} µm within {horizon:g} {unit}: "
+                  f"no upper bound")
+    return Life(name, float(limit), at, lo, hi, unit, reason)
+
+
+# ---------------------------------------------------------------- the API
+
+
+def _check_args(study, at, train_until, level, limit_um, method, noise_um):
+    if method not in METHODS:
+        raise InputError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    if not (isinstance(level, (int, float)) and 0 < level < 1):
+        raise InputError(f"--level must be in (0, 1), got {level!r}")
+    at = [float(a) for a in (at if np.ndim(at) else [at])]
+    if not at or not all(math.isfinite(a) and a > 0 for a in at):
+        raise InputError(f"--at must be a list of counts > 0 ({unit_of_study(study)}), "
+                         f"got {at}")
+    if train_until is not None and not (math.isfinite(train_until) and train_until > 0):
+        raise InputError(f"--train-until must be > 0, got {train_until}")
+    layer_um = min(float(study.params(e).layer_thickness) for e in study.experiments) * 1e6
+    if limit_um is None:
+        limit_um = layer_um
+    if not (math.isfinite(limit_um) and 0 < limit_um <= layer_um * (1 + 1e-12)):
+        raise InputError(f"--limit-um must be in (0, {layer_um:g}] (the layer thickness), "
+                         f"got {limit_um}")
+    if noise_um is not None and not (math.isfinite(noise_um) and noise_um > 0):
+        raise InputError(f"--noise-um must be > 0, got {noise_um}")
+    return sorted(set(at)), float(limit_um)
+
+
+def predict(study: Study, at, *, train_until: float | None = None, level: float = 0.9,
+            limit_um: float | None = None, method: str = "laplace", fit_spec=None,
+            noise_um: float | None = None, verbose: bool = False, nuts_options=None,
+            n_dense: int = 48, life: bool = True) -> PredictResult:
+    """Forecast every experiment's maximum depth at `at` with central bands at `level`.
+
+    **Arguments:**
+    - `study`: a loaded study with data (profiles with a `revolutions` column, or histories).
+    - `at`: forecast points, revolutions (crank-slider) or hours (oscillating joint).
+    - `train_until`: fit only the measurements at or before it (same unit); None: all.
+    - `level`: central probability of the bands. `limit_um`: depth limit for the life
+      estimate (default: the layer thickness).
+    - `method`: "laplace" (linearised, default) or "nuts" (posterior by NUTS).
+    - `fit_spec`: parameters to fit (as `calibrate`; default the study's [fit] parameters,
+      else K_d,clearance; enabled effects' strengths are always added).
+    - `noise_um`: measurement noise σ [µm] if known; default: estimated from the residuals.
+    - `nuts_options`: dict for method "nuts" (see `_predict_nuts.run_nuts`).
+    - `n_dense`: points of the forecast grid (fan chart, life search); `life=False` skips
+      the life estimate (and the forecast to 10x the last measured count).
+
+    **Returns:** a `PredictResult` (`.to_json()` is the DESIGN §7 document).
+    """
+    at, limit_um = _check_args(study, at, train_until, level, limit_um, method, noise_um)
+    unit = unit_of_study(study)
+    train = training_study(study, train_until)
+    keys = parse_fit(study, fit_spec or (list(study.fit) if study.fit else "K_d,clearance"))
+    problem = build_problem(train, keys)
+    _log(verbose, f"predict: fitting {', '.join(problem.names)} to {problem.n_data} rows "
+                  f"(first call compiles the model)")
+    result = fit(problem, verbose=verbose)
+    flags = []
+    m_stable = stable_update(study, result)
+    if study.revolutions_per_update > m_stable:
+        # The explicit update is near its stability limit at the fitted K_d: the depth may
+        # look smooth while its Jacobian (and so the band) blows up at some points
+        # (measured on the boom at M = 10, stable estimate ~5). Refit at a stable M.
+        m_new = float(max(1, math.floor(m_stable / 2)))
+        flags.append(f"[numerics] revolutions_per_update = {study.revolutions_per_update:g} "
+                     f"exceeds the stable amplification ~{m_stable:.3g} at the fitted K_d; "
+                     f"fitted and forecast with {m_new:g} instead")
+        _log(verbose, f"predict: {flags[-1]}")
+        study = replace(study, revolutions_per_update=m_new)
+        train = training_study(study, train_until)
+        problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))))
+        result = fit(problem, verbose=verbose)
+    n, p = problem.n_data, len(problem.names)
+    dof = n - p
+    flags += result.flags
+    if not result.converged:
+        flags.append(f"the fit did not converge: {result.message}")
+    if noise_um is None:
+        if dof <= 0:
+            raise InputError(f"--noise-um: the {n} training rows do not determine the noise "
+                             f"level with {p} fitted parameters ({', '.join(problem.names)}); "
+                             f"give the measurement noise with --noise-um (or train on more data)")
+        noise, q = result.noise_um, t_quantile(level, dof)
+    else:
+        noise, q = float(noise_um), t_quantile(level, math.inf)
+    cov, null_dirs = parameter_covariance(result, noise)
+    if null_dirs.shape[1]:
+        flags.append(f"{null_dirs.shape[1]} parameter direction(s) not determined by the "
+                     f"training data and prior: forecasts that depend on them have no band")
+    points = [forecast_points(study, e, at, n_dense, life) for e in study.experiments]
+    fprob = forecast_problem(study, result, keys, points)
+    _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points (compiles the "
+                  f"forecast model)")
+    extra = {}
+    if method == "laplace":
+        snaps, J = (np.asarray(x) for x in _forecast_jit(fprob, jnp.zeros(p)))
+        draws = None
+    else:
+        from ._predict_nuts import run_nuts
+
+        draws, extra = run_nuts(problem, result, fprob, noise_um=noise_um, level=level,
+                                verbose=verbose, **(nuts_options or {}))
+        snaps = J = None
+    return _assemble(study, train, at, points, limit_um, level, method, unit, train_until,
+                     result, cov, null_dirs, noise, noise_um is not None, dof, q, flags,
+                     snaps, J, draws, extra, life)
+
+
+def stable_update(study: Study, result: FitResult) -> float:
+    """Largest stable amplification M at the fitted K_d (`stable_amplification`, smallest
+    over the experiments); inf when K_d is not fitted."""
+    from ._wear import stable_amplification
+
+    vals = dict(zip(result.names, (float(v) for v in result.values)))
+    if "K_d_per_Pa" not in vals:
+        return math.inf
+    return min(stable_amplification(study.params(e).with_values(
+        {"K_d_per_Pa": vals["K_d_per_Pa"]}), study.config) for e in study.experiments)
+
+
+def _param_table(result: FitResult, cov, q, null_dirs):
+    prob = result.problem
+    vals = np.asarray(result.values)
+    # a parameter with a component along an undetermined direction has no standard error
+    unknown = np.sum(null_dirs ** 2, axis=1) > 1e-6
+    out = {}
+    for i, (name, f) in enumerate(zip(result.names, prob.fits)):
+        se_u = math.inf if unknown[i] else math.sqrt(max(cov[i, i], 0.0))
+        if f.log:
+            se, lo, hi = vals[i] * se_u, vals[i] * math.exp(-q * se_u), vals[i] * math.exp(q * se_u)
+        else:
+            se = f.scale * se_u
+            lo, hi = vals[i] - q * se, vals[i] + q * se
+        out[name] = {"value": float(vals[i]), "stderr": _jf(se), "lower": _jf(lo),
+                     "upper": _jf(hi)}
+    return out
+
+
+def _assemble(study, train, at, points, limit_um, level, method, unit, train_until, result,
+              cov, null_dirs, noise, noise_given, dof, q, flags, snaps, J, draws, extra,
+              life=True):
+    preds, lives, curves, profiles, measured = [], [], {}, {}, {}
+    trained_on = []
+    alpha = (1 - level) / 2
+    for ei, e in enumerate(study.experiments):
+        pts = points[ei]
+        S = len(pts)
+        if draws is None:
+            s = snaps[ei, :S]  # (S, N)
+            k = np.argmax(s, axis=1)
+            depth = s[np.arange(S), k]
+            g = J[ei, np.arange(S), k]  # (S, p)
+            sd_m, sd_p = _band(g, cov, null_dirs, noise, q)
+            c_lo, c_hi = depth - q * sd_m, depth + q * sd_m
+            p_lo, p_hi = depth - q * sd_p, depth + q * sd_p
+        else:
+            d = draws["max_um"][:, ei, :S]  # (draws, S)
+            y = draws["new_um"][:, ei, :S]
+            depth = np.median(d, axis=0)
+            c_lo, c_hi = np.quantile(d, alpha, axis=0), np.quantile(d, 1 - alpha, axis=0)
+            p_lo, p_hi = np.quantile(y, alpha, axis=0), np.quantile(y, 1 - alpha, axis=0)
+            sd_m, sd_p = np.std(d, axis=0), np.std(y, axis=0)
+        layer = float(study.params(e).layer_thickness) * 1e6
+        valid = np.isfinite(depth) & (np.maximum.accumulate(np.nan_to_num(depth, nan=np.inf))
+                                      < layer)
+        curves[e.name] = Curve(pts, depth, p_lo, p_hi, c_lo, c_hi, valid)
+        mpts, mmax = measured_max(e)
+        te = train.experiments[ei]
+        tpts = set(te.snapshot_points)
+        measured[e.name] = (mpts, mmax, np.array([m in tpts for m in mpts], bool))
+        if tpts:
+            trained_on.append({"experiment": e.name, "unit": unit, "points": sorted(tpts),
+                               "rows": int(np.sum(np.asarray(result.problem.data.exp) == ei))})
+        for a in at:
+            j = int(np.argmin(np.abs(pts - a)))
+            hit = np.isclose(mpts, a, rtol=1e-9, atol=1e-9)
+            meas = float(mmax[hit][0]) if hit.any() else None
+            bad = not valid[j]
+            preds.append(Prediction(
+                e.name, float(a), unit, np.inf if bad else float(depth[j]),
+                *(np.nan if bad else float(v) for v in (p_lo[j], p_hi[j])), meas,
+                *(np.nan if bad else float(v) for v in (c_lo[j], c_hi[j], sd_m[j], sd_p[j]))))
+            if bad:
+                flags.append(f"{e.name} at {a:g} {unit}: the layer is worn through (no forecast)")
+        horizon = LIFE_HORIZON * _last_count(te if te.snapshot_points else e)
+        life_mask = pts <= horizon * (1 + 1e-12)
+        # Past the central forecast's wear-through the model is extrapolated (first point
+        # beyond the layer): its values still place the crossing between two grid points.
+        def fin(v):
+            return np.where(np.isfinite(v), v, np.inf)[life_mask]
+
+        if life:
+            lives.append(life_of(e.name, pts[life_mask], fin(depth), fin(p_lo), fin(p_hi),
+                                 limit_um, unit, horizon))
+        j = int(np.argmin(np.abs(pts - max(at))))
+        if draws is None:
+            prof = snaps[ei, j]
+            sdm, sdp = _band(J[ei, j], cov, null_dirs, noise, q)
+            plo, phi, clo, chi = prof - q * sdp, prof + q * sdp, prof - q * sdm, prof + q * sdm
+        else:
+            pr = draws["snapshots_um"][:, ei, j]  # (draws, N)
+            prof = np.median(pr, axis=0)
+            clo, chi = np.quantile(pr, alpha, axis=0), np.quantile(pr, 1 - alpha, axis=0)
+            yy = pr + draws["noise"][:, None] * np.random.default_rng(ei).standard_normal(
+                pr.shape)
+            plo, phi = np.quantile(yy, alpha, axis=0), np.quantile(yy, 1 - alpha, axis=0)
+        if prof is not None:
+            n = len(prof)
+            profiles[e.name] = {"at": float(pts[j]), "angle_deg": np.arange(n) * 360.0 / n,
+                                "depth_um": prof, "lower_um": plo, "upper_um": phi,
+                                "conf_lower_um": clo, "conf_upper_um": chi}
+    return PredictResult(level=float(level), method=method, unit=unit,
+                         train_until=None if train_until is None else float(train_until),
+                         trained_on=trained_on, predictions=preds, life=lives,
+                         parameters=_param_table(result, cov, q, null_dirs), noise_um=float(noise),
+                         noise_given=noise_given, dof=int(dof), quantile=float(q),
+                         fit_converged=bool(result.converged), fit_message=result.message,
+                         flags=flags, curves=curves, profiles=profiles, measured=measured,
+                         extra=extra)

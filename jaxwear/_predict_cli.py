@@ -1,0 +1,258 @@
+"""`jaxwear predict STUDY.toml --at LIST [--train-until X] [--level 0.9] [--limit-um D]
+[--method laplace|nuts] [--out DIR] [--json FILE]` (DESIGN §7).
+
+Writes under DIR: `prediction.json` (the §7 document plus diagnostics), `predictions.csv`
+(one row per experiment and `--at` point, both bands), `forecast_curves.csv` (the forecast
+and its bands on a fine grid, for plots of your own), `fan_<experiment>.png` (measured
+points, forecast line and band), `profile_<experiment>.png` (profile studies: the profile at
+the last `--at` point with its band) and, for `--method nuts`, `posterior.nc` (ArviZ
+InferenceData). `--json FILE` writes the document to FILE too. Progress goes to stderr.
+Exit codes: 0 done, 2 bad input (the message names the option or key), 1 anything else.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+
+from ._errors import InputError
+
+
+def add_parser(sub, lazy):
+    r = sub.add_parser("predict", help="forecast wear and remaining life with bands")
+    r.add_argument("study")
+    r.add_argument("--at", required=True,
+                   help="comma-separated forecast points: revolutions (crank-slider) or "
+                        "hours (oscillating joint)")
+    r.add_argument("--train-until", default=None,
+                   help="fit only the measurements at or before this count (same unit)")
+    r.add_argument("--level", default="0.9", help="central probability of the bands")
+    r.add_argument("--limit-um", default=None,
+                   help="depth limit for the life estimate [µm] (default: layer thickness)")
+    r.add_argument("--method", default="laplace", help="laplace (default) or nuts")
+    r.add_argument("--fit", default=None, help="parameters to fit, as for calibrate")
+    r.add_argument("--noise-um", default=None,
+                   help="measurement noise σ [µm] if known (default: from the residuals)")
+    r.add_argument("--out", default="jaxwear_out")
+    r.add_argument("--json", default=None, help="write the result as JSON to this file")
+    r.add_argument("--draws", default="500", help="nuts: posterior draws per chain")
+    r.add_argument("--warmup", default="300", help="nuts: warm-up steps per chain")
+    r.add_argument("--chains", default="2", help="nuts: chains (run one after another)")
+    r.add_argument("--seed", default="0", help="nuts: random seed")
+    r.add_argument("--max-minutes", default="20",
+                   help="nuts: refuse when the estimated run time exceeds this")
+    r.set_defaults(func=lazy("_predict_cli", "cmd_predict"))
+
+
+def _num(option, text, *, positive=False, integer=False, lo=None, hi=None):
+    if text is None:
+        return None
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise InputError(f"{option}: expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise InputError(f"{option}: expected a finite number, got {text!r}")
+    if positive and not v > 0:
+        raise InputError(f"{option}: expected a number > 0, got {text!r}")
+    if integer and v != int(v):
+        raise InputError(f"{option}: expected a whole number, got {text!r}")
+    if (lo is not None and not v > lo) or (hi is not None and not v < hi):
+        raise InputError(f"{option}: expected a number in ({lo}, {hi}), got {text!r}")
+    return int(v) if integer else v
+
+
+def parse_at(text: str) -> list[float]:
+    items = [s.strip() for s in str(text).split(",") if s.strip()]
+    if not items:
+        raise InputError("--at: expected a comma-separated list of counts > 0, got nothing")
+    return [_num("--at", s, positive=True) for s in items]
+
+
+def predict_outputs(study, method: str) -> list[str]:
+    """Every file name `predict` writes under --out (for the output guard)."""
+    from ._io import per_experiment
+
+    names = ["prediction.json", "predictions.csv", "forecast_curves.csv",
+             *per_experiment(study, "fan_{}.png", "profile_{}.png")]
+    return names + (["posterior.nc"] if method == "nuts" else [])
+
+
+def write_outputs(out, study, res):
+    """predictions.csv, forecast_curves.csv, the plots; returns the paths written."""
+    from ._report import json_float
+
+    rows = [(p.experiment, p.at, p.unit, p.depth_um, p.lower_um, p.upper_um, p.conf_lower_um,
+             p.conf_upper_um, json_float(p.measured_um) if p.measured_um is not None else "")
+            for p in res.predictions]
+    paths = [out.write_csv("predictions.csv",
+                           ["experiment", "at", "unit", "depth_um", "lower_um", "upper_um",
+                            "conf_lower_um", "conf_upper_um", "measured_um"], rows)]
+    crows = []
+    for name, c in res.curves.items():
+        crows += [(name, a, res.unit, d, lo, hi, cl, ch, int(v)) for a, d, lo, hi, cl, ch, v in
+                  zip(c.at, c.depth_um, c.lower_um, c.upper_um, c.conf_lower_um,
+                      c.conf_upper_um, c.valid)]
+    paths.append(out.write_csv("forecast_curves.csv",
+                               ["experiment", "at", "unit", "depth_um", "lower_um", "upper_um",
+                                "conf_lower_um", "conf_upper_um", "valid"], crows))
+    paths += plot_fans(out, res)
+    paths += plot_profiles(out, study, res)
+    return paths
+
+
+def plot_fans(out, res):
+    """fan_<experiment>.png: measured points (trained / held out), forecast and both bands."""
+    from ._report import plt
+
+    pl = plt()
+    paths = []
+    top = max(p.at for p in res.predictions)
+    lives = {x.experiment: x for x in res.life}
+    for name, c in res.curves.items():
+        fig, ax = pl.subplots(figsize=(7, 4.2))
+        m = (c.at <= top * 1.0001) & c.valid
+        x = np.r_[0.0, c.at[m]]
+        ax.fill_between(x, np.r_[0.0, c.lower_um[m]], np.r_[0.0, c.upper_um[m]],
+                        color="tab:blue", alpha=0.18,
+                        label=f"{res.level:.0%} prediction band (new measurement)")
+        ax.fill_between(x, np.r_[0.0, c.conf_lower_um[m]], np.r_[0.0, c.conf_upper_um[m]],
+                        color="tab:blue", alpha=0.35, label=f"{res.level:.0%} confidence band")
+        ax.plot(x, np.r_[0.0, c.depth_um[m]], "-", color="tab:blue", lw=1.5, label="forecast")
+        pts, mx, trained = res.measured.get(name, (np.zeros(0),) * 3)
+        if len(pts):
+            tr = np.asarray(trained, bool)
+            ax.plot(pts[tr], mx[tr], "ko", ms=5, label="measured (trained on)")
+            if (~tr).any():
+                ax.plot(pts[~tr], mx[~tr], "s", color="tab:red", ms=6, mfc="none", mew=1.5,
+                        label="measured (held out)")
+        if res.train_until is not None:
+            ax.axvline(res.train_until, color="0.4", ls=":", lw=1, label="--train-until")
+        life = lives.get(name)
+        if life is not None and life.limit_um <= 1.2 * np.nanmax(c.upper_um[m]):
+            ax.axhline(life.limit_um, color="tab:red", ls="--", lw=1, label="limit")
+        ax.set_xlabel(f"{res.unit}")
+        ax.set_ylabel("maximum wear depth [µm]")
+        ax.set_title(f"{name}: forecast ({res.method}), trained "
+                     + (f"until {res.train_until:g} {res.unit}" if res.train_until else
+                        "on all data"))
+        ax.set_xlim(0, top * 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left")
+        fig.tight_layout()
+        p = out.savefig(fig, f"fan_{name}.png")
+        pl.close(fig)
+        paths.append(p)
+    return paths
+
+
+def plot_profiles(out, study, res):
+    """profile_<experiment>.png (crank-slider studies): the profile at the last --at point."""
+    if study.config.driver == "oscillating":
+        return []
+    from ._report import plt
+
+    pl = plt()
+    paths = []
+    for name, pr in res.profiles.items():
+        a = np.r_[pr["angle_deg"], 360.0]
+
+        def closed(v):
+            return np.r_[v, v[0]]
+
+        fig, ax = pl.subplots(figsize=(7, 4))
+        ax.fill_between(a, closed(pr["lower_um"]), closed(pr["upper_um"]), color="tab:blue",
+                        alpha=0.18, label=f"{res.level:.0%} prediction band")
+        ax.fill_between(a, closed(pr["conf_lower_um"]), closed(pr["conf_upper_um"]),
+                        color="tab:blue", alpha=0.35, label=f"{res.level:.0%} confidence band")
+        ax.plot(a, closed(pr["depth_um"]), "-", color="tab:blue", label="forecast")
+        e = next(x for x in study.experiments if x.name == name)
+        if e.profile is not None:
+            r = np.asarray(e.profile.revolutions)
+            hit = np.isclose(r, pr["at"])
+            if hit.any():
+                ax.plot(np.degrees(e.profile.angle[hit]) % 360, e.profile.depth[hit] * 1e6,
+                        "o", ms=2.5, color="tab:red", label="measured at this count")
+        ax.set_xlim(0, 360)
+        ax.set_xticks(range(0, 361, 45))
+        ax.set_xlabel("bushing angle θ [deg] (from B→D, counter-clockwise)")
+        ax.set_ylabel("wear depth [µm]")
+        ax.set_title(f"{name}: profile at {pr['at']:g} {res.unit}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        p = out.savefig(fig, f"profile_{name}.png")
+        pl.close(fig)
+        paths.append(p)
+    return paths
+
+
+def summary_text(res) -> str:
+    lines = [f"forecast ({res.method}, level {res.level:g}): noise {res.noise_um:.3g} µm "
+             f"({'given' if res.noise_given else f'estimated, {res.dof} dof'}), "
+             f"quantile {res.quantile:.3g}"]
+    for name, v in res.parameters.items():
+        lines.append(f"  {name} = {v['value']:.5g} ± {v['stderr'] or float('nan'):.2g}")
+    lines.append(f"{'experiment':<20}{'at':>10}  {'depth_um':>10}  {'band_um':>21}  measured")
+    for p in res.predictions:
+        m = "" if p.measured_um is None else f"{p.measured_um:.4g}"
+        lines.append(f"{p.experiment:<20}{p.at:>10g}  {p.depth_um:>10.4g}  "
+                     f"[{p.lower_um:>9.4g}, {p.upper_um:>9.4g}]  {m}")
+    for x in res.life:
+        if x.at is None:
+            lines.append(f"life {x.experiment}: {x.reason}")
+        else:
+            def f(v):
+                return "n/a" if v is None else f"{v:.4g}"
+            lines.append(f"life {x.experiment}: {x.limit_um:g} µm reached at {f(x.at)} "
+                         f"[{f(x.lower)}, {f(x.upper)}] {x.unit}")
+    lines += [f"flag: {f}" for f in res.flags]
+    return "\n".join(lines)
+
+
+def cmd_predict(args):
+    from ._budget import check_work
+    from ._io import open_outputs
+    from ._predict import predict
+    from ._study import load_study
+
+    at = parse_at(args.at)
+    opts = dict(train_until=_num("--train-until", args.train_until, positive=True),
+                level=_num("--level", args.level, lo=0, hi=1),
+                limit_um=_num("--limit-um", args.limit_um, positive=True),
+                noise_um=_num("--noise-um", args.noise_um, positive=True))
+    if args.method not in ("laplace", "nuts"):
+        raise InputError(f"--method: expected laplace or nuts, got {args.method!r}")
+    nuts = None
+    if args.method == "nuts":
+        nuts = dict(draws=_num("--draws", args.draws, positive=True, integer=True),
+                    warmup=_num("--warmup", args.warmup, positive=True, integer=True),
+                    chains=_num("--chains", args.chains, positive=True, integer=True),
+                    seed=_num("--seed", args.seed, integer=True),
+                    max_minutes=_num("--max-minutes", args.max_minutes, positive=True))
+    study = load_study(args.study)
+    # refuse an output over an input, and work that cannot finish, before hours of work
+    out = open_outputs(study, args.out, planned=predict_outputs(study, args.method),
+                       json_file=args.json)
+    check_work(study, tangents=1 + len(study.experiments) + len(study.fit))
+    from ._simulate_study import amplification_warnings
+
+    for line in amplification_warnings(study):
+        print(line, file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    if nuts is not None:
+        nuts["out"] = out
+    res = predict(study, at, method=args.method, fit_spec=args.fit, verbose=True,
+                  nuts_options=nuts, **opts)
+    print(f"predict: took {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
+    doc = res.to_json()
+    written = [out.write_json("prediction.json", doc)]
+    if args.json:
+        written.append(out.write_json_file(doc))
+    written += write_outputs(out, study, res)
+    print(summary_text(res))
+    print(f"wrote {written[0]}; tables and plots in {out.root}")
+    return res

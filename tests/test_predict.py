@@ -1,0 +1,235 @@
+"""Forecasts with bands (`jaxwear.predict`, DESIGN §7) against a known truth.
+
+The data come from the model at finer numerics than the fit's (128 nodes, 144 steps, M = 25
+against 64, 72, M = 100: no inverse crime), measured as whole scans every 3° with Gaussian
+noise of 0.3 µm on every row (negative depths outside the scar included). Experiment "i276"
+is an interrupted test measured at 1000, 2000 and 3000 revolutions; "b148" is measured at
+3000 only, so training until 2000 leaves it with no rows: it is forecast from the shared
+K_d and its clearance's prior.
+
+The Jacobian-propagated variance is checked against central finite differences of the
+forecast itself, the quantiles against tabulated values, and the intervals against the truth.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxwear as jw
+from jaxwear._predict import _forecast_jit, parameter_covariance, t_quantile
+from jaxwear._study import load_study
+from jaxwear.cli import main
+
+NODES, STEPS, M = 64, 72, 100
+FINE = dict(nodes=128, steps_per_rev=144)
+M_FINE = 25
+SNAPS = (1000.0, 2000.0, 3000.0)
+AT = (3000.0, 4000.0)
+K_D_TRUE = 2.0e-13
+NOISE_UM = 0.3
+TOL_UM = 5.0
+# name, speed [r/min], nominal clearance [mm], true clearance [mm], measured at
+EXPERIMENTS = [("i276", 276.0, 0.05, 0.052, SNAPS), ("b148", 148.0, 0.05, 0.049, (3000.0,))]
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """True profiles [µm] at SNAPS + AT per experiment (fine numerics)."""
+    cfg = jw.ModelConfig(**FINE)
+    pts = sorted(set(SNAPS) | set(AT))
+    out = {}
+    for name, speed, _, c_true, _ in EXPERIMENTS:
+        p = jw.preset("rig", speed_rpm=speed, clearance_mm=c_true, K_d_per_Pa=K_D_TRUE)
+        res = jw.simulate(p, cfg, revolutions=max(pts), snapshots=pts, M=M_FINE)
+        out[name] = dict(zip(pts, np.asarray(res.snapshots) * 1e6))
+    return out
+
+
+def write_study(root, truth, seed=0):
+    rng = np.random.default_rng(seed)
+    root.mkdir(parents=True, exist_ok=True)
+    node_deg = np.arange(FINE["nodes"]) * 360.0 / FINE["nodes"]
+    angles = np.arange(0.0, 360.0, 3.0) + 0.4
+    lines = ['[model]', 'preset = "rig"', '[model.parameters]', 'K_d_per_Pa = 1e-13',
+             '[numerics]', f'nodes = {NODES}', f'steps_per_rev = {STEPS}',
+             f'revolutions_per_update = {M}', '[fit]', f'clearance_tolerance_um = {TOL_UM}']
+    for name, speed, c_nom, _, points in EXPERIMENTS:
+        with open(root / f"{name}.csv", "w") as f:
+            f.write("angle_deg,depth_um,revolutions\n")
+            for s in points:
+                d = np.interp(angles, node_deg, truth[name][s], period=360.0)
+                y = d + NOISE_UM * rng.standard_normal(len(d))  # whole scan, zero-mean noise
+                for a, v in zip(angles, y):
+                    f.write(f"{a:.3f},{v:.6f},{s:g}\n")
+        lines += ['[[experiment]]', f'name = "{name}"', f'speed_rpm = {speed}',
+                  f'revolutions = {max(points):g}', f'clearance_mm = {c_nom}',
+                  f'profile = "{name}.csv"']
+    path = root / "study.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def study_path(truth, tmp_path_factory):
+    return write_study(tmp_path_factory.mktemp("pred"), truth)
+
+
+@pytest.fixture(scope="module")
+def forecast(study_path):
+    study = load_study(study_path)
+    return jw.predict(study, list(AT), train_until=2000, level=0.9)
+
+
+def test_json_contract(forecast):
+    doc = json.loads(json.dumps(forecast.to_json()))
+    assert doc["level"] == 0.9 and doc["method"] == "laplace"
+    assert [t["experiment"] for t in doc["trained_on"]] == ["i276"]  # b148 has no rows ≤ 2000
+    assert doc["trained_on"][0]["points"] == [1000.0, 2000.0]
+    preds = doc["predictions"]
+    assert [(p["experiment"], p["at"]) for p in preds] == [
+        (n, a) for n, *_ in EXPERIMENTS for a in AT]
+    for p in preds:
+        assert set(p) >= {"experiment", "at", "unit", "depth_um", "lower_um", "upper_um",
+                          "measured_um"}
+        assert p["unit"] == "revolutions"
+        # the prediction band holds the confidence band, which holds the forecast
+        assert p["lower_um"] < p["conf_lower_um"] < p["depth_um"] < p["conf_upper_um"] \
+            < p["upper_um"]
+    meas = {(p["experiment"], p["at"]): p["measured_um"] for p in preds}
+    # held-out measurements at 3000 rev (deepest scan row), none at 4000
+    assert meas[("i276", 3000.0)] is not None and meas[("b148", 3000.0)] is not None
+    assert meas[("i276", 4000.0)] is None and meas[("b148", 4000.0)] is None
+    assert [x["experiment"] for x in doc["life"]] == ["i276", "b148"]
+    for x in doc["life"]:
+        assert set(x) >= {"experiment", "limit_um", "at", "lower", "upper", "unit"}
+        assert x["limit_um"] == pytest.approx(500.0)  # default: the layer thickness
+        # 10x the last count is far too short to wear 0.5 mm of PTFE at this K_d
+        assert x["at"] is None and "reason" in x
+    assert doc["dof"] > 100 and "K_d_per_Pa" in doc["parameters"]
+
+
+def test_intervals_contain_the_truth(forecast, truth):
+    """Fixed seed: the 0.9 intervals of K_d and of the true future maximum depth hold the
+    truth (the depth from the fine-numerics model, not the fit's own discretisation)."""
+    k = forecast.parameters["K_d_per_Pa"]
+    assert k["lower"] < K_D_TRUE < k["upper"]
+    for p in forecast.predictions:
+        true_max = float(np.max(truth[p.experiment][p.at]))
+        assert p.conf_lower_um < true_max < p.conf_upper_um, (p, true_max)
+    # b148 never trained: its band is wider than i276's at the same count (clearance known
+    # from the prior only), relative to the depth
+    rel = {(p.experiment, p.at): (p.conf_upper_um - p.conf_lower_um) / p.depth_um
+           for p in forecast.predictions}
+    assert rel[("b148", 3000.0)] > rel[("i276", 3000.0)]
+
+
+def test_propagated_variance_matches_finite_differences(study_path):
+    """g C gᵀ with g from jacfwd equals the same with g by central differences of the
+    forecast maximum depth (each FD evaluation is the forecast model itself)."""
+    from jaxwear._calibrate import build_problem, fit, parse_fit
+    from jaxwear._predict import forecast_points, forecast_problem, training_study
+
+    study = load_study(study_path)
+    keys = parse_fit(study, "K_d,clearance")
+    res = fit(build_problem(training_study(study, 2000), keys))
+    pts = [forecast_points(study, e, list(AT), n_dense=4) for e in study.experiments]
+    fprob = forecast_problem(study, res, keys, pts)
+    p = len(res.names)
+    snaps, J = (np.asarray(x) for x in _forecast_jit(fprob, jnp.zeros(p)))
+    cov, null = parameter_covariance(res, res.noise_um)
+    assert null.shape[1] == 0
+    for ei in range(len(EXPERIMENTS)):
+        s = int(np.searchsorted(pts[ei], 4000.0))
+        k = int(np.argmax(snaps[ei, s]))
+        g_ad = J[ei, s, k]
+        g_fd = np.zeros(p)
+        for i in range(p):
+            # u is a log-multiplier (relative steps). The contact solves converge to ~1e-10
+            # relative, so steps of 1e-4 keep their noise and the truncation both ~1e-6.
+            h = 1e-4
+            up, dn = np.zeros(p), np.zeros(p)
+            up[i], dn[i] = h, -h
+            fu = np.asarray(_forecast_jit(fprob, jnp.asarray(up))[0])[ei, s, k]
+            fd = np.asarray(_forecast_jit(fprob, jnp.asarray(dn))[0])[ei, s, k]
+            g_fd[i] = (fu - fd) / (2 * h)
+        np.testing.assert_allclose(g_ad, g_fd, rtol=1e-4, atol=1e-6 * np.max(np.abs(g_fd)))
+        assert g_ad @ cov @ g_ad == pytest.approx(g_fd @ cov @ g_fd, rel=1e-4)
+
+
+def test_quantiles_against_tables():
+    # Student-t two-sided 90 %: 6.314 (1 dof), 2.920 (2), 1.812 (10); normal 1.645
+    # (standard statistical tables); 95 % with 2 dof: 4.303.
+    assert t_quantile(0.9, 1) == pytest.approx(6.3138, abs=1e-4)
+    assert t_quantile(0.9, 2) == pytest.approx(2.9200, abs=1e-4)
+    assert t_quantile(0.9, 10) == pytest.approx(1.8125, abs=1e-4)
+    assert t_quantile(0.9, math.inf) == pytest.approx(1.6449, abs=1e-4)
+    assert t_quantile(0.95, 2) == pytest.approx(4.3027, abs=1e-4)
+
+
+def test_band_uses_the_residual_dof_quantile(forecast):
+    """The reported band is depth ± q·sd with q the t quantile of the residual dof."""
+    assert forecast.quantile == pytest.approx(t_quantile(0.9, forecast.dof))
+    for p in forecast.predictions:
+        assert p.upper_um - p.depth_um == pytest.approx(forecast.quantile * p.sd_prediction_um)
+        assert p.sd_prediction_um ** 2 == pytest.approx(p.sd_model_um ** 2
+                                                        + forecast.noise_um ** 2)
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--at", "3000,x"], "--at"),
+    (["--at", "-5"], "--at"),
+    (["--at", "3000", "--level", "1.5"], "--level"),
+    (["--at", "3000", "--method", "mcmc"], "--method"),
+    (["--at", "3000", "--limit-um", "900"], "--limit-um"),
+    (["--at", "3000", "--train-until", "500"], "--train-until"),
+    (["--at", "3000", "--method", "nuts", "--max-minutes", "0"], "--max-minutes"),
+])
+def test_cli_bad_options_exit_2(study_path, tmp_path, capsys, argv, needle):
+    code = main(["predict", str(study_path), "--out", str(tmp_path / "o"), *argv])
+    err = capsys.readouterr().err
+    assert code == 2 and needle in err, err
+
+
+def test_cli_refuses_to_overwrite_an_input(study_path, tmp_path, capsys):
+    csv = study_path.parent / "i276.csv"
+    before = csv.read_text()
+    code = main(["predict", str(study_path), "--at", "3000", "--out", str(tmp_path / "o"),
+                 "--json", str(csv)])
+    assert code == 2 and "input" in capsys.readouterr().err
+    assert csv.read_text() == before
+
+
+def test_cli_nuts_writes_posterior_and_diagnostics(study_path, tmp_path, capsys):
+    """Short NUTS run through the CLI: the InferenceData file holds every fitted parameter,
+    R-hat and ESS are reported, and the posterior of K_d holds the truth."""
+    from jaxwear._predict_nuts import _arviz
+
+    out = tmp_path / "nuts"
+    code = main(["predict", str(study_path), "--at", "3000", "--train-until", "2000",
+                 "--method", "nuts", "--draws", "40", "--warmup", "40", "--chains", "2",
+                 "--out", str(out), "--json", str(tmp_path / "p.json")])
+    assert code == 0, capsys.readouterr().err
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert doc["method"] == "nuts"
+    nuts = doc["nuts"]
+    assert nuts["max_r_hat"] is not None and nuts["min_ess_bulk"] > 0
+    post = nuts["posterior"]
+    assert post["K_d_per_Pa"]["lower"] < K_D_TRUE < post["K_d_per_Pa"]["upper"]
+    idata = _arviz().from_netcdf(str(out / "posterior.nc"))
+    assert set(idata.posterior.data_vars) == {"K_d_per_Pa", "clearance_mm:i276",
+                                              "clearance_mm:b148", "noise_um"}
+    assert idata.posterior["K_d_per_Pa"].shape == (2, 40)
+    for p in doc["predictions"]:
+        assert p["lower_um"] < p["depth_um"] < p["upper_um"]
+
+
+def test_cli_nuts_refuses_beyond_the_time_limit(study_path, tmp_path, capsys):
+    code = main(["predict", str(study_path), "--at", "3000", "--method", "nuts",
+                 "--max-minutes", "0.001", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--max-minutes" in err, err
