@@ -1,6 +1,7 @@
 """The public API: every name of `jaxwear.__all__` imports, the README's Python block runs,
 and neither the README nor the examples import a private module."""
 
+import ast
 import contextlib
 import io
 import re
@@ -52,7 +53,7 @@ def test_readme_python_block_runs():
     with contextlib.redirect_stdout(out):
         exec(compile(small, "README.md", "exec"), {})  # noqa: S102
     lines = out.getvalue().splitlines()
-    assert len(lines) == 2 and "µm" in lines[0], lines
+    assert len(lines) == 3 and "µm" in lines[0], lines
     depth_um = float(lines[0].split()[0])
     assert 0 < depth_um < 100  # a 10⁴-revolution rig run wears microns, not millimetres
     grad = float(lines[1])
@@ -60,3 +61,9 @@ def test_readme_python_block_runs():
     # bore conforms to the pin as it wears, which lowers the peak pressure)
     elasticity = grad * 1e-13 / (depth_um * 1e-6)
     assert 0.3 < elasticity <= 1.0 + 1e-9, elasticity
+    # the boom forecast: every band holds its forecast, and 25 h is deeper than 20 h
+    preds = ast.literal_eval(lines[2])
+    assert [p["at"] for p in preds] == [20.0, 25.0]
+    for p in preds:
+        assert p["lower_um"] < p["depth_um"] < p["upper_um"]
+    assert preds[1]["depth_um"] > preds[0]["depth_um"]
