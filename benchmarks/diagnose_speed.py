@@ -1,14 +1,17 @@
 """How long `diagnose` takes on a 5-experiment full-circumference study (issue 10, Speed).
 
     python benchmarks/diagnose_speed.py [--case null|running_in|outside|...] [--nodes 360]
-        [--steps 360] [--fine-nodes 540] [--fine-steps 540] [--fine-M 50] [--json FILE]
+        [--steps 360] [--integrator paper|adaptive] [--M 100] [--fine-nodes 540]
+        [--fine-steps 540] [--fine-M 50] [--json FILE]
 
 The study: the paper's rig matrix (5 experiments, interrupted at 2000/5000/10000/15000
 revolutions), profiles every 2° around the whole bore, Gaussian noise (0.3 µm) on every
 point, zero-mean (negative depths outside the scar included). The truth is made by
 `jaxwear synth` noise-free at finer numerics than the study states (`--fine-*`: the
 discretisation mismatch a real part brings), the noise is added here, and the study is
-diagnosed at `--nodes` x `--steps` (default: the package default 360 x 360, M = 100).
+diagnosed at `--nodes` x `--steps` (default 360 x 360) with eq 23 at `--M` (default 100,
+`--integrator paper`, as the README's table) or the adaptive integrator at its default
+tolerance (`--integrator adaptive`, the package default for a study without numerics).
 
 Printed: wall and process CPU time of `diagnose` (compilation included: a fresh process;
 on a shared machine CPU time / cores is the better guide to the unloaded wall time), the
@@ -40,7 +43,8 @@ HIDDEN = {"null": [], "running_in": ["running_in"], "speed_dependence": ["speed_
 
 
 def make_study(case: str, *, nodes: int, steps: int, M: float, fine: tuple, noise_um: float,
-               seed: int, angle_step_deg: float = 2.0, cache: str | None = None):
+               seed: int, angle_step_deg: float = 2.0, cache: str | None = None,
+               integrator: str = "paper"):
     """The full-scan noisy study (in memory) and the truth."""
     from jaxwear._study import Profile
     from jaxwear._synth import synthesize
@@ -83,7 +87,7 @@ def make_study(case: str, *, nodes: int, steps: int, M: float, fine: tuple, nois
                        "")
         exps.append(replace(e, profile=prof))
     st = replace(res.study, experiments=tuple(exps), revolutions_per_update=float(M),
-                 path=Path(f"benchmark-{case}"))
+                 integrator=integrator, path=Path(f"benchmark-{case}"))
     return st.with_config(nodes=nodes, steps_per_rev=steps), res.truth
 
 
@@ -93,6 +97,7 @@ def main(argv=None):
     ap.add_argument("--nodes", type=int, default=360)
     ap.add_argument("--steps", type=int, default=360)
     ap.add_argument("--M", type=float, default=100.0)
+    ap.add_argument("--integrator", default="paper", choices=("paper", "adaptive"))
     ap.add_argument("--fine-nodes", type=int, default=540)
     ap.add_argument("--fine-steps", type=int, default=540)
     ap.add_argument("--fine-M", type=float, default=50.0)
@@ -117,7 +122,8 @@ def main(argv=None):
     t = time.perf_counter()
     study, truth = make_study(a.case, nodes=a.nodes, steps=a.steps, M=a.M,
                               fine=(a.fine_nodes, a.fine_steps, a.fine_M),
-                              noise_um=a.noise_um, seed=a.seed, cache=a.truth_cache)
+                              noise_um=a.noise_um, seed=a.seed, cache=a.truth_cache,
+                              integrator=a.integrator)
     t_synth = time.perf_counter() - t
     n0, s0 = Model.evaluations, Model.evaluation_s
     t, cpu = time.perf_counter(), time.process_time()
@@ -129,7 +135,8 @@ def main(argv=None):
            "cpu_s": round(cpu, 1),
            "evaluations": n, "evaluation_s": round(s, 1),
            "first_evaluation_s": round(Model.first_evaluation_s, 1),
-           "grid": f"{a.nodes}x{a.steps}, M={a.M:g}",
+           "grid": f"{a.nodes}x{a.steps}, " + (f"M={a.M:g}" if a.integrator == "paper"
+                                                 else "adaptive"),
            "truth_grid": f"{a.fine_nodes}x{a.fine_steps}, M={a.fine_M:g}",
            "rows": d.model.n, "noise_um": round(d.noise_um, 4),
            "synth_s": round(t_synth, 1), "hidden": truth["hidden"],

@@ -13,6 +13,10 @@ repeats, interleaved where two things are compared, wall time and process CPU ti
 - `forward_s`: one rig prediction (276 r/min, 10 000 rev, 360 nodes, 360 steps/rev) with
   `jaxwear.simulate` at that M.
 - `numpy_speedup`: the same prediction by `benchmarks/numpy_reference.py`, same M.
+- `adaptive_rig_s` / `adaptive_boom_s`: the default (adaptive) integrator, no M: the rig
+  case above and the boom (25 h of the paper's duty cycle at K_d 3.8e-13, 360 x 360), with
+  their errors against eq 23 at M = 1 and the integrator's own estimate;
+  `adaptive_grad_over_forward`: `jax.grad` of a scalar loss of (K_d, clearance) through it.
 - `grad_over_forward`: `jax.grad` of a 5-experiment calibration loss over its forward time.
 - `sweep_speedup`: a 16x16 speed x clearance sweep, `jit(vmap(wear_loop))` vs 256 calls of
   the same compiled single-point function (also `lax.map` and `sharded_vmap`).
@@ -64,7 +68,10 @@ TARGETS = {  # key: (target, "<=" or ">=", unit)
     "forward_s": (0.05, "<=", "s"), "numpy_speedup": (100, ">=", "x"),
     "grad_over_forward": (3, "<=", "x"), "sweep_speedup": (5, ">=", "x"),
     "calibrate_s": (10, "<=", "s"), "simulate_cold_s": (10, "<=", "s"),
-    "simulate_cached_s": (3, "<=", "s")}
+    "simulate_cached_s": (3, "<=", "s"),
+    # the default (adaptive) integrator, issue 9: within 0.01 % (rig) / 0.1 % (boom) of M = 1
+    "adaptive_rig_s": (0.05, "<=", "s"), "adaptive_boom_s": (2, "<=", "s"),
+    "adaptive_grad_over_forward": (3, "<=", "x")}
 
 
 def log(msg):
@@ -141,6 +148,9 @@ def _git() -> str:
 # ---------------------------------------------------------------------------------------
 # accuracy vs M, forward, NumPy reference
 
+ACC_DEPTH: dict = {}  # M -> final depth of the accuracy table's case (M = 1: a reference)
+
+
 def accuracy(T: Timer, nodes, steps, revolutions, Ms) -> list[dict]:
     """Peak-depth and profile error of each M against M = 1 (Ms[0] must be 1)."""
     p = jw.preset("rig")
@@ -152,6 +162,7 @@ def accuracy(T: Timer, nodes, steps, revolutions, Ms) -> list[dict]:
         first = time.perf_counter() - t0
         res = T.run(f"acc M={M}", lambda: jw.simulate(p, cfg, revolutions=revolutions, M=M))
         depth[M] = np.asarray(res.depth)
+        ACC_DEPTH[M] = depth[M]
         log(f"  M={M}: peak {depth[M].max() * 1e6:.4f} µm, first call {first:.1f} s, "
             f"then {T.wall(f'acc M={M}'):.3f} s")
     ref = depth[Ms[0]]
@@ -192,6 +203,59 @@ def forward_and_numpy(T: Timer, M, repeats, np_repeats):
         T.run("wear_loop (no padding)", loop, p, sched)
     diff = float(np.max(np.abs(h_np - h_jax)) / np.max(h_jax))
     return {"relative_difference_numpy_vs_jax": diff}
+
+
+def adaptive(T: Timer, nodes, steps, revolutions, hours, repeats, rig_ref=None):
+    """The default integrator (no M): rig and boom forward times, their error against eq 23
+    at M = 1 and the integrator's own estimate; gradient / forward on the rig for a scalar
+    loss of (K_d, clearance), as `benchmarks/integrator_diffrax.py`."""
+    from jaxwear._config import boom_config
+
+    out = {}
+    cases = {"rig": (jw.preset("rig"), jw.ModelConfig(nodes=nodes, steps_per_rev=steps),
+                     {"revolutions": revolutions}),
+             # issue 9's boom: its fitted K_d, the paper's duty cycle
+             "boom": (jw.preset("boom", K_d_per_Pa=3.8e-13),
+                      boom_config(nodes=nodes, steps_per_rev=steps), {"hours": hours})}
+    for name, (p, cfg, run) in cases.items():
+        if name == "rig" and rig_ref is not None:
+            ref = rig_ref
+        else:
+            t0 = time.perf_counter()
+            ref = np.asarray(jw.simulate(p, cfg, M=1, **run).depth)
+            log(f"  {name}: M = 1 reference {time.perf_counter() - t0:.1f} s")
+        sched = build_schedule(p, cfg, **run)
+        loop = eqx.filter_jit(lambda p, s, cfg=cfg: wear_loop(p, cfg, s))
+        t0 = time.perf_counter()
+        r = loop(p, sched)
+        first = time.perf_counter() - t0
+        if not np.isfinite(float(r.error_estimate)):  # the attempt estimate fell short
+            sched = jw.build_schedule(p, cfg, **run)
+            r = jw.simulate(p, cfg, **run)
+        for _ in range(repeats):
+            T.run(f"adaptive {name}", lambda: loop(p, sched).depth)
+        h = np.asarray(r.depth)
+        out[name] = {"steps": int(r.steps), "rejected": int(r.rejected_steps),
+                     "estimate_um": float(r.error_estimate) * 1e6,
+                     "error": float(np.max(np.abs(h - ref)) / ref.max()),
+                     "peak_um": float(h.max()) * 1e6, "first_s": first}
+        log(f"  {name}: {T.wall(f'adaptive {name}'):.3f} s, {out[name]}")
+        if name == "rig":
+            x0 = jnp.asarray([float(p.get("K_d_per_Pa")), float(p.get("clearance_mm"))])
+
+            def loss(x, p=p, cfg=cfg, sched=sched):
+                q = p.with_values({"K_d_per_Pa": x[0], "clearance_mm": x[1]})
+                hh = wear_loop(q, cfg, sched).depth * 1e6
+                return jnp.sum(hh ** 3) / jnp.sum(hh ** 2)
+
+            f = eqx.filter_jit(loss)
+            g = eqx.filter_jit(jax.grad(loss))
+            f(x0).block_until_ready()
+            g(x0).block_until_ready()
+            for _ in range(repeats):
+                T.run("adaptive rig loss forward", f, x0)
+                T.run("adaptive rig loss grad", g, x0)
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -465,7 +529,8 @@ def main(argv=None):
                     help="markdown report (default benchmarks/RESULTS.md, "
                          "RESULTS-quick.md with --quick)")
     ap.add_argument("--skip", default="", help="comma-separated sections to skip: accuracy, "
-                    "forward, grad, sweep, calibrate, simulate, profile (for development)")
+                    "forward, adaptive, grad, sweep, calibrate, simulate, profile (for "
+                    "development)")
     args = ap.parse_args(argv)
     quick = args.quick
     skip = set(filter(None, args.skip.split(",")))
@@ -521,6 +586,31 @@ def main(argv=None):
         notes.append(f"NumPy reference vs jaxwear, same M: max |Δh| / max h = "
                      f"{chk['relative_difference_numpy_vs_jax']:.2e}")
         keys["numpy_vs_jax_relative_difference"] = chk["relative_difference_numpy_vs_jax"]
+
+    # 2b. the default adaptive integrator (issue 9's targets)
+    if "adaptive" not in skip:
+        a_nodes, a_rev, a_hours = (72, 2000, 5.0) if quick else (360, 10000, 25.0)
+        log(f"adaptive integrator: rig {a_rev} rev and boom {a_hours:g} h at "
+            f"{a_nodes}x{a_nodes}, against M = 1")
+        ad = adaptive(T, a_nodes, a_nodes, a_rev, a_hours, repeats=3 if quick else 5,
+                      rig_ref=ACC_DEPTH.get(1) if (a_nodes, a_rev) == (
+                          (72, 2000) if quick else (360, 10000)) else None)
+        keys["adaptive_rig_s"] = T.wall("adaptive rig")
+        keys["adaptive_boom_s"] = T.wall("adaptive boom")
+        keys["adaptive_grad_over_forward"] = (T.wall("adaptive rig loss grad")
+                                              / T.wall("adaptive rig loss forward"))
+        keys["adaptive"] = ad
+        for name, what in (("rig", f"{a_rev} rev"), ("boom", f"{a_hours:g} h, K_d 3.8e-13")):
+            d = ad[name]
+            extra["how"][f"adaptive_{name}_s"] = (
+                f"`jw.simulate` default integrator, {name} {what}, {a_nodes}x{a_nodes}: "
+                f"{d['steps']} (+{d['rejected']}) steps, {d['error'] * 100:.2g} % of peak vs "
+                f"M = 1 (estimate {d['estimate_um']:.2g} µm); cpu "
+                f"{fmt(T.cpu(f'adaptive {name}'))}")
+        extra["how"]["adaptive_grad_over_forward"] = (
+            f"Σh³/Σh² of the rig run in (K_d, clearance): grad "
+            f"{fmt(T.wall('adaptive rig loss grad'))} / forward "
+            f"{fmt(T.wall('adaptive rig loss forward'))}")
 
     # 3. gradient of a 5-experiment calibration loss; the study also feeds `calibrate`.
     nodes = 72 if quick else 360

@@ -4,10 +4,13 @@ All experiments of a study run in one compiled function (schedules padded to a c
 length), and that one function returns the residuals, the exact forward-mode Jacobian
 through the whole wear loop (`jax.jacfwd`), and the model's snapshots. Everything the fit
 needs (the robust start, every Levenberg-Marquardt trial, both passes, the standard errors)
-is an evaluation of it, so a problem compiles once. The Levenberg-Marquardt iteration itself
-runs on the host on p × p matrices (p = number of fitted parameters, a handful): an
-`optimistix.least_squares` solve would trace the wear loop a second time inside its own
-compiled while loop, which on CPU cost twice the compile time of the Jacobian for no gain.
+is an evaluation of it, so a problem compiles once. The Levenberg-Marquardt iteration runs
+on the host on p × p matrices (p = number of fitted parameters, a handful), or with
+`engine="optimistix"` as `optimistix.LevenbergMarquardt` in one jit whose residual function
+has a custom JVP taking (r, J) from that same compiled evaluation through a host callback:
+letting optimistix differentiate the wear loop itself (`jax.linearize`) would trace and
+compile the loop a second time. Measured, the host loop is as fast cached and ~1 s faster
+cold (it compiles nothing else), hence the default (README, "Calibration output").
 
 Parameterisation: positive parameters (K_d, clearances, S_r) are fitted as log-multipliers
 of their start, nested effect strengths linearly around their "off" value in units of a
@@ -31,6 +34,7 @@ evaluated at all (worn through whatever K_d, or non-finite) raises `FitError`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -45,9 +49,9 @@ import optimistix as optx
 from ._config import ModelConfig
 from ._errors import InputError
 from ._params import PARAMETER_KEYS, Params, key_to_si
-from ._schedule import Schedule
+from ._schedule import Schedule, pad_schedule
 from ._study import Study
-from ._wear import build_schedule, wear_loop
+from ._wear import adaptive_attempts, build_schedule, schedule_numerics, wear_loop
 from .effects import effect_parameter_specs, get_effect
 
 
@@ -156,21 +160,12 @@ def _stack(trees):
 def _schedules(study: Study, plist: list[Params]) -> Schedule:
     scheds = [build_schedule(p, study.config, revolutions=e.revolutions, hours=e.hours,
                              snapshots=e.snapshot_points or [e.hours or e.revolutions],
-                             M=study.revolutions_per_update, pad=False)
+                             pad=False, **schedule_numerics(study))
               for p, e in zip(plist, study.experiments)]
     U = max(s.updates for s in scheds)
     S = max(s.n_snapshots for s in scheds)
-    padded = []
-    for s in scheds:
-        extra = U - s.updates
-        snap = jnp.where(s.snapshot >= s.n_snapshots, S, s.snapshot)
-        padded.append(Schedule(
-            cycles=jnp.concatenate([s.cycles, jnp.zeros(extra)]),
-            regime=jnp.concatenate([s.regime, jnp.zeros(extra, jnp.int32)]),
-            snapshot=jnp.concatenate([snap, jnp.full(extra, S, jnp.int32)]),
-            cycle_end=jnp.concatenate([s.cycle_end, jnp.full(extra, s.cycle_end[-1])]),
-            n_snapshots=S))
-    return _stack(padded)
+    A = max(s.attempts for s in scheds)
+    return _stack([pad_schedule(s, U, S, A) for s in scheds])
 
 
 def _data(study: Study, fits=()) -> Data:
@@ -419,6 +414,8 @@ class Evaluation(eqx.Module):
     snapshots: jax.Array
     max_residual: jax.Array
     worn: jax.Array
+    error_estimate: jax.Array | None = None  # integration error [µm], largest experiment
+    steps: jax.Array | None = None  # accepted integration steps, largest experiment
 
 
 @eqx.filter_jit
@@ -427,17 +424,49 @@ def _evaluate_jit(problem: Problem, u, noise_um) -> Evaluation:
         snaps, res = problem.snapshots(v)
         pred = problem.predict_from(snaps, v)
         r = jnp.concatenate([pred - problem.data.depth_um, problem.prior_residuals(v, noise_um)])
-        return r, (r, pred, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle))
+        return r, (r, pred, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle),
+                   jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
 
     # Forward mode: p (a handful) tangents through the wear loop, pushed alongside the primal.
-    J, (r, pred, snaps, mres, worn) = jax.jacfwd(f, has_aux=True)(u)
-    return Evaluation(r, J, pred, snaps, mres, worn)
+    J, (r, pred, snaps, mres, worn, err, steps) = jax.jacfwd(f, has_aux=True)(u)
+    # an adaptive loop that ran out of attempts stopped early: not a usable model
+    r = jnp.where(jnp.isfinite(err), r, jnp.nan)
+    return Evaluation(r, J, pred, snaps, mres, worn, err, steps)
+
+
+def _enough_attempts(problem: Problem, u) -> Problem:
+    """`problem` with the adaptive loop's static attempt count raised (to a power of 2, so
+    that few compilations arise) where the parameters at u need more than it has (the
+    stiffness-limited step count grows with K_d, which the fit moves by orders)."""
+    sched = problem.schedule
+    if not sched.adaptive:
+        return problem
+    pb = problem.batched_params(jnp.asarray(u, jnp.float64))
+    need = 0
+    for i in range(sched.cycles.shape[0]):
+        p_i = jax.tree.map(lambda x: x[i], pb)
+        one = dataclasses.replace(jax.tree.map(lambda x: x[i], sched), attempts=1)
+        need = max(need, adaptive_attempts(p_i, problem.cfg, one))
+    if need <= sched.attempts:
+        return problem
+    more = 2 ** math.ceil(math.log2(need))
+    return dataclasses.replace(problem, schedule=dataclasses.replace(sched, attempts=more))
 
 
 def evaluate(problem: Problem, u, noise_um: float = 1.0) -> Evaluation:
     """Residuals, Jacobian and snapshots at u, as numpy arrays (one compiled function)."""
-    ev = _evaluate_jit(problem, jnp.asarray(u, jnp.float64),
-                       jnp.asarray(noise_um, jnp.float64))
+    problem = _enough_attempts(problem, u)
+    u, noise_um = jnp.asarray(u, jnp.float64), jnp.asarray(noise_um, jnp.float64)
+    ev = _evaluate_jit(problem, u, noise_um)
+    # The attempt count is an estimate: where the loop did not reach the end (a stiff
+    # layer's rejections), double it (a recompilation) rather than hand LM a NaN.
+    for _ in range(3):
+        if not (problem.schedule.adaptive and not np.isfinite(float(ev.error_estimate))):
+            break
+        sched = problem.schedule
+        problem = dataclasses.replace(
+            problem, schedule=sched.more_attempts())
+        ev = _evaluate_jit(problem, u, noise_um)
     return jax.tree.map(np.asarray, ev)
 
 
@@ -609,6 +638,7 @@ class FitResult:
     problem: Problem
     snapshots_um: np.ndarray  # (experiments, snapshots, nodes)
     max_contact_residual: float
+    integration: dict | None = None  # error estimate at the fitted values (see `calibrate`)
 
     def parameters_json(self) -> dict:
         return {n: {"value": float(v), "stderr": (float(s) if np.isfinite(s) else None)}
@@ -633,6 +663,7 @@ class FitResult:
             "n_data": int(self.n_data),
             "clearance_tolerance_um": tol if math.isfinite(tol) else "inf",
             "max_contact_residual": float(self.max_contact_residual),
+            "integration": self.integration,
         }
 
     @property
@@ -644,22 +675,126 @@ class FitResult:
         return float(np.sum(self.residuals_um ** 2))
 
 
+# optimistix engine. optimistix differentiates its residual function itself (jax.linearize
+# at every step); through the wear loop that traces the loop a second time (primal and
+# recomputed tangent copies, ~2x the compile of `_evaluate_jit`). Instead the residual
+# function handed to optimistix has a custom JVP whose rule returns J·du with (r, J) from
+# one forward-mode evaluation: from the study's compiled `_evaluate_jit` through a host
+# callback (the engine's path: the wear loop is compiled once per study, shared with the
+# robust start and the standard errors), or traced inline (`inline=True`: one more compile
+# of the loop, kept for measurement). The callback memoises evaluations, so the Jacobian at
+# the solution (for the covariance) is the one optimistix used, and it counts evaluations.
+
+_HOST_MODELS: dict = {}  # token -> (u ↦ (r, J) in numpy, default device), during one solve
+
+
+def _call_host_model(token, u):
+    model, device = _HOST_MODELS[int(token)]
+    # JAX runs callbacks under `default_device(<the CPU>)`, which is part of the jit cache
+    # key: without restoring the caller's setting, `_evaluate_jit` would trace and compile
+    # again (measured: +9 s on a 48-node grid).
+    with jax.default_device(device):
+        return model(np.asarray(u, np.float64))
+
+
 @eqx.filter_jit
-def _optimistix_lm(problem: Problem, u0, noise_um, max_steps: int, rtol: float):
-    """optimistix's Levenberg-Marquardt on the same residuals (forward-mode Jacobian)."""
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=1e-12)
-    sol = optx.least_squares(lambda u, _: problem.residuals(u, noise_um), solver, u0,
-                             max_steps=max_steps, throw=False)
+def _optimistix_solve(problem: Problem | None, u0, noise_um, token, n_rows: int,
+                      max_steps: int, rtol: float, atol: float):
+    """optimistix Levenberg-Marquardt in one jit; (u, success, steps)."""
+    p = u0.shape[0]
+    shapes = (jax.ShapeDtypeStruct((n_rows,), jnp.float64),
+              jax.ShapeDtypeStruct((n_rows, p), jnp.float64))
+
+    def model(v):
+        if problem is None:
+            return jax.pure_callback(_call_host_model, shapes, token, v)
+        ev = _evaluate_jit(problem, v, noise_um)
+        # a trial where the layer wears through is a misfit, not a minimum (as in "lm")
+        bad = (ev.worn >= 0) | ~jnp.all(jnp.isfinite(ev.residuals))
+        return jnp.where(bad, 1e100, ev.residuals), jnp.where(bad, 0.0, ev.jacobian)
+
+    @jax.custom_jvp
+    def residuals(v):
+        return model(v)[0]
+
+    @residuals.defjvp
+    def residuals_jvp(primals, tangents):
+        r, J = model(primals[0])
+        return r, J @ tangents[0]
+
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(lambda v, _: residuals(v), solver, u0, max_steps=max_steps,
+                             throw=False)
     return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
-def _fit_optimistix(problem, u, noise, max_steps, rtol):
-    u_new, ok, steps = _optimistix_lm(problem, jnp.asarray(u), jnp.asarray(noise, jnp.float64),
-                                      max_steps, rtol)
-    ev = evaluate(problem, np.asarray(u_new), noise)
-    msg = ("converged (optimistix Levenberg-Marquardt)" if bool(ok) else
-           "optimistix Levenberg-Marquardt did not report success within the step limit")
-    return LMOutcome(np.asarray(u_new), ev, bool(ok) and _usable(ev), int(steps), msg)
+_OPTX_RTOL, _OPTX_ATOL = 1e-6, 1e-5
+
+
+def _n_rows(problem: Problem) -> int:
+    """Residual rows: data plus one prior row per fitted clearance or angle offset."""
+    return problem.n_data + sum(f.key in ("clearance_mm", "angle_offset_deg")
+                                for f in problem.fits)
+
+
+def _run_optimistix(problem, u0, noise_um, host_model, n_rows, max_steps, rtol, atol):
+    """`_optimistix_solve` with `host_model` (u ↦ (r, J), numpy) registered for its callback."""
+    token = id(host_model)
+    _HOST_MODELS[token] = (host_model, jax.config.jax_default_device)
+    try:
+        return _optimistix_solve(
+            problem, jnp.asarray(u0, jnp.float64), jnp.asarray(noise_um, jnp.float64),
+            jnp.asarray(token, jnp.int64), n_rows, max_steps, rtol, atol)
+    finally:
+        del _HOST_MODELS[token]
+
+
+def _fit_optimistix(problem: Problem, u0, noise_um: float, *, ev0: Evaluation | None = None,
+                    max_evaluations: int = 60, rtol: float = _OPTX_RTOL,
+                    atol: float = _OPTX_ATOL, inline: bool = False,
+                    verbose: bool = False) -> LMOutcome:
+    """`optx.LevenbergMarquardt` on the study's residuals (see the comment above).
+
+    Converged when optimistix's Cauchy test holds: the last accepted step changes every
+    u (log-multipliers: relative) by < atol + rtol·|u| and every residual by < atol +
+    rtol·|r| µm. atol carries the test: rtol·|u| would depend on how far the start was off
+    (u is measured from it). With 1e-5 it lands within 2e-4 standard errors of "lm"'s
+    minimum on the benchmark's rig study, with as many model evaluations (64 nodes) or one
+    more (360 nodes: "lm" stops on a step < 1e-3 standard errors, one step earlier).
+    Trial points where the model wears through or is not finite get residuals of 1e100
+    (rejected by the trust region). Returns the same `LMOutcome` as `levenberg_marquardt`.
+    """
+    u0 = np.asarray(u0, np.float64)
+    cache: dict = {} if ev0 is None else {u0.tobytes(): ev0}
+    count = [0]
+    t0 = time.perf_counter()
+
+    def host_model(v):
+        key = v.tobytes()
+        ev = cache.get(key)
+        if ev is None:
+            ev = evaluate(problem, v, noise_um)
+            cache[key] = ev
+            count[0] += 1
+            r = ev.residuals
+            _log(verbose, f"    optimistix {count[0]:3d}: rms residual "
+                          f"{math.sqrt(float(r @ r) / max(problem.n_data, 1)):.4f} µm "
+                          f"({time.perf_counter() - t0:.1f} s)")
+        if not _usable(ev):
+            return np.full_like(ev.residuals, 1e100), np.zeros_like(ev.jacobian)
+        return ev.residuals, ev.jacobian
+
+    u_new, ok, steps = _run_optimistix(problem if inline else None, u0, noise_um, host_model,
+                                       _n_rows(problem), max_evaluations, rtol, atol)
+    u_new = np.asarray(u_new)
+    ev = cache.get(u_new.tobytes())
+    if ev is None:  # inline, or optimistix returned a point it did not evaluate
+        ev = evaluate(problem, u_new, noise_um)
+    ok = bool(ok) and _usable(ev)
+    msg = ("converged (optimistix Levenberg-Marquardt: step and residual change below "
+           "tolerance)" if ok else f"optimistix Levenberg-Marquardt did not converge within "
+           f"{max_evaluations} steps")
+    return LMOutcome(u_new, ev, ok, count[0] if not inline else int(steps), msg)
 
 
 def fit(problem: Problem, u0=None, *, max_steps: int = 60, rtol: float = 1e-8,
@@ -668,21 +803,24 @@ def fit(problem: Problem, u0=None, *, max_steps: int = 60, rtol: float = 1e-8,
 
     **Arguments:**
     - `u0`: start in the problem's parameterisation (default: the problem's start values).
-    - `max_steps`: model evaluations allowed per pass. `rtol`: step tolerance on u.
+    - `max_steps`: model evaluations allowed per pass. `rtol`: step tolerance on u
+      (`"lm"`; optimistix's tests: `_fit_optimistix`).
     - `verbose`: progress of every step on stderr. `robust`: rescale K_d first (see
       `robust_start`).
-    - `engine`: `"lm"` (default): Levenberg-Marquardt on the host around one compiled
-      residual-and-Jacobian function; `"optimistix"`: `optx.LevenbergMarquardt` inside one
-      jit. Both use the exact forward-mode Jacobian through the wear loop and reach the
-      same minimum (tested); `"lm"` is the default because optimistix compiles the wear loop
-      a second time inside its own loop (measured: ~100 s vs ~43 s of compilation on the
-      small test grid), while `"lm"` reuses the evaluation that the robust start and the
-      standard errors need anyway.
+    - `engine`: `"lm"` (default): Levenberg-Marquardt on the host around the study's one
+      compiled residual-and-Jacobian evaluation; `"optimistix"`: `optx.LevenbergMarquardt`
+      in one jit, its residual function taking (r, J) from that same evaluation (see
+      `_fit_optimistix`). Both reach the same minimum (tested) with the same robust
+      start, priors and standard errors (from the Jacobian at the solution). `"lm"` stays
+      the default because it was measured faster cold (optimistix compiles its own solver
+      loop, ~1 s) and as fast cached (README, "Calibration output").
 
     Two passes when fitted clearances have a finite prior: the first weights the prior with
     a 1 µm noise guess, the second with the noise level estimated from the first pass's
     residuals. Both reuse the one compiled evaluation.
     """
+    if engine not in ("optimistix", "lm"):
+        raise ValueError(f"engine must be 'optimistix' or 'lm', got {engine!r}")
     p = len(problem.fits)
     n = problem.n_data
     u = np.zeros(p) if u0 is None else np.asarray(u0, np.float64)
@@ -697,12 +835,11 @@ def fit(problem: Problem, u0=None, *, max_steps: int = 60, rtol: float = 1e-8,
         _log(verbose, f"  fit pass {stage + 1}/{passes} ({p} parameters, {n} data rows"
                       + (f", prior weighted with noise {noise:.3g} µm)" if passes == 2 else ")"))
         if engine == "optimistix":
-            out = _fit_optimistix(problem, u, noise, max_steps, rtol)
-        elif engine == "lm":
+            out = _fit_optimistix(problem, u, noise, ev0=ev, max_evaluations=max_steps,
+                                  verbose=verbose)
+        else:
             out = levenberg_marquardt(problem, u, noise, ev0=ev, max_evaluations=max_steps,
                                       xtol=rtol, verbose=verbose)
-        else:
-            raise ValueError(f"engine must be 'lm' or 'optimistix', got {engine!r}")
         u, ev = out.u, out.evaluation
         converged, evals, message = out.converged, evals + out.evaluations, out.message
         r = ev.residuals[:n]
@@ -798,7 +935,8 @@ def summarize(problem: Problem, u, noise_guess, converged=True, steps=0, *, mess
                      row_experiment=exp_idx, converged=converged, iterations=int(steps),
                      message=msg, flags=flags, jacobian=J, problem=problem,
                      snapshots_um=np.asarray(ev.snapshots),
-                     max_contact_residual=float(ev.max_residual))
+                     max_contact_residual=float(ev.max_residual),
+                     integration=_integration(problem, ev))
 
 
 def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=False,
@@ -811,9 +949,70 @@ def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=Fal
       the effects the study switches on are always added.
     - `start`: optional start values by output name (user units), e.g.
       `{"K_d_per_Pa": 1e-12, "clearance_mm/n276": 0.06}`.
+    - `engine`: `"lm"` (default) or `"optimistix"` (see `fit`).
 
     **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
     """
     keys = with_registration(study, parse_fit(study, fit_spec))
     problem = build_problem(study, keys, start)
-    return fit(problem, max_steps=max_steps, verbose=verbose, engine=engine)
+    result = fit(problem, max_steps=max_steps, verbose=verbose, engine=engine)
+    return recheck_integration(study, result, max_steps=max_steps, verbose=verbose,
+                               engine=engine)
+
+
+def _integration(problem: Problem, ev: Evaluation) -> dict:
+    sched = problem.schedule
+    adaptive = sched.adaptive
+    tol = float(np.max(np.asarray(sched.tolerance))) * 1e6 if adaptive else None
+    err = None if ev.error_estimate is None else float(ev.error_estimate)
+    return {"integrator": "adaptive" if adaptive else "paper",
+            "error_estimate_um": err if err is None or math.isfinite(err) else "inf",
+            "steps": None if ev.steps is None else int(ev.steps), "tolerance_um": tol}
+
+
+def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **fit_kw
+                        ) -> FitResult:
+    """Re-check the integration error at the **fitted** parameters (the schedule, its
+    attempt count and the error all depend on K_d): adaptive fits whose error estimate
+    exceeds the tolerance are refitted from the fitted values with the tolerance divided
+    by 4 and schedules built at the fitted values, up to `refits` times; the paper
+    integrator gets the M-stability warning at the fitted values. What remains above
+    tolerance is said in the message and flags."""
+    problem = result.problem
+    names = list(problem.exp_names)
+
+    def per_exp(u):
+        pb = problem.batched_params(jnp.asarray(u))
+        return [jax.tree.map(lambda x: x[i], pb) for i in range(len(names))]
+
+    if study.integrator == "paper":
+        from ._simulate_study import amplification_warnings
+
+        for line in amplification_warnings(study, per_exp(result.u)):
+            result.flags.append(line.removeprefix("warning: "))
+        return result
+    tol = study.wear_tolerance_um
+    for k in range(refits + 1):
+        # schedules (and attempt counts) at the fitted values
+        fitted = dataclasses.replace(problem, schedule=_schedules(
+            dataclasses.replace(study, wear_tolerance_um=tol), per_exp(result.u)))
+        ev = evaluate(fitted, result.u)
+        err = float(ev.error_estimate)
+        if err <= study.wear_tolerance_um or k == refits:
+            break
+        tol /= 4
+        _log(fit_kw.get("verbose"), f"  integration error {err:.3g} µm above tolerance at "
+                                    f"the fitted values: refit at {tol:.3g} µm")
+        result = fit(dataclasses.replace(problem, schedule=_schedules(
+            dataclasses.replace(study, wear_tolerance_um=tol), per_exp(result.u))),
+            result.u, **fit_kw)
+        problem = result.problem
+    result.integration = _integration(fitted, ev)
+    if err <= study.wear_tolerance_um:
+        return result
+    note = (f"integration error estimate {err:.3g} µm at the fitted values exceeds the "
+            f"tolerance {study.wear_tolerance_um:g} µm (after {refits} refits); lower "
+            f"[numerics] wear_tolerance_um")
+    result.flags.append(note)
+    result.message += "; " + note
+    return result

@@ -18,7 +18,15 @@ import time
 
 import numpy as np
 
-from ._calibrate import FitResult, build_problem, fit, parse_fit, unit_of, with_registration
+from ._calibrate import (
+    FitResult,
+    build_problem,
+    fit,
+    parse_fit,
+    recheck_integration,
+    unit_of,
+    with_registration,
+)
 from ._errors import InputError
 
 DEFAULT_FIT = "K_d,clearance"
@@ -52,6 +60,13 @@ def summary_text(result: FitResult, study_name: str) -> str:
     lines.append(f"RMSE {result.rmse_um:.4g} µm overall (noise estimate {result.noise_um:.4g} µm)")
     for name, r in result.rmse_per_experiment.items():
         lines.append(f"  {name:<{w}}{r:.4g} µm")
+    integ = result.integration
+    if integ:
+        tol, err = integ.get("tolerance_um"), integ["error_estimate_um"]
+        err = f"{err:.3g}" if isinstance(err, float) else str(err)
+        lines.append(f"integration ({integ['integrator']}): error estimate "
+                     f"{err} µm in {integ['steps']} steps at the fitted "
+                     f"values" + (f" (tolerance {tol:g} µm)" if tol is not None else ""))
     if result.flags:
         lines.append("flags:")
         lines += [f"  - {f}" for f in result.flags]
@@ -173,16 +188,12 @@ def cmd_calibrate(args):
     if not problem.names:
         raise InputError(f"{study.path}: nothing to fit: {', '.join(keys)} requested, and "
                          f"[fit] clearance_tolerance_um = 0 fixes the clearances")
-    from ._simulate_study import amplification_warnings
-
-    for line in amplification_warnings(study):
-        print(line, file=sys.stderr, flush=True)
     n_exp = len(study.experiments)
     print(f"calibrate: {n_exp} experiments, {problem.n_data} data rows, fitting "
           f"{', '.join(problem.names) or 'nothing'} (first call compiles the model)",
           file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    result = fit(problem, verbose=True)
+    result = recheck_integration(study, fit(problem, verbose=True), verbose=True)
     print(f"calibrate: fit took {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     doc = result.to_json()
     written = [out.write_json("calibration.json", doc)]

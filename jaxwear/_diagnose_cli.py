@@ -54,5 +54,15 @@ def cmd_diagnose(args):
     print(f"verdict: {v['status']} (missing effect: {name}); base RMSE "
           f"{doc['baseline']['rmse_um']:.4g} µm, after {doc['after']['rmse_um']:.4g} µm, "
           f"noise {doc['baseline']['noise_um']:.4g} µm")
+    integ = doc["after"]["integration"]
+    if integ["integrator"] == "adaptive":
+        err, tol = float(integ["error_estimate_um"]), integ["tolerance_um"]
+        print(f"integration (adaptive) at the final fit: error estimate {err:.3g} µm "
+              f"(tolerance {tol:g} µm) in {integ['steps']} steps"
+              + ("" if err <= tol else "; ABOVE tolerance: lower numerics.wear_tolerance_um"
+                 " and rerun"))
+    else:
+        print(f"integration (paper, eq 23): {integ['steps']} updates; no error estimate "
+              f"(compare with half numerics.revolutions_per_update)")
     print(f"wrote {Path(args.out) / 'report.html'}, {Path(args.out) / 'diagnosis.json'}"
           + (f", {args.json}" if args.json else ""))

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from ._calibrate import FitResult, build_problem, fit, parse_fit
+from ._calibrate import FitResult, build_problem, fit, parse_fit, recheck_integration
 from ._errors import InputError
 from ._study import Experiment, History, Profile, Study
 
@@ -242,11 +242,33 @@ def forecast_study(study: Study, points: list[np.ndarray]) -> Study:
 def _forecast_jit(problem, u):
     """Snapshots (E, S, N) [µm] and their exact Jacobian (E, S, N, p) w.r.t. u."""
     def f(v):
-        snaps, _ = problem.snapshots(v)
-        return snaps, snaps
+        snaps, res = problem.snapshots(v)
+        return snaps, (snaps, jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
 
-    J, snaps = jax.jacfwd(f, has_aux=True)(u)
-    return snaps, J
+    J, (snaps, err, steps) = jax.jacfwd(f, has_aux=True)(u)
+    return snaps, J, err, steps
+
+
+def forecast_snapshots(problem, u):
+    """`_forecast_jit` as numpy, and the integration report of the forecast. The adaptive
+    loop's static attempt count is an estimate: where it fell short (error inf: a truncated
+    history), it is doubled and the forecast rerun rather than returned."""
+    import dataclasses
+
+    for _ in range(4):
+        snaps, J, err, steps = (np.asarray(x) for x in _forecast_jit(problem, u))
+        sched = problem.schedule
+        if not (sched.adaptive and not np.isfinite(float(err))):
+            break
+        problem = dataclasses.replace(
+            problem, schedule=sched.more_attempts())
+    sched = problem.schedule
+    tol = float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
+    e = float(err) if sched.adaptive else None
+    integ = {"integrator": "adaptive" if sched.adaptive else "paper",
+             "error_estimate_um": e if e is None or math.isfinite(e) else "inf",
+             "steps": int(steps), "tolerance_um": tol}
+    return snaps, J, integ
 
 
 def forecast_problem(study: Study, result: FitResult, keys, points):
@@ -382,7 +404,14 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
                   f"(first call compiles the model)")
     result = fit(problem, verbose=verbose)
     flags = []
-    m_stable = stable_update(study, result)
+    if study.integrator != "paper":
+        # the error at the fitted values (refitted at a tighter tolerance if above it); the
+        # forecast runs at the tolerance the fit ended with
+        result = recheck_integration(train, result, verbose=verbose)
+        tol = (result.integration or {}).get("tolerance_um")
+        if tol is not None and tol < study.wear_tolerance_um:
+            study = replace(study, wear_tolerance_um=tol)
+    m_stable = stable_update(study, result) if study.integrator == "paper" else math.inf
     if study.revolutions_per_update > m_stable:
         # The explicit update is near its stability limit at the fitted K_d: the depth may
         # look smooth while its Jacobian (and so the band) blows up at some points
@@ -419,7 +448,13 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
                   f"forecast model)")
     extra = {}
     if method == "laplace":
-        snaps, J = (np.asarray(x) for x in _forecast_jit(fprob, jnp.zeros(p)))
+        snaps, J, integ = forecast_snapshots(fprob, jnp.zeros(p))
+        extra["integration"] = integ
+        if integ["integrator"] == "adaptive" and not (
+                float(integ["error_estimate_um"]) <= integ["tolerance_um"]):
+            flags.append(f"integration error estimate {integ['error_estimate_um']} µm of the "
+                         f"forecast exceeds the tolerance {integ['tolerance_um']:g} µm: lower "
+                         f"numerics.wear_tolerance_um")
         draws = None
     else:
         from ._predict_nuts import run_nuts

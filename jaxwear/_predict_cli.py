@@ -42,6 +42,8 @@ def add_parser(sub, lazy):
     r.add_argument("--warmup", default="300", help="nuts: warm-up steps per chain")
     r.add_argument("--chains", default="2", help="nuts: chains (run one after another)")
     r.add_argument("--seed", default="0", help="nuts: random seed")
+    r.add_argument("--predictive-draws", default="200",
+                   help="nuts: posterior draws the forecast is run at (each a full forecast)")
     r.add_argument("--max-minutes", default="20",
                    help="nuts: refuse when the estimated run time exceeds this")
     r.set_defaults(func=lazy("_predict_cli", "cmd_predict"))
@@ -209,6 +211,11 @@ def summary_text(res) -> str:
                 return "n/a" if v is None else f"{v:.4g}"
             lines.append(f"life {x.experiment}: {x.limit_um:g} µm reached at {f(x.at)} "
                          f"[{f(x.lower)}, {f(x.upper)}] {x.unit}")
+    integ = res.extra.get("integration")
+    if integ and integ["integrator"] == "adaptive":
+        lines.append(f"integration (adaptive) of the forecast: error estimate "
+                     f"{float(integ['error_estimate_um']):.3g} µm (tolerance "
+                     f"{integ['tolerance_um']:g} µm) in {integ['steps']} steps")
     lines += [f"flag: {f}" for f in res.flags]
     return "\n".join(lines)
 
@@ -232,7 +239,9 @@ def cmd_predict(args):
                     warmup=_num("--warmup", args.warmup, positive=True, integer=True),
                     chains=_num("--chains", args.chains, positive=True, integer=True),
                     seed=_num("--seed", args.seed, integer=True),
-                    max_minutes=_num("--max-minutes", args.max_minutes, positive=True))
+                    max_minutes=_num("--max-minutes", args.max_minutes, positive=True),
+                    n_predictive=_num("--predictive-draws", args.predictive_draws,
+                                      positive=True, integer=True))
     study = load_study(args.study)
     # refuse an output over an input, and work that cannot finish, before hours of work
     out = open_outputs(study, args.out, planned=predict_outputs(study, args.method),

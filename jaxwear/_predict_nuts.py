@@ -28,6 +28,7 @@ import sys
 import time
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -75,6 +76,53 @@ def log_prior(problem, u):
     return lp
 
 
+def log_density(problem, noise_um=None):
+    """The posterior's log density (up to a constant) as a function of the position z.
+
+    z = {"u": (p,) the fit's parameterisation, "log_noise": () ln σ[µm]} ("log_noise" absent
+    when `noise_um` is given). Gaussian likelihood of the training rows times `log_prior`
+    (and the log-uniform σ on [1e-3, 1e3] µm); -inf outside the prior's support or where
+    the model is not finite. The one density both samplers use (NumPyro in `run_nuts`,
+    BlackJAX in benchmarks/nuts_samplers.py).
+    """
+    y = problem.data.depth_um
+    given = noise_um is not None
+    lo_s, hi_s = math.log(1e-3), math.log(1e3)
+
+    def logp(z):
+        u, log_s = z["u"], (jnp.log(noise_um) if given else z["log_noise"])
+        snaps, res = problem.snapshots(u)
+        r = problem.predict_from(snaps, u) - y
+        # an adaptive loop that ran out of attempts returned a truncated history (error
+        # estimate inf): such a position is not a model evaluation; never sample on it
+        r = jnp.where(jnp.isfinite(jnp.max(res.error_estimate)), r, jnp.nan)
+        s2 = jnp.exp(2 * log_s)
+        ll = -0.5 * jnp.sum(r ** 2) / s2 - r.shape[0] * log_s
+        if not given:  # log-uniform σ: flat in log σ within the bounds
+            ll = ll + jnp.where((log_s > lo_s) & (log_s < hi_s), 0.0, -jnp.inf)
+        out = ll + log_prior(problem, u)
+        return jnp.where(jnp.isfinite(out), out, -jnp.inf)
+
+    return logp
+
+
+def _more_attempts(problem, factor: int):
+    import dataclasses
+
+    sched = problem.schedule
+    if not sched.adaptive:
+        return problem
+    return dataclasses.replace(problem, schedule=sched.more_attempts(factor))
+
+
+def initial_position(result, noise_um=None) -> dict:
+    """The sampler's start: the least-squares fit (and its residual noise level)."""
+    z0 = {"u": jnp.asarray(result.u)}
+    if noise_um is None:
+        z0["log_noise"] = jnp.asarray(math.log(max(result.noise_um, 1e-3)))
+    return z0
+
+
 def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
              draws: int = 500, warmup: int = 300, chains: int = 2, seed: int = 0,
              max_minutes: float = 20.0, n_predictive: int = 200, out=None,
@@ -91,24 +139,30 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
 
     names = list(problem.names)
     p = len(names)
-    y = problem.data.depth_um
-    u_fit = jnp.asarray(result.u)
     given = noise_um is not None
-    lo_s, hi_s = math.log(1e-3), math.log(1e3)
+    # Room for the draws: the training problem's attempt count was estimated at the start
+    # values, so first raise it to what the fitted values need (K_d moves by orders), then
+    # leave 4x headroom for the posterior's tails (larger K_d: more steps on a stiff layer).
+    # Unused attempts cost nothing; a draw that still runs out gets log density -inf.
+    from ._calibrate import _enough_attempts
+
+    problem = _enough_attempts(problem, np.asarray(result.u))
+    problem, fprob = (_more_attempts(x, 4) for x in (problem, fprob))
+    z_fit = initial_position(result, noise_um)
+    for _ in range(4):  # the estimate may still fall short at the fit itself
+        logp = log_density(problem, noise_um)
+        if not problem.schedule.adaptive or math.isfinite(float(jax.jit(logp)(z_fit))):
+            break
+        problem = _more_attempts(problem, 2)
+    if not math.isfinite(float(jax.jit(logp)(z_fit))):
+        raise RuntimeError("predict/nuts: the log density is not finite at the fitted "
+                           "parameters; the sampler cannot start there")
 
     def potential(z):
-        u, log_s = z["u"], (jnp.log(noise_um) if given else z["log_noise"])
-        r = problem.predict(u) - y
-        s2 = jnp.exp(2 * log_s)
-        ll = -0.5 * jnp.sum(r ** 2) / s2 - r.shape[0] * log_s
-        if not given:  # log-uniform σ: flat in log σ within the bounds
-            ll = ll + jnp.where((log_s > lo_s) & (log_s < hi_s), 0.0, -jnp.inf)
-        out = -(ll + log_prior(problem, u))
-        return jnp.where(jnp.isfinite(out), out, jnp.inf)
+        return -logp(z)
 
-    z0 = {"u": u_fit}
-    if not given:
-        z0["log_noise"] = jnp.asarray(math.log(max(result.noise_um, 1e-3)))
+    z0 = initial_position(result, noise_um)
+    u_fit = z0["u"]
     # time the gradient (compile first) for the run-time estimate
     grad = jax.jit(jax.value_and_grad(potential)) if not forward_mode else jax.jit(
         lambda z: (potential(z), jax.jacfwd(potential)(z)))
@@ -144,7 +198,9 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     mcmc = MCMC(kernel, num_warmup=warmup, num_samples=draws, num_chains=chains,
                 chain_method="sequential", progress_bar=False)
     t0 = time.perf_counter()
-    init = jax.tree.map(lambda a: jnp.broadcast_to(a, (chains, *jnp.shape(a))), z0)
+    # numpyro takes one chain's start unbatched, several with a leading chain axis
+    init = z0 if chains == 1 else jax.tree.map(
+        lambda a: jnp.broadcast_to(a, (chains, *jnp.shape(a))), z0)
     mcmc.run(jax.random.PRNGKey(seed), init_params=init, extra_fields=("diverging",
                                                                         "num_steps"))
     t_run = time.perf_counter() - t0
@@ -182,10 +238,20 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     idx = np.linspace(0, len(flat_u) - 1, n_pred).round().astype(int)
     _log(verbose, f"predict/nuts: sampled in {t_run:.0f} s ({n_div} divergences, "
                   f"{mean_steps:.1f} leapfrog steps per step); forecasting {n_pred} draws")
-    fcs = jax.jit(lambda u: fprob.snapshots(u)[0])
+    @eqx.filter_jit
+    def fcs(fp, u):
+        snaps, res = fp.snapshots(u)
+        return snaps, jnp.max(res.error_estimate)
+
     mx, prof = [], []
     for j in idx:
-        s = np.asarray(fcs(jnp.asarray(flat_u[j])))  # (E, S, N)
+        s, err = fcs(fprob, jnp.asarray(flat_u[j]))
+        for _ in range(3):  # a draw whose forecast needs more integration steps
+            if np.isfinite(float(err)):
+                break
+            fprob = _more_attempts(fprob, 2)
+            s, err = fcs(fprob, jnp.asarray(flat_u[j]))
+        s = np.asarray(s)  # (E, S, N)
         mx.append(s.max(axis=-1))
         prof.append(s)
     mx = np.stack(mx)

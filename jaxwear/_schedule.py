@@ -7,6 +7,7 @@ requested snapshot and at every change of duty-cycle regime.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -24,6 +25,10 @@ class Schedule(eqx.Module):
     - `regime`: index into the load history's regimes.
     - `snapshot`: index of the snapshot taken after the update (n_snapshots = none).
     - `cycle_end`: cumulative cycle count after the update.
+
+    Adaptive schedules (`attempts > 0`) hold one entry per *piece* (a stretch of one regime
+    between cuts) instead of per update; `tolerance` [m] bounds the integration error and
+    `attempts` is the static number of attempted Runge-Kutta steps the loop runs.
     """
 
     cycles: Float[Array, " updates"]
@@ -33,10 +38,22 @@ class Schedule(eqx.Module):
     n_snapshots: int = eqx.field(static=True)
     # requested snapshot i is the order[i]-th distinct count in increasing order
     order: tuple = eqx.field(static=True, default=())
+    attempts: int = eqx.field(static=True, default=0)
+    tolerance: Float[Array, ""] | None = None
+
+    @property
+    def adaptive(self) -> bool:
+        return self.attempts > 0
 
     @property
     def updates(self) -> int:
         return self.cycles.shape[0]
+
+    def more_attempts(self, factor: int = 2) -> Schedule:
+        """The same schedule with `factor` times the adaptive loop's static attempt count
+        (one more compilation), for a run whose error estimate came back inf: the attempt
+        count is an estimate, and a run that exhausts it returns a truncated history."""
+        return dataclasses.replace(self, attempts=factor * self.attempts)
 
 
 def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> Schedule:
@@ -85,6 +102,23 @@ def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> S
     return Schedule(cycles=jnp.asarray(cyc, jnp.float64), regime=jnp.asarray(reg, jnp.int32),
                     snapshot=jnp.asarray(snap_idx), cycle_end=jnp.asarray(end_arr, jnp.float64),
                     n_snapshots=len(snaps), order=order)
+
+
+def pad_schedule(s: Schedule, updates: int, n_snapshots: int | None = None,
+                 attempts: int | None = None) -> Schedule:
+    """`s` padded with no-op entries (0 cycles) to `updates` entries, with its "no snapshot"
+    index moved to `n_snapshots` and (adaptive) `attempts` raised, so that schedules of
+    several experiments stack into one batch. Snapshots come back in increasing order."""
+    S = s.n_snapshots if n_snapshots is None else n_snapshots
+    extra = updates - s.updates
+    snap = jnp.where(s.snapshot >= s.n_snapshots, S, s.snapshot)
+    return Schedule(cycles=jnp.concatenate([s.cycles, jnp.zeros(extra)]),
+                    regime=jnp.concatenate([s.regime, jnp.zeros(extra, jnp.int32)]),
+                    snapshot=jnp.concatenate([snap, jnp.full(extra, S, jnp.int32)]),
+                    cycle_end=jnp.concatenate([s.cycle_end, jnp.full(extra, s.cycle_end[-1])]),
+                    n_snapshots=S,
+                    attempts=s.attempts if attempts is None else attempts,
+                    tolerance=s.tolerance)
 
 
 def crank_segments(revolutions: float):

@@ -28,8 +28,8 @@ from ._calibrate import unit_of
 from ._config import ModelConfig
 from ._errors import InputError
 from ._params import PARAMETER_KEYS, Params, key_to_si
-from ._schedule import Schedule, bucket
-from ._wear import build_schedule, wear_loop
+from ._schedule import Schedule, bucket, pad_schedule
+from ._wear import build_schedule, schedule_numerics, wear_loop
 from .effects import effect_parameter_specs, get_effect
 
 # What enters each part of the model (crank_mass does not: the crank turns at constant
@@ -63,6 +63,7 @@ class Sensitivities:
     - `peak_depth_um`, `worn_volume_mm3`: the outputs at the operating point.
     - `peak`, `volume`: d ln(peak depth) / d ln θ and d ln(worn volume) / d ln θ, (keys,).
     - `worn_through_cycle` (-1: never) and `max_contact_residual` of the run.
+    - `error_estimate_um`, `steps`: the wear integration's error estimate and step count.
     """
 
     keys: list
@@ -74,6 +75,8 @@ class Sensitivities:
     volume: np.ndarray
     worn_through_cycle: float
     max_contact_residual: float
+    error_estimate_um: float = 0.0
+    steps: int = 0
 
     def as_dict(self) -> dict:
         return {k: {"value": float(v), "unit": u, "peak_depth": float(a),
@@ -95,7 +98,8 @@ def _log_outputs(s, p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple):
     r = wear_loop(q, cfg, sched)
     peak, vol = jnp.max(r.depth), r.worn_volume
     return jnp.stack([jnp.log(peak), jnp.log(vol)]), (peak, vol, r.worn_through_cycle,
-                                                      r.max_residual)
+                                                      r.max_residual, r.error_estimate,
+                                                      r.steps)
 
 
 @eqx.filter_jit
@@ -108,13 +112,14 @@ def _jac(p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple, mode: str):
 
 
 def sensitivities(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
-                  M: float = 100, keys=None, mode: str = "fwd",
+                  M: float | None = None, keys=None, mode: str = "fwd",
                   schedule: Schedule | None = None) -> Sensitivities:
     """d ln y / d ln θ of y = peak depth and worn volume, by autodiff through the wear loop.
 
     **Arguments:**
     - `p`, `cfg`: the operating point; `revolutions` (crank-slider) or `hours`
-      (oscillating joint); `M`: cycles per wear update.
+      (oscillating joint); `M`: cycles per wear update of eq 23 (None: the adaptive
+      integrator at its default tolerance, as `simulate`).
     - `keys`: study keys θ (default: `relevant_keys(p, cfg)`; each must be non-zero).
     - `mode`: `"fwd"` (`jax.jacfwd`: one tangent per parameter) or `"rev"` (`jax.jacrev`:
       one reverse pass per output, through the checkpointed scan).
@@ -134,30 +139,34 @@ def sensitivities(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
         raise ValueError(f"sensitivity: mode must be 'rev' or 'fwd', got {mode!r}")
     sched = schedule if schedule is not None else build_schedule(
         p, cfg, revolutions=revolutions, hours=hours, M=M)
-    J, (peak, vol, worn, resid) = jax.device_get(_jac(p, cfg, sched, keys, mode))
+    J, (peak, vol, worn, resid, err, steps) = jax.device_get(_jac(p, cfg, sched, keys, mode))
+    # the adaptive loop's attempt count is an estimate: where it fell short (error inf, a
+    # truncated history) double it rather than differentiate a run that did not finish
+    for _ in range(3):
+        if not (sched.adaptive and not np.isfinite(float(err))):
+            break
+        sched = sched.more_attempts()
+        J, (peak, vol, worn, resid, err, steps) = jax.device_get(
+            _jac(p, cfg, sched, keys, mode))
     J = np.asarray(J)
     return Sensitivities(keys=list(keys),
                          values=np.array([float(p.get(k)) / key_to_si(k) for k in keys]),
                          units=[unit_of(k) for k in keys], peak_depth_um=float(peak) * 1e6,
                          worn_volume_mm3=float(vol) * 1e9, peak=J[0], volume=J[1],
-                         worn_through_cycle=float(worn), max_contact_residual=float(resid))
+                         worn_through_cycle=float(worn), max_contact_residual=float(resid),
+                         error_estimate_um=float(err) * 1e6, steps=int(steps))
 
 
 def _padded_schedules(study) -> list[Schedule]:
     """Each experiment's schedule, padded (M = 0 updates) to one length: one compilation."""
     scheds = [build_schedule(study.params(e), study.config, revolutions=e.revolutions,
-                             hours=e.hours, M=study.revolutions_per_update, pad=False)
+                             hours=e.hours, pad=False, **schedule_numerics(study))
               for e in study.experiments]
     U = bucket(max(s.updates for s in scheds))  # the length `simulate` would compile
+    A = max(s.attempts for s in scheds)
     out = []
     for s in scheds:
-        extra = U - s.updates
-        out.append(Schedule(cycles=jnp.concatenate([s.cycles, jnp.zeros(extra)]),
-                            regime=jnp.concatenate([s.regime, jnp.zeros(extra, jnp.int32)]),
-                            snapshot=jnp.concatenate([s.snapshot, jnp.full(extra, 0, jnp.int32)]),
-                            cycle_end=jnp.concatenate([s.cycle_end,
-                                                       jnp.full(extra, s.cycle_end[-1])]),
-                            n_snapshots=0))
+        out.append(pad_schedule(s, U, 0, A))
     return out
 
 
@@ -229,13 +238,18 @@ def cmd_sensitivity(args):
                   rows)
     out.write_json("sensitivity.json", {name: {
         "peak_depth_um": r.peak_depth_um, "worn_volume_mm3": r.worn_volume_mm3,
-        "worn_through_cycle": r.worn_through_cycle, "sensitivities": r.as_dict()}
+        "worn_through_cycle": r.worn_through_cycle, "sensitivities": r.as_dict(),
+        "integration": {"integrator": study.integrator,
+                        "error_estimate_um": r.error_estimate_um, "steps": r.steps,
+                        "tolerance_um": study.wear_tolerance_um
+                        if study.integrator != "paper" else None}}
         for name, r in results.items()})
     _bar_chart(out.path("sensitivity.png"), results)
     print("normalised sensitivities d ln y / d ln θ (a 1 % change of θ changes y by S %)")
     for name, r in results.items():
         print(f"\n{name}: peak depth {r.peak_depth_um:.4g} µm, worn volume "
-              f"{r.worn_volume_mm3:.4g} mm³")
+              f"{r.worn_volume_mm3:.4g} mm³; integration error estimate "
+              f"{r.error_estimate_um:.3g} µm in {r.steps} steps")
         if r.worn_through_cycle >= 0:
             print(f"  WARNING: the layer wears through at cycle {r.worn_through_cycle:.0f}; "
                   f"these sensitivities describe a bore worn past its layer")

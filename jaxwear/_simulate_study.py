@@ -15,6 +15,8 @@ from ._wear import (
     build_schedule,
     check_result,
     cycle_increment,
+    integration_report,
+    schedule_numerics,
     simulate,
     stable_amplification,
 )
@@ -24,12 +26,16 @@ def progress(msg: str):
     print(msg, file=sys.stderr, flush=True)
 
 
-def amplification_warnings(study: Study) -> list[str]:
-    """A line for each experiment whose M exceeds the explicit-update stability estimate."""
+def amplification_warnings(study: Study, params=None) -> list[str]:
+    """A line for each experiment whose M exceeds the explicit-update stability estimate
+    (paper integrator only; `params`: per-experiment `Params` to check, e.g. fitted ones)."""
     out = []
+    if study.integrator != "paper":
+        return out
     M = study.revolutions_per_update
-    for exp in study.experiments:
-        limit = stable_amplification(study.params(exp), study.config)
+    for i, exp in enumerate(study.experiments):
+        p = study.params(exp) if params is None else params[i]
+        limit = stable_amplification(p, study.config)
         if M > limit:
             out.append(f"warning: {exp.name}: revolutions_per_update = {M:g} exceeds the "
                        f"stability estimate {limit:.3g} of the explicit wear update for this "
@@ -39,11 +45,18 @@ def amplification_warnings(study: Study) -> list[str]:
     return out
 
 
+def _numerics(study: Study, M):
+    num = schedule_numerics(study)
+    if M is not None:
+        num.update(M=M, integrator="paper")
+    return num
+
+
 def common_length(study: Study, M=None) -> int:
     """Update count (bucketed) that fits every experiment: one compilation for the study."""
-    M = study.revolutions_per_update if M is None else M
     return max(build_schedule(study.params(e), study.config, revolutions=e.revolutions,
-                              hours=e.hours, snapshots=e.snapshot_points, M=M).updates
+                              hours=e.hours, snapshots=e.snapshot_points,
+                              **_numerics(study, M)).updates
                for e in study.experiments)
 
 
@@ -51,9 +64,9 @@ def run_experiment(study: Study, exp: Experiment, *, M=None, check=True,
                    pad_to: int | None = None) -> WearResult:
     """Simulate one experiment with snapshots at its measured revolution counts / hours."""
     p = study.params(exp)
-    M = study.revolutions_per_update if M is None else M
     res = simulate(p, study.config, revolutions=exp.revolutions, hours=exp.hours,
-                   snapshots=exp.snapshot_points, M=M, check=False, pad_to=pad_to)
+                   snapshots=exp.snapshot_points, check=False, pad_to=pad_to,
+                   **_numerics(study, M))
     if check:
         check_result(res, study.config, f"experiment {exp.name!r}")
     return res
@@ -112,9 +125,12 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
             "scla_last_pass_gamma_change_deg": float(np.degrees(np.max(
                 np.asarray(res.history.gamma_change)))),
             "wall_time_s": dt,
+            "integration": integration_report(res, study.integrator, study.wear_tolerance_um),
         }
         progress(f"    peak {depth_um[peak]:.3f} µm at {angles[peak]:.0f}°, "
-                 f"volume {float(res.worn_volume) * 1e9:.4f} mm³ ({dt:.2f} s)")
+                 f"volume {float(res.worn_volume) * 1e9:.4f} mm³, integration error "
+                 f"≈ {float(res.error_estimate) * 1e6:.2g} µm in {int(res.steps)} steps "
+                 f"({dt:.2f} s)")
         if out is not None and plots:
             measured = None
             if exp.profile is not None:

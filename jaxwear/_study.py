@@ -73,7 +73,7 @@ class Study:
     clearance_tolerance_um: float = 5.0
     fit: tuple[str, ...] = ()
     integrator: str = "adaptive"  # or "paper" (fixed M = revolutions_per_update, eq 23)
-    wear_tolerance_um: float = 0.01
+    wear_tolerance_um: float = 0.002
     angle_tolerance_deg: float = 0.0
     raw: dict = field(default_factory=dict, repr=False)
 
@@ -399,10 +399,13 @@ def load_study(path) -> Study:
                                               num["steps_per_rev"], positive=True, integer=True))
     M = _number(path, "numerics.revolutions_per_update", num.get("revolutions_per_update", 100),
                 positive=True)
-    integrator = num.get("integrator", "adaptive")
+    # An explicit revolutions_per_update without an integrator asks for eq 23 (as
+    # `simulate(..., M=...)` does); no [numerics] M gives the error-controlled default.
+    integrator = num.get("integrator",
+                         "paper" if "revolutions_per_update" in num else "adaptive")
     if integrator not in ("adaptive", "paper"):
         _fail(path, f"numerics.integrator must be \"adaptive\" or \"paper\", got {integrator!r}")
-    wear_tol = _number(path, "numerics.wear_tolerance_um", num.get("wear_tolerance_um", 0.01),
+    wear_tol = _number(path, "numerics.wear_tolerance_um", num.get("wear_tolerance_um", 0.002),
                        positive=True)
     try:
         config = ModelConfig(**cfg_kw)

@@ -25,7 +25,7 @@ from ._errors import InputError
 from ._parallel import sharded_vmap
 from ._params import PARAMETER_KEYS, Params, key_to_si
 from ._schedule import Schedule
-from ._wear import build_schedule, node_area, wear_loop
+from ._wear import DEFAULT_WEAR_TOLERANCE_UM, build_schedule, node_area, wear_loop
 from .effects import effect_parameter_specs
 
 
@@ -41,6 +41,9 @@ class SweepResult:
       not physical (`valid` is False there).
     - `max_contact_residual`: largest relative contact force residual met.
     - `depth_um`: final profiles, shape grid + (nodes,).
+    - `error_estimate_um`: the wear integration's error estimate at each point (adaptive:
+      the controlled global estimate; eq 23: Euler's), `steps` its accepted steps, and
+      `tolerance_um` the adaptive tolerance (None for eq 23).
     """
 
     axes: dict
@@ -50,6 +53,9 @@ class SweepResult:
     worn_through_cycle: np.ndarray
     max_contact_residual: np.ndarray
     depth_um: np.ndarray
+    error_estimate_um: np.ndarray | None = None
+    steps: np.ndarray | None = None
+    tolerance_um: float | None = None
 
     @property
     def shape(self) -> tuple:
@@ -57,8 +63,12 @@ class SweepResult:
 
     @property
     def valid(self) -> np.ndarray:
-        """True where the layer did not wear through and the contact converged."""
-        return (self.worn_through_cycle < 0) & (self.max_contact_residual < 1e-9)
+        """True where the layer did not wear through, the contact converged and the wear
+        integration reached the end (a finite error estimate)."""
+        ok = (self.worn_through_cycle < 0) & (self.max_contact_residual < 1e-9)
+        if self.error_estimate_um is not None:
+            ok &= np.isfinite(self.error_estimate_um)
+        return ok
 
     def points(self) -> dict:
         """Axis values at every grid point, each flattened in C order (like `.ravel()`)."""
@@ -97,7 +107,7 @@ def _outputs(p, cfg, sched, keys, vals):
     q = p.with_values({k: vals[i] for i, k in enumerate(keys)})
     r = wear_loop(q, cfg, sched)
     return (r.depth, r.worn_volume, r.worn_through_cycle, r.max_residual,
-            node_area(q, cfg.nodes))
+            node_area(q, cfg.nodes), r.error_estimate, r.steps)
 
 
 @eqx.filter_jit
@@ -124,20 +134,24 @@ def _method(method: str) -> str:
 def _base(base, cfg, revolutions, hours, M, experiment):
     from ._study import Study
 
+    tol = DEFAULT_WEAR_TOLERANCE_UM
+
     if isinstance(base, Study):
         exp = base.experiments[experiment]
         p = base.params(exp)
         cfg = base.config if cfg is None else cfg
         if revolutions is None and hours is None:
             revolutions, hours = exp.revolutions, exp.hours
-        M = base.revolutions_per_update if M is None else M
+        if M is None and base.integrator == "paper":
+            M = base.revolutions_per_update
+        tol = base.wear_tolerance_um
     elif isinstance(base, Params):
         p = base
         if cfg is None:
             raise TypeError("sweep: pass a ModelConfig `cfg` with a Params base")
     else:
         raise TypeError(f"sweep: base must be a Study or Params, got {type(base).__name__}")
-    return p, cfg, revolutions, hours, (100.0 if M is None else M)
+    return p, cfg, revolutions, hours, M, tol
 
 
 def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
@@ -161,33 +175,56 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
     **Returns:** a `SweepResult`. Each point equals `simulate` at that point: same schedule
     (the bucketed one `simulate` builds), same wear loop.
     """
-    p, cfg, revolutions, hours, M = _base(base, cfg, revolutions, hours, M, experiment)
+    p, cfg, revolutions, hours, M, tol = _base(base, cfg, revolutions, hours, M, experiment)
     method = _method(method)
     grid = _check_grid(p, cfg, dict(grid or {}))
-    sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, M=M)
+    sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, M=M, tolerance_um=tol)
+    if sched.adaptive:
+        # one static attempt count for the whole grid: room for stiffer points (a point that
+        # runs out reports an infinite error estimate)
+        sched = sched.more_attempts()
     keys = tuple(grid)
     shape = tuple(len(v) for v in grid.values())
     mesh = np.meshgrid(*grid.values(), indexing="ij")
     si = np.stack([m.ravel() * key_to_si(k) for k, m in zip(keys, mesh)], axis=1)
     total = si.shape[0]
     chunk = max(1, min(int(chunk), total))
-    parts = []
     t0 = time.perf_counter()
-    for start in range(0, total, chunk):
-        block = si[start:start + chunk]
-        n = block.shape[0]
-        if n < chunk:  # pad: one compiled chunk size for the whole sweep
-            block = np.concatenate([block, np.repeat(block[-1:], chunk - n, axis=0)])
-        if jax.device_count() > 1:  # shard the chunk's points over all devices/processes
-            out = sharded_vmap(_outputs, (jnp.asarray(block),),
-                               broadcast_args=(p, cfg, sched, keys), method=method)
-        else:
-            out = jax.device_get(_run_chunk(p, cfg, sched, keys, jnp.asarray(block), method))
-        parts.append([np.asarray(o)[:n] for o in out])
+
+    def run(si, sched):
+        parts = []
+        for start in range(0, si.shape[0], chunk):
+            block = si[start:start + chunk]
+            n = block.shape[0]
+            if n < chunk:  # pad: one compiled chunk size for the whole sweep
+                block = np.concatenate([block, np.repeat(block[-1:], chunk - n, axis=0)])
+            if jax.device_count() > 1:  # shard the chunk's points over all devices/processes
+                out = sharded_vmap(_outputs, (jnp.asarray(block),),
+                                   broadcast_args=(p, cfg, sched, keys), method=method)
+            else:
+                out = jax.device_get(_run_chunk(p, cfg, sched, keys, jnp.asarray(block),
+                                                method))
+            parts.append([np.asarray(o)[:n] for o in out])
+            if progress:
+                print(f"  sweep: {min(start + chunk, si.shape[0])}/{si.shape[0]} points "
+                      f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr, flush=True)
+        return [np.concatenate(x) for x in zip(*parts)]
+
+    cols = run(si, sched)
+    # Points whose adaptive loop ran out of attempts (stiffer than the base point: error
+    # inf, a truncated history) are rerun with twice the attempts, not returned truncated.
+    for _ in range(3):
+        short = ~np.isfinite(cols[5])
+        if not (sched.adaptive and short.any()):
+            break
+        sched = sched.more_attempts()
         if progress:
-            print(f"  sweep: {min(start + chunk, total)}/{total} points "
-                  f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr, flush=True)
-    depth, vol, worn, resid, area = (np.concatenate(x) for x in zip(*parts))
+            print(f"  sweep: {int(short.sum())} point(s) need more integration steps: rerun "
+                  f"with {sched.attempts} attempts", file=sys.stderr, flush=True)
+        again = run(si[short], sched)
+        for c, a in zip(cols, again):
+            c[short] = a
+    depth, vol, worn, resid, area, err, steps = cols
     depth_um = depth * 1e6
     nodes = cfg.nodes
     peak_idx = np.argmax(depth_um, axis=1)
@@ -198,7 +235,10 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         worn_volume_mm3=(vol * 1e9).reshape(shape),
         worn_through_cycle=worn.reshape(shape),
         max_contact_residual=resid.reshape(shape),
-        depth_um=depth_um.reshape(shape + (nodes,)))
+        depth_um=depth_um.reshape(shape + (nodes,)),
+        error_estimate_um=(err * 1e6).reshape(shape), steps=steps.reshape(shape),
+        tolerance_um=float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive
+        else None)
 
 
 MAX_POINTS = 100_000  # grid points of one sweep (each is a whole wear simulation)
@@ -308,10 +348,12 @@ def cmd_sweep(args):
         rows.append(keyvals + [res.peak_depth_um.ravel()[i] if ok else np.nan,
                                res.worn_volume_mm3.ravel()[i] if ok else np.nan,
                                res.peak_angle_deg.ravel()[i] if ok else np.nan,
-                               res.worn_through_cycle.ravel()[i]])
+                               res.worn_through_cycle.ravel()[i],
+                               res.error_estimate_um.ravel()[i], res.steps.ravel()[i]])
     unit = "cycle" if osc else "revolution"
     out.write_csv("sweep.csv", cols + ["peak_depth_um", "worn_volume_mm3", "peak_angle_deg",
-                                       f"worn_through_{unit}"], rows)
+                                       f"worn_through_{unit}", "integration_error_um",
+                                       "integration_steps"], rows)
     _heatmap(out.path("sweep_peak_depth.png"), f"{exp.name}, {what}: peak wear depth",
              "peak depth [µm]", res, res.peak_depth_um)
     _heatmap(out.path("sweep_worn_volume.png"), f"{exp.name}, {what}: worn volume",
@@ -323,8 +365,14 @@ def cmd_sweep(args):
           f"{np.nanmin(np.where(v, res.worn_volume_mm3, np.nan)):.4g} to "
           f"{np.nanmax(np.where(v, res.worn_volume_mm3, np.nan)):.4g} mm³"
           if v.any() else f"sweep of {total} points in {dt:.1f} s: every point wore through")
+    err = res.error_estimate_um[np.isfinite(res.error_estimate_um)]
+    if err.size:
+        how = (f"adaptive, tolerance {res.tolerance_um:g} µm" if res.tolerance_um is not None
+               else "eq 23, Euler's estimate")
+        print(f"integration ({how}): error estimate up to {err.max():.3g} µm, "
+              f"{int(res.steps.min())}-{int(res.steps.max())} steps per point")
     if not v.all():
-        print(f"{int((~v).sum())} points wore through the layer (or the contact did not "
-              f"converge): NaN in sweep.csv, marked in the plots")
+        print(f"{int((~v).sum())} points wore through the layer (or the contact or the "
+              f"integration did not converge): NaN in sweep.csv, marked in the plots")
     print(f"wrote {out.root / 'sweep.csv'}, sweep_peak_depth.png, sweep_worn_volume.png")
     return res

@@ -143,7 +143,7 @@ def paper_conditions(numerics=None) -> Study:
     return Study(path=Path("paper"), preset="rig", config=cfg,
                  parameters={"K_d_per_Pa": 1.0e-13, "spring_N_per_m": 1009.4},
                  experiments=exps, revolutions_per_update=float(num["revolutions_per_update"]),
-                 clearance_tolerance_um=5.0)
+                 clearance_tolerance_um=5.0, integrator="paper")
 
 
 def _measure_points(study: Study, exp: Experiment) -> list[float]:
@@ -352,7 +352,8 @@ def _conditions(conditions, numerics) -> Study:
         kw = {k: int(v) for k, v in numerics.items() if k in ("nodes", "steps_per_rev")}
         st = st.with_config(**kw) if kw else st
         if "revolutions_per_update" in numerics:
-            st = replace(st, revolutions_per_update=float(numerics["revolutions_per_update"]))
+            st = replace(st, revolutions_per_update=float(numerics["revolutions_per_update"]),
+                         integrator="paper")
     return st
 
 

@@ -4,12 +4,22 @@
 array is made; every tolerance in these tests assumes 64-bit floats.
 """
 
+import os
 import sys
 from pathlib import Path
 
 import pytest
 
 import jaxwear
+
+# No persistent compilation cache in the tests. The CLI turns JAX's cache on process-wide
+# (~/.cache/jaxwear), and the tests run the CLI in-process, so every later library test read
+# and wrote that cache. Four full-suite runs died inside it (segfaults and an abort while
+# reading or writing an entry, in test_wear), once in CI. The tests check the model, not
+# JAX's cache; JAXWEAR_NO_CACHE=1 keeps the CLI off it, in-process and in subprocesses
+# (they inherit it). A fresh cache folder of the suite's own measured no faster (the
+# programs are rarely traced twice identically), so none is used.
+os.environ["JAXWEAR_NO_CACHE"] = "1"
 
 # tests/ on the path so that `import helpers` works whatever the import mode.
 sys.path.insert(0, str(Path(__file__).parent))

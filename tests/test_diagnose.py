@@ -190,6 +190,10 @@ def test_cli_writes_the_design_json_and_a_self_contained_report(tmp_path):
     ev = [c["evidence"] for c in doc["candidates"]]
     assert ev == sorted(ev, reverse=True)  # best first
     assert json.loads((out / "diagnosis.json").read_text()) == doc
+    for part in ("baseline", "after"):  # eq 23 here: step count, no error estimate
+        integ = doc[part]["integration"]
+        assert integ["integrator"] == "paper" and integ["error_estimate_um"] is None
+        assert integ["steps"] == 30  # 15 000 rev / M = 500: the longest experiment's updates
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 5
     assert "http://" not in html and "https://" not in html and "<script" not in html
@@ -198,3 +202,26 @@ def test_cli_writes_the_design_json_and_a_self_contained_report(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[model]\npreset = "moon"\n')
     assert main(["diagnose", str(bad), "--out", str(tmp_path / "x")]) == 2
+
+
+def test_cli_reports_the_adaptive_integration_error_at_the_final_fit(tmp_path, capsys):
+    """Under the default (adaptive) integrator, diagnose says how far its own integration is
+    to be trusted, at the fit it reports: error estimate within the tolerance, steps > 0."""
+    res = synthesize(["running_in"], "paper", noise_um=NOISE, seed=32, numerics=SMALL,
+                     out=tmp_path / "study")
+    text = res.study_path.read_text()
+    # the same data, integrated adaptively (no revolutions_per_update: the default)
+    adaptive = tmp_path / "study" / "adaptive.toml"
+    adaptive.write_text("\n".join(ln for ln in text.splitlines()
+                                  if not ln.startswith("revolutions_per_update")))
+    js = tmp_path / "v.json"
+    assert main(["diagnose", str(adaptive), "--out", str(tmp_path / "d"), "--json",
+                 str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert doc["verdict"]["missing_effect"] == "running_in"
+    for part in ("baseline", "after"):
+        integ = doc[part]["integration"]
+        assert integ["integrator"] == "adaptive" and integ["tolerance_um"] == 0.002
+        assert 0 < integ["error_estimate_um"] <= integ["tolerance_um"]
+        assert integ["steps"] > 0
+    assert "integration (adaptive) at the final fit: error estimate" in capsys.readouterr().out

@@ -9,6 +9,8 @@ compilation is shared.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -74,6 +76,16 @@ def test_cli_table_and_chart(tmp_path, capsys, monkeypatch):
     assert "K_d_per_Pa" in rows["parameter"].tolist()
     assert (out / "sensitivity.png").stat().st_size > 0
     assert "K_d_per_Pa" in capsys.readouterr().out
+    doc = json.loads((out / "sensitivity.json").read_text())
+    assert doc["e"]["integration"]["integrator"] == "paper"
+    assert doc["e"]["integration"]["steps"] == REVS / M
+    # the default (adaptive) integrator: its error estimate within the tolerance
+    study.write_text("\n".join(ln for ln in study.read_text().splitlines()
+                               if not ln.startswith("revolutions_per_update")))
+    assert main(["sensitivity", str(study), "--out", str(tmp_path / "ad")]) == 0
+    integ = json.loads((tmp_path / "ad" / "sensitivity.json").read_text())["e"]["integration"]
+    assert integ["integrator"] == "adaptive" and integ["steps"] > 0
+    assert 0 < integ["error_estimate_um"] <= integ["tolerance_um"]
 
 
 def test_oscillating_joint_scaling_identities():

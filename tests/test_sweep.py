@@ -98,7 +98,32 @@ def test_cli_writes_csv_and_heatmaps(tmp_path, capsys, monkeypatch, result):
     np.testing.assert_allclose(rows["peak_depth_um"], result.peak_depth_um.ravel(), rtol=1e-8)
     np.testing.assert_allclose(rows["worn_volume_mm3"], result.worn_volume_mm3.ravel(),
                                rtol=1e-8)
+    # eq 23 here: Euler's error estimate and the update count per point
+    assert np.all(np.isfinite(rows["integration_error_um"]))
+    assert np.all(rows["integration_steps"] == REVS / M)
     for name in ("sweep_peak_depth.png", "sweep_worn_volume.png"):
         assert (out / name).stat().st_size > 0
     assert main(["sweep", str(study), "--out", str(out)]) == 2
     assert "--speed-rpm" in capsys.readouterr().err
+
+
+def test_adaptive_sweep_reruns_points_that_need_more_steps():
+    """One static attempt count serves a whole adaptive sweep; a point far stiffer than the
+    base (K_d x30 on the bimetal boom) needs more steps than it allows. It must be rerun,
+    not returned as a truncated history: its depth equals `simulate` at that point and its
+    error estimate is finite and within the tolerance."""
+    from jaxwear._config import boom_config
+    from jaxwear._wear import build_schedule
+
+    cfg = boom_config(nodes=NODES, steps_per_rev=STEPS)
+    p = jw.preset("boom", K_d_per_Pa=1e-13)
+    kds = [1e-13, 3e-12]
+    res = sweep(p, cfg, {"K_d_per_Pa": kds}, hours=3)
+    base_attempts = build_schedule(p, cfg, hours=3).attempts
+    assert res.steps[-1] > 2 * base_attempts  # more than the sweep's first try allowed
+    assert res.valid.all() and np.all(res.error_estimate_um <= res.tolerance_um)
+    for i, kd in enumerate(kds):
+        one = jw.simulate(p.with_values({"K_d_per_Pa": kd}), cfg, hours=3)
+        np.testing.assert_allclose(res.depth_um[i], np.asarray(one.depth) * 1e6, rtol=1e-9,
+                                   atol=1e-9)
+        assert res.steps[i] == int(one.steps)

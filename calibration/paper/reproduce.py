@@ -518,8 +518,10 @@ def section_rig(page: Page):
     out = []
     for rpm, revs, c, figs in RIG_CONDITIONS:
         p = jw.preset("rig", speed_rpm=rpm, clearance_mm=c)
-        res, t_first = _timed(lambda p=p, revs=revs: jw.simulate(p, cfg, revolutions=revs))
-        _, t_warm = _timed(lambda p=p, revs=revs: jw.simulate(p, cfg, revolutions=revs).depth)
+        res, t_first = _timed(lambda p=p, revs=revs: jw.simulate(p, cfg, revolutions=revs,
+                                                                 M=100))
+        _, t_warm = _timed(lambda p=p, revs=revs: jw.simulate(p, cfg, revolutions=revs,
+                                                              M=100).depth)
         h = np.asarray(res.depth) * 1e6
         j = int(np.argmax(h))
         far = pm.angular_distance_deg(np.arange(NODES) * 360.0 / NODES, j * 360.0 / NODES) > 90

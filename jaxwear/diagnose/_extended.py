@@ -87,10 +87,11 @@ def _evaluate_ext(ext: Extended, u):
     def g(v):
         snaps, res = ext.snapshots(v)
         return snaps, (snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle),
-                       res.sliding_distance)
+                       res.sliding_distance, jnp.max(res.error_estimate) * 1e6,
+                       jnp.max(res.steps))
 
-    J, (snaps, mres, worn, sliding) = jax.jacfwd(g, has_aux=True)(u)
-    return snaps, J, mres, worn, sliding
+    J, (snaps, mres, worn, sliding, err, steps) = jax.jacfwd(g, has_aux=True)(u)
+    return snaps, J, mres, worn, sliding, err, steps
 
 
 @dataclass(frozen=True)
@@ -107,11 +108,13 @@ class Eval:
     max_residual: float
     worn: float
     sliding_m: np.ndarray  # (E,) total sliding distance of each experiment [m]
+    error_um: float = 0.0  # integration error estimate, largest experiment [µm] (0: eq 23)
+    steps: int = 0  # accepted integration steps (updates), largest experiment
 
     @property
     def usable(self) -> bool:
         return bool(np.all(np.isfinite(self.r)) and np.all(np.isfinite(self.J))
-                    and self.worn < 0)
+                    and self.worn < 0 and np.isfinite(self.error_um))
 
 
 def candidate_names(cfg: ModelConfig) -> list[str]:

@@ -303,5 +303,15 @@ def report_html(diag, doc: dict) -> str:
     ]
     parts += [_img(src, alt) for alt, src in figs if src]
     parts.append(f"<h2>Method</h2><p>{html.escape(doc['method'])}</p>")
+    parts.append(f"<p>{html.escape(_integration_text(a['integration']))}</p>")
     parts.append(f"<p>Wall time {doc['wall_time_s']:.1f} s.</p></body></html>")
     return "\n".join(parts)
+
+
+def _integration_text(integ: dict) -> str:
+    if integ["integrator"] == "adaptive":
+        return (f"Wear integration (adaptive, at the final fit): error estimate "
+                f"{float(integ['error_estimate_um']):.3g} µm against a tolerance of "
+                f"{integ['tolerance_um']:g} µm, {integ['steps']} steps.")
+    return (f"Wear integration (the paper's eq 23): {integ['steps']} updates, no error "
+            "estimate; halve numerics.revolutions_per_update to measure it.")

@@ -159,7 +159,19 @@ class Model:
         t0 = time.perf_counter()
         n_compiled = _compiled_count()
         u = np.asarray(u, np.float64)
-        snaps, J, mres, worn, sliding = _evaluate_ext(self.ext, jnp.asarray(u))
+        snaps, J, mres, worn, sliding, err, steps = _evaluate_ext(self.ext, jnp.asarray(u))
+        # The adaptive loop's static attempt count is an estimate that grows with K_d and
+        # the candidates' strengths: where it fell short (error inf), double it (one more
+        # compilation, kept for the rest of the run) rather than use a truncated history.
+        for _ in range(3):
+            if not (self.ext.schedule.adaptive and not np.isfinite(float(err))):
+                break
+            sched = self.ext.schedule
+            object.__setattr__(self, "ext", eqx.tree_at(
+                lambda e: e.schedule, self.ext,
+                sched.more_attempts()))
+            snaps, J, mres, worn, sliding, err, steps = _evaluate_ext(self.ext,
+                                                                      jnp.asarray(u))
         snaps, J = np.asarray(snaps), np.asarray(J)
         dt = time.perf_counter() - t0
         Model.evaluation_s += dt
@@ -180,7 +192,16 @@ class Model:
         r_prior, J_prior = self._prior_rows(u)
         return Eval(u=u, pred=pred, r=pred - self.measured, J=Jr, r_prior=r_prior,
                     J_prior=J_prior, snaps=snaps, max_residual=float(mres), worn=float(worn),
-                    sliding_m=np.asarray(sliding))
+                    sliding_m=np.asarray(sliding), error_um=float(err), steps=int(steps))
+
+    def integration(self, ev: Eval) -> dict:
+        """The integration report of an evaluation (same keys as `calibrate`'s)."""
+        sched = self.ext.schedule
+        tol = float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
+        err = ev.error_um if sched.adaptive else None
+        return {"integrator": "adaptive" if sched.adaptive else "paper",
+                "error_estimate_um": err if err is None or math.isfinite(err) else "inf",
+                "steps": int(ev.steps), "tolerance_um": tol}
 
     def _prior_rows(self, u):
         """Clearance prior rows (c - c_nom)/τ · noise_weight [µm] and their Jacobian."""

@@ -70,7 +70,8 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose) -> Fit:
     if not _derivatives_ok(mdl, f.ev):
         f = replace(f, unstable=True, converged=False, message=f.message + (
             "; the wear loop's derivatives are unstable here (lower "
-            "revolutions_per_update): this fit is not reliable"))
+            + ("revolutions_per_update" if mdl.study.integrator == "paper"
+               else "wear_tolerance_um") + "): this fit is not reliable"))
         _log(verbose, f"    {label}: unstable derivatives, not used")
     return finish(mdl, f, noise)
 
@@ -96,6 +97,11 @@ def _check_derivatives(model: Model, fit: Fit):
     fits would be meaningless, so stop and say what to change."""
     ratio = _derivative_ratio(model, fit.ev)
     if not 0.2 < ratio < 5.0:
+        if model.study.integrator != "paper":
+            raise InputError(
+                f"{model.study.path}: the derivative of depth with respect to K_d is "
+                f"{ratio:.3g} times the depth (expected about 1): lower "
+                f"numerics.wear_tolerance_um ({model.study.wear_tolerance_um:g} µm)")
         raise InputError(
             f"{model.study.path}: numerics.revolutions_per_update = "
             f"{model.study.revolutions_per_update:g} is too large for this joint: the "

@@ -94,14 +94,16 @@ class Diagnosis:
                 "loo_rmse_per_experiment_um": self.loo_before,
                 "loo_rmse_um": _mean_sq(self.loo_before), "tests": self.base_tests.to_json(),
                 "converged": self.base.converged, "n_data": m.n,
-                "where_it_fails": where_it_fails(m, self.base.ev.r)}
+                "where_it_fails": where_it_fails(m, self.base.ev.r),
+                "integration": m.integration(self.base.ev)}
         after = {"model": self.final.label, "effects": list(self.final.groups),
                  "rmse_um": self.final.rmse,
                  "rmse_per_experiment_um": rmse_per_experiment(m, self.final.ev.r),
                  "loo_rmse_per_experiment_um": self.loo_after,
                  "loo_rmse_um": _mean_sq(self.loo_after),
                  "parameters": self.parameters_json(self.final),
-                 "tests": self.final_tests.to_json()}
+                 "tests": self.final_tests.to_json(),
+                "integration": m.integration(self.final.ev)}
         return {
             "baseline": base,
             "candidates": cands,
