@@ -195,8 +195,13 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
                          f"--method laplace")
     kernel = NUTS(potential_fn=potential, dense_mass=True, target_accept_prob=0.85,
                   forward_mode_differentiation=forward_mode, max_tree_depth=8)
+    # NumPyro's progress bar steps the chain from Python, a dispatch per NUTS step: nothing
+    # next to the gradients of a run long enough to need it (estimated over a minute)
+    progress = bool(verbose) and est > 60
+    _log(verbose, f"predict/nuts: sampling {chains} chain(s) x ({warmup} warm-up + {draws} "
+                  f"draws), one after another" + (" (progress below)" if progress else ""))
     mcmc = MCMC(kernel, num_warmup=warmup, num_samples=draws, num_chains=chains,
-                chain_method="sequential", progress_bar=False)
+                chain_method="sequential", progress_bar=progress)
     t0 = time.perf_counter()
     # numpyro takes one chain's start unbatched, several with a leading chain axis
     init = z0 if chains == 1 else jax.tree.map(
