@@ -149,12 +149,13 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     problem = _enough_attempts(problem, np.asarray(result.u))
     problem, fprob = (_more_attempts(x, 4) for x in (problem, fprob))
     z_fit = initial_position(result, noise_um)
-    for _ in range(4):  # the estimate may still fall short at the fit itself
+    for i in range(4):  # the estimate may still fall short at the fit itself
         logp = log_density(problem, noise_um)
-        if not problem.schedule.adaptive or math.isfinite(float(jax.jit(logp)(z_fit))):
+        finite = math.isfinite(float(jax.jit(logp)(z_fit)))  # one compile per try
+        if finite or not problem.schedule.adaptive or i == 3:
             break
         problem = _more_attempts(problem, 2)
-    if not math.isfinite(float(jax.jit(logp)(z_fit))):
+    if not finite:
         raise RuntimeError("predict/nuts: the log density is not finite at the fitted "
                            "parameters; the sampler cannot start there")
 
