@@ -3,8 +3,9 @@
     python benchmarks/nuts_samplers.py --case boom|rig [--warmup 200] [--draws 200]
         [--chains 2] [--seed 0] [--samplers numpyro,blackjax] [--json FILE]
 
-Both samplers draw from exactly one log density, `jaxwear._predict_nuts.log_density` (the
-one `predict --method nuts` uses), with its gradient by forward mode (p tangents through the
+Both samplers draw from exactly one log density, `jaxwear._predict_nuts.log_density` in
+the whitened coordinates of `sampling_setup` (what `predict --method nuts` samples), with its
+gradient by forward mode (p tangents through the
 wear loop, as `run_nuts` does; BlackJAX asks for reverse mode, so the density is wrapped in a
 `custom_vjp` whose forward pass is `jacfwd`), started at the least-squares fit, with NUTS,
 a dense mass matrix adapted in Stan-style windows, target acceptance 0.85, at most 2^8
@@ -13,7 +14,7 @@ shared) and seed.
 
 Cases (the problems `predict` samples):
 - boom: `calibration/boom/study.toml` trained on 5-15 h, K_d fitted, noise estimated
-  (2 unknowns), at M = 2 (the stable amplification `predict` refits at);
+  (2 unknowns), under the default adaptive integrator (its `revolutions_per_update` dropped);
 - rig: a synthetic rig study made by `jaxwear.simulate` at finer numerics (128 nodes,
   144 steps, M = 25) than it is sampled at (64 x 72, M = 100), two experiments, whole scans
   every 3° with 0.3 µm noise, trained until 2000 rev; K_d and both clearances (prior 5 µm)
@@ -47,8 +48,8 @@ import jax.numpy as jnp  # noqa: E402
 
 import jaxwear as jw  # noqa: E402
 from jaxwear._calibrate import build_problem, fit, parse_fit  # noqa: E402
-from jaxwear._predict import training_study  # noqa: E402
-from jaxwear._predict_nuts import _arviz, initial_position, log_density  # noqa: E402
+from jaxwear._predict import parameter_covariance, training_study  # noqa: E402
+from jaxwear._predict_nuts import _arviz, sampling_setup, u_of_samples  # noqa: E402
 from jaxwear._study import load_study  # noqa: E402
 
 TARGET_ACCEPT, MAX_DEPTH = 0.85, 8
@@ -56,7 +57,7 @@ TARGET_ACCEPT, MAX_DEPTH = 0.85, 8
 
 def boom_problem():
     study = load_study(ROOT / "calibration/boom/study.toml")
-    study = dataclasses.replace(study, revolutions_per_update=2.0)
+    study = dataclasses.replace(study, integrator="adaptive")
     train = training_study(study, 15.0)
     problem = build_problem(train, parse_fit(train, "K_d"))
     return problem, fit(problem)
@@ -123,7 +124,9 @@ def run_numpyro(logp, z0, warmup, draws, chains, seed):
                   max_tree_depth=MAX_DEPTH)
     mcmc = MCMC(kernel, num_warmup=warmup, num_samples=draws, num_chains=chains,
                 chain_method="sequential", progress_bar=False)
-    init = jax.tree.map(lambda a: jnp.broadcast_to(a, (chains, *jnp.shape(a))), z0)
+    # NumPyro takes one chain's start unbatched, several with a leading chain axis
+    init = z0 if chains == 1 else jax.tree.map(
+        lambda a: jnp.broadcast_to(a, (chains, *jnp.shape(a))), z0)
     mcmc.run(jax.random.PRNGKey(seed), init_params=init, extra_fields=("diverging",
                                                                         "num_steps"))
     s = mcmc.get_samples(group_by_chain=True)
@@ -173,9 +176,9 @@ def run_blackjax(logp, z0, warmup, draws, chains, seed):
     return samples, n_div, n_grad, float(np.mean(n_steps_draws))
 
 
-def summarize(problem, samples, level=0.9):
+def summarize(problem, samples, white, level=0.9):
     names = list(problem.names)
-    u = jnp.asarray(samples["u"])
+    u = jnp.asarray(u_of_samples(samples, white))
     vals = np.asarray(jax.vmap(jax.vmap(problem.values))(u))
     post = {n.replace("/", ":"): vals[..., i] for i, n in enumerate(names)}
     if "log_noise" in samples:
@@ -212,8 +215,8 @@ def main(argv=None):
         return None
     with tempfile.TemporaryDirectory() as tmp:
         problem, result = boom_problem() if a.case == "boom" else rig_problem(Path(tmp))
-    logp = log_density(problem)
-    z0 = initial_position(result)
+    cov, _ = parameter_covariance(result, result.noise_um)
+    problem, white, logp, z0 = sampling_setup(problem, result, None, cov)
     print(f"case {a.case}: {list(problem.names)} + noise, {problem.n_data} rows; "
           f"warmup {a.warmup}, draws {a.draws}, chains {a.chains}, seed {a.seed}", flush=True)
     report = {"case": a.case, "warmup": a.warmup, "draws": a.draws, "chains": a.chains,
@@ -225,7 +228,7 @@ def main(argv=None):
         samples, n_div, n_grad, mean_steps = runners[name](logp, z0, a.warmup, a.draws,
                                                            a.chains, a.seed)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        rows = summarize(problem, samples)
+        rows = summarize(problem, samples, white)
         ess = min(r["ess_bulk"] for r in rows.values())
         rec = {"wall_s": wall, "cpu_s": cpu, "load_before": load0,
                "load_after": os.getloadavg()[0], "divergences": n_div, "gradients": n_grad,

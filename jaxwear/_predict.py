@@ -18,7 +18,10 @@ is a handful), the normal quantile when the noise level is given (`noise_um`).
 Life: the first count at which the forecast maximum depth reaches `limit_um` (default: the
 layer thickness), with the interval given by the prediction band's crossings (upper band
 → earliest, lower band → latest). Searched up to 10x the experiment's last measured count;
-not reached there gives `at = None` with a `reason`.
+not reached there gives `at = None` with a `reason`. Under the adaptive integrator the
+forecast stops, past the last `--at` point, once its depth passes 2x the layer (each NUTS
+draw: the layer; `stop_past_layer`); later points hold the last computed depth, so a band
+edge that had not reached the limit by then is reported as not reached, not guessed.
 
 `nuts` (`_predict_nuts.py`): a posterior by NUTS through the same differentiable model.
 """
@@ -40,6 +43,7 @@ from ._errors import InputError
 from ._study import Experiment, History, Profile, Study
 
 LIFE_HORIZON = 10.0  # life is searched up to this multiple of the last measured count
+LAPLACE_STOP_LAYERS = 2.0  # Laplace forecasts stop past this multiple of the layer (life tail)
 METHODS = ("laplace", "nuts")
 
 
@@ -281,6 +285,44 @@ def forecast_problem(study: Study, result: FitResult, keys, points):
     return prob
 
 
+def stop_past_layer(study: Study, fprob, points, at, factor: float = 1.0):
+    """`fprob` whose (adaptive) runs stop once, past the last `at` point, the maximum depth
+    has reached `factor` x the layer (≥ every allowed limit): the points after serve only
+    the life estimate, which needs to know that the forecast is past the limit, not by how
+    much; their snapshots come back +inf (`fill_past_stop`). Integrating on through the
+    substrate to 10x the last measurement cost the boom's forecasts over 30x the steps (and
+    ran out of attempts). Eq-23 schedules are returned unchanged."""
+    sched = fprob.schedule
+    if not sched.adaptive:
+        return fprob
+    depth, after = [], []
+    snap = np.asarray(sched.snapshot)
+    ends = np.asarray(sched.cycle_end)
+    for i, (e, pts) in enumerate(zip(study.experiments, points)):
+        k = int(np.argmin(np.abs(np.asarray(pts) - max(at))))
+        j = np.nonzero(snap[i] == k)[0]
+        after.append(float(ends[i, j[0]]) if len(j) else float(ends[i].max()))
+        depth.append(factor * float(study.params(e).layer_thickness))
+    return replace(fprob, schedule=sched.stopping_at(np.array(depth), np.array(after)))
+
+
+def fill_past_stop(snaps, J=None):
+    """Snapshots (E, S, N) (and their Jacobian (E, S, N, p)) with the rows after an early
+    stop (+inf) replaced by the last computed row of their experiment: the depth never
+    decreases, so a lower bound, past every allowed limit (the stop comes only past the
+    layer). A band edge that had not reached the limit by the stop stays below it: "not
+    reached" rather than a guess."""
+    bad = np.isinf(snaps).any(axis=-1)  # (E, S)
+    if not bad.any():
+        return snaps, J
+    idx = np.where(bad, 0, np.arange(snaps.shape[1])[None, :])
+    idx = np.maximum.accumulate(idx, axis=1)
+    snaps = np.take_along_axis(snaps, idx[..., None], axis=1)
+    if J is not None:
+        J = np.take_along_axis(J, idx[..., None, None], axis=1)
+    return snaps, J
+
+
 # ---------------------------------------------------------------- covariance, quantiles
 
 
@@ -448,10 +490,18 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
                   f"forecast model)")
     extra = {}
     if method == "laplace":
-        snaps, J, integ = forecast_snapshots(fprob, jnp.zeros(p))
+        # past 2x the layer the lower band's crossing of the limit is not looked for
+        # (a relative band over 50 %): "no upper bound" there
+        snaps, J, integ = forecast_snapshots(
+            stop_past_layer(study, fprob, points, at, LAPLACE_STOP_LAYERS), jnp.zeros(p))
+        snaps, J = fill_past_stop(snaps, J)
         extra["integration"] = integ
-        if integ["integrator"] == "adaptive" and not (
-                float(integ["error_estimate_um"]) <= integ["tolerance_um"]):
+        err_um = float(integ["error_estimate_um"]) if integ["integrator"] == "adaptive" else 0
+        if not math.isfinite(err_um):
+            flags.append(f"the forecast's integration did not reach its end in "
+                         f"{integ['steps']} steps (attempts exhausted): its later points "
+                         f"are not computed")
+        elif integ["integrator"] == "adaptive" and not err_um <= integ["tolerance_um"]:
             flags.append(f"integration error estimate {integ['error_estimate_um']} µm of the "
                          f"forecast exceeds the tolerance {integ['tolerance_um']:g} µm: lower "
                          f"numerics.wear_tolerance_um")
@@ -459,8 +509,9 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     else:
         from ._predict_nuts import run_nuts
 
-        draws, extra = run_nuts(problem, result, fprob, noise_um=noise_um, level=level,
-                                verbose=verbose, **(nuts_options or {}))
+        draws, extra = run_nuts(problem, result, stop_past_layer(study, fprob, points, at),
+                                noise_um=noise_um, level=level, verbose=verbose, cov=cov,
+                                **(nuts_options or {}))
         snaps = J = None
     return _assemble(study, train, at, points, limit_um, level, method, unit, train_until,
                      result, cov, null_dirs, noise, noise_um is not None, dof, q, flags,

@@ -1,7 +1,14 @@
 """`predict(method="nuts")`: a posterior by NUTS (NumPyro) through the differentiable wear loop.
 
-Parameters are sampled in the fit's own parameterisation u (log-multipliers of positive
-parameters, linear strengths), with priors from the study:
+Parameters are sampled in whitened coordinates v of the fit's own parameterisation u
+(log-multipliers of positive parameters, linear strengths):
+u = û + (σ/σ̂) L v, with û, σ̂ the least-squares fit and L the Cholesky factor of its Laplace
+covariance. The σ/σ̂ factor takes out the funnel between the noise level and the parameters
+(with few rows the posterior of σ has a long tail and the parameters' spread grows with σ,
+which a constant mass matrix cannot follow: measured on the boom, 3 rows, before this:
+16 divergences and R-hat 1.2 at 2 x (120 + 120)); the log-Jacobian p ln(σ/σ̂) is added, so
+the posterior in u is unchanged. With the noise given (or no usable covariance) the factor
+is 1 (or L = I). Priors, from the study:
 - K_d: log-normal around the study's value, σ = ln 100 (positive by construction, broad);
 - fitted clearances: the study's Gaussian prior N(nominal, τ) (`[fit] clearance_tolerance_um`,
   DESIGN §6), on the clearance itself (the log-Jacobian of c = c₀ e^u is added); τ = inf:
@@ -14,6 +21,12 @@ Likelihood: independent Gaussian rows, N(model, σ²).
 
 The posterior predictive of the forecast maximum depth evaluates the forecast model at
 `n_predictive` draws (thinned evenly); "a new measurement" adds N(0, σ²) with each draw's σ.
+Past the last `--at` point the forecast only serves the life estimate, so each draw's run
+stops once its depth has passed the layer (≥ any allowed limit; `Schedule.stopping_at`);
+later points repeat the last computed profile (a lower bound, the depth only grows: past the
+layer either way) instead of being integrated through the substrate (measured on the boom:
+~1 000 steps per draw instead of over 30 000 to 10x the last measurement). Each draw's own
+limit crossing lies at computed points.
 
 Before sampling, the run time is estimated from a few timed gradient evaluations (after
 compilation) times the expected number of gradients (leapfrog steps ≈ `LEAPFROG_GUESS`
@@ -34,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._errors import InputError
+from ._predict import fill_past_stop
 from .effects import effect_parameter_specs
 
 LEAPFROG_GUESS = 10  # mean leapfrog steps per NUTS step (measured ~6 on the rig test, dense mass)
@@ -76,21 +90,62 @@ def log_prior(problem, u):
     return lp
 
 
-def log_density(problem, noise_um=None):
+class Whitening(eqx.Module):
+    """u = u_hat + exp(log_noise - log_noise_hat) L v (see the module docstring); `scaled`
+    False (noise given): u = u_hat + L v."""
+
+    u_hat: jax.Array  # (p,)
+    L: jax.Array  # (p, p) lower triangular
+    log_noise_hat: jax.Array  # ()
+    scaled: bool = eqx.field(static=True, default=True)
+
+    def u_of(self, z):
+        f = jnp.exp(z["log_noise"] - self.log_noise_hat) if self.scaled else 1.0
+        return self.u_hat + f * (self.L @ z["v"])
+
+    def log_jacobian(self, z):
+        if not self.scaled:
+            return 0.0
+        return self.u_hat.shape[0] * (z["log_noise"] - self.log_noise_hat)
+
+
+def whitening(result, cov, noise_um=None) -> Whitening:
+    """The whitening at the fit from its Laplace covariance `cov` (p, p) of u; L = I where
+    `cov` is not positive definite (undetermined directions)."""
+    u_hat = jnp.asarray(result.u, jnp.float64)
+    p = u_hat.shape[0]
+    cov = np.asarray(cov, float)
+    try:
+        L = np.linalg.cholesky(0.5 * (cov + cov.T)) if np.all(np.isfinite(cov)) else None
+    except np.linalg.LinAlgError:
+        L = None
+    if L is None or not np.all(np.isfinite(L)):
+        L = np.eye(p)
+    return Whitening(u_hat, jnp.asarray(L), jnp.asarray(math.log(max(result.noise_um, 1e-3))),
+                     scaled=noise_um is None)
+
+
+def log_density(problem, noise_um=None, white: Whitening | None = None):
     """The posterior's log density (up to a constant) as a function of the position z.
 
     z = {"u": (p,) the fit's parameterisation, "log_noise": () ln σ[µm]} ("log_noise" absent
-    when `noise_um` is given). Gaussian likelihood of the training rows times `log_prior`
-    (and the log-uniform σ on [1e-3, 1e3] µm); -inf outside the prior's support or where
-    the model is not finite. The one density both samplers use (NumPyro in `run_nuts`,
-    BlackJAX in benchmarks/nuts_samplers.py).
+    when `noise_um` is given); with `white`, z = {"v": (p,), "log_noise"} and u =
+    `white.u_of(z)` (the log-Jacobian added). Gaussian likelihood of the training rows
+    times `log_prior` (and the log-uniform σ on [1e-3, 1e3] µm); -inf outside the prior's
+    support or where the model is not finite. The one density both samplers use (NumPyro in
+    `run_nuts`, BlackJAX in benchmarks/nuts_samplers.py).
     """
     y = problem.data.depth_um
     given = noise_um is not None
     lo_s, hi_s = math.log(1e-3), math.log(1e3)
 
     def logp(z):
-        u, log_s = z["u"], (jnp.log(noise_um) if given else z["log_noise"])
+        log_s = jnp.log(noise_um) if given else z["log_noise"]
+        if white is None:
+            u, jac = z["u"], 0.0
+        else:
+            zz = {"v": z["v"], "log_noise": log_s}
+            u, jac = white.u_of(zz), white.log_jacobian(zz)
         snaps, res = problem.snapshots(u)
         r = problem.predict_from(snaps, u) - y
         # an adaptive loop that ran out of attempts returned a truncated history (error
@@ -100,10 +155,20 @@ def log_density(problem, noise_um=None):
         ll = -0.5 * jnp.sum(r ** 2) / s2 - r.shape[0] * log_s
         if not given:  # log-uniform σ: flat in log σ within the bounds
             ll = ll + jnp.where((log_s > lo_s) & (log_s < hi_s), 0.0, -jnp.inf)
-        out = ll + log_prior(problem, u)
+        out = ll + log_prior(problem, u) + jac
         return jnp.where(jnp.isfinite(out), out, -jnp.inf)
 
     return logp
+
+
+def u_of_samples(samples, white: Whitening | None, noise_um=None) -> np.ndarray:
+    """u (chains, draws, p) from sampled positions (leading axes chains, draws)."""
+    if white is None:
+        return np.asarray(samples["u"])
+    z = {"v": jnp.asarray(samples["v"])}
+    z["log_noise"] = (jnp.full(z["v"].shape[:-1], math.log(noise_um)) if noise_um is not None
+                      else jnp.asarray(samples["log_noise"]))
+    return np.asarray(jax.vmap(jax.vmap(white.u_of))(z))
 
 
 def _more_attempts(problem, factor: int):
@@ -115,42 +180,30 @@ def _more_attempts(problem, factor: int):
     return dataclasses.replace(problem, schedule=sched.more_attempts(factor))
 
 
-def initial_position(result, noise_um=None) -> dict:
+def initial_position(result, noise_um=None, white: Whitening | None = None) -> dict:
     """The sampler's start: the least-squares fit (and its residual noise level)."""
-    z0 = {"u": jnp.asarray(result.u)}
+    z0 = {"u": jnp.asarray(result.u)} if white is None else {
+        "v": jnp.zeros_like(jnp.asarray(result.u))}
     if noise_um is None:
         z0["log_noise"] = jnp.asarray(math.log(max(result.noise_um, 1e-3)))
     return z0
 
 
-def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
-             draws: int = 500, warmup: int = 300, chains: int = 2, seed: int = 0,
-             max_minutes: float = 20.0, n_predictive: int = 200, out=None,
-             forward_mode: bool = True):
-    """NUTS posterior of the training problem's parameters and the forecast's predictive.
-
-    Returns (draws dict: `max_um` (D, E, S), `new_um` (D, E, S), `profile_um` (D, E, N) at
-    the last `--at` point's snapshot, `profile_new_um`; extra JSON dict with the sampler's
-    diagnostics: R-hat and bulk ESS per parameter, divergences, time, netCDF path).
-    `forward_mode`: gradients by forward mode (p tangents through the wear loop: measured
-    faster than reverse mode, which re-runs the checkpointed loop, for p ≤ ~6).
-    """
-    from numpyro.infer import MCMC, NUTS
-
-    names = list(problem.names)
-    p = len(names)
-    given = noise_um is not None
+def sampling_setup(problem, result, noise_um=None, cov=None):
+    """(problem with room for the draws, `Whitening`, log density, start position): what
+    `run_nuts` samples, and the benchmark's samplers with it."""
     # Room for the draws: the training problem's attempt count was estimated at the start
     # values, so first raise it to what the fitted values need (K_d moves by orders), then
     # leave 4x headroom for the posterior's tails (larger K_d: more steps on a stiff layer).
     # Unused attempts cost nothing; a draw that still runs out gets log density -inf.
     from ._calibrate import _enough_attempts
 
-    problem = _enough_attempts(problem, np.asarray(result.u))
-    problem, fprob = (_more_attempts(x, 4) for x in (problem, fprob))
-    z_fit = initial_position(result, noise_um)
+    p = len(problem.names)
+    problem = _more_attempts(_enough_attempts(problem, np.asarray(result.u)), 4)
+    white = whitening(result, np.eye(p) if cov is None else cov, noise_um)
+    z_fit = initial_position(result, noise_um, white)
     for i in range(4):  # the estimate may still fall short at the fit itself
-        logp = log_density(problem, noise_um)
+        logp = log_density(problem, noise_um, white)
         finite = math.isfinite(float(jax.jit(logp)(z_fit)))  # one compile per try
         if finite or not problem.schedule.adaptive or i == 3:
             break
@@ -158,12 +211,35 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     if not finite:
         raise RuntimeError("predict/nuts: the log density is not finite at the fitted "
                            "parameters; the sampler cannot start there")
+    return problem, white, logp, z_fit
+
+
+def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
+             draws: int = 500, warmup: int = 300, chains: int = 2, seed: int = 0,
+             max_minutes: float = 20.0, n_predictive: int = 200, out=None,
+             forward_mode: bool = True, cov=None):
+    """NUTS posterior of the training problem's parameters and the forecast's predictive.
+
+    Returns (draws dict: `max_um` (D, E, S), `new_um` (D, E, S), `profile_um` (D, E, N) at
+    the last `--at` point's snapshot, `profile_new_um`; extra JSON dict with the sampler's
+    diagnostics: R-hat and bulk ESS per parameter, divergences, time, netCDF path).
+    `forward_mode`: gradients by forward mode (p tangents through the wear loop: measured
+    faster than reverse mode, which re-runs the checkpointed loop, for p ≤ ~6).
+    `cov`: the fit's Laplace covariance of u (p, p) for the whitening (None: L = I).
+    `fprob` may carry an early stop (`Schedule.stopping_at`): its +inf snapshots are
+    filled with the last computed one (`_predict.fill_past_stop`).
+    """
+    from numpyro.infer import MCMC, NUTS
+
+    names = list(problem.names)
+    p = len(names)
+    given = noise_um is not None
+    problem, white, logp, z_fit = sampling_setup(problem, result, noise_um, cov)
 
     def potential(z):
         return -logp(z)
 
-    z0 = initial_position(result, noise_um)
-    u_fit = z0["u"]
+    z0 = z_fit
     # time the gradient (compile first) for the run-time estimate, computed as NumPyro
     # does (forward mode: value as jacfwd's aux, one pass; a separate value pass made the
     # estimate ~2x long on the boom)
@@ -180,12 +256,29 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     for _ in range(3):
         jax.block_until_ready(grad(z0))
     t_grad = (time.perf_counter() - t0) / 3
-    fc = jax.jit(lambda u: jnp.max(fprob.snapshots(u)[0], axis=-1))
+    @eqx.filter_jit
+    def fcs(fp, u):
+        snaps, res = fp.snapshots(u)
+        return snaps, jnp.max(res.error_estimate)
+
+    def forecast(fp, u):
+        """Snapshots (E, S, N) [µm] at u, raising the static attempt count (a compilation)
+        where a draw needs more integration steps; returns the problem it ran with."""
+        for _ in range(4):
+            snaps, err = fcs(fp, u)
+            if np.isfinite(float(err)) or not fp.schedule.adaptive:
+                break
+            fp = _more_attempts(fp, 2)
+        if not np.isfinite(float(err)):
+            raise RuntimeError("predict/nuts: a posterior draw's forecast ran out of "
+                               "integration attempts at 16x the estimate")
+        return np.asarray(snaps), fp
+
     t0 = time.perf_counter()
-    jax.block_until_ready(fc(u_fit))
+    _, fprob = forecast(fprob, jnp.zeros(p))  # u = 0: the fit
     t_fc_compile = time.perf_counter() - t0
     t0 = time.perf_counter()
-    jax.block_until_ready(fc(u_fit))
+    forecast(fprob, jnp.zeros(p))
     t_fc = time.perf_counter() - t0
     n_grad = chains * (warmup + draws) * LEAPFROG_GUESS
     n_pred = min(n_predictive, chains * draws)
@@ -218,7 +311,7 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     t_run = time.perf_counter() - t0
     samples = mcmc.get_samples(group_by_chain=True)
     extra = mcmc.get_extra_fields(group_by_chain=True)
-    u_s = np.asarray(samples["u"])  # (chains, draws, p)
+    u_s = u_of_samples(samples, white, noise_um)  # (chains, draws, p)
     vals = np.asarray(jax.vmap(jax.vmap(problem.values))(jnp.asarray(u_s)))
     post = {n: vals[..., i] for i, n in enumerate(names)}
     if given:
@@ -250,22 +343,18 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     idx = np.linspace(0, len(flat_u) - 1, n_pred).round().astype(int)
     _log(verbose, f"predict/nuts: sampled in {t_run:.0f} s ({n_div} divergences, "
                   f"{mean_steps:.1f} leapfrog steps per step); forecasting {n_pred} draws")
-    @eqx.filter_jit
-    def fcs(fp, u):
-        snaps, res = fp.snapshots(u)
-        return snaps, jnp.max(res.error_estimate)
-
     mx, prof = [], []
-    for j in idx:
-        s, err = fcs(fprob, jnp.asarray(flat_u[j]))
-        for _ in range(3):  # a draw whose forecast needs more integration steps
-            if np.isfinite(float(err)):
-                break
-            fprob = _more_attempts(fprob, 2)
-            s, err = fcs(fprob, jnp.asarray(flat_u[j]))
-        s = np.asarray(s)  # (E, S, N)
+    t0 = last = time.perf_counter()
+    for n_done, j in enumerate(idx, 1):
+        s, fprob = forecast(fprob, jnp.asarray(flat_u[j]))  # (E, S, N)
+        s = fill_past_stop(s)[0]
         mx.append(s.max(axis=-1))
         prof.append(s)
+        if time.perf_counter() - last > 30:
+            last = time.perf_counter()
+            _log(verbose, f"predict/nuts: forecast {n_done}/{len(idx)} draws "
+                          f"({last - t0:.0f} s)")
+    t_pred = time.perf_counter() - t0
     mx = np.stack(mx)
     snaps = np.stack(prof)  # (D, E, S, N)
     rng = np.random.default_rng(seed)
@@ -282,6 +371,9 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
         "divergences": n_div, "mean_leapfrog_steps": mean_steps,
         "seconds": t_run, "estimated_seconds": est, "gradient_seconds": t_grad,
         "compile_seconds": t_compile + t_fc_compile, "predictive_draws": int(n_pred),
+        "predictive_seconds": t_pred,
+        "parameterisation": ("whitened by the Laplace covariance"
+                             + ("" if noise_um is not None else ", scaled by σ/σ̂")),
         "posterior": diag, "netcdf": None if path is None else str(path),
         "max_r_hat": max((v["r_hat"] or 0.0) for v in diag.values()),
         "min_ess_bulk": min((v["ess_bulk"] or 0.0) for v in diag.values())}}

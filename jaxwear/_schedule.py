@@ -40,6 +40,12 @@ class Schedule(eqx.Module):
     order: tuple = eqx.field(static=True, default=())
     attempts: int = eqx.field(static=True, default=0)
     tolerance: Float[Array, ""] | None = None
+    # Optional early stop (adaptive only): the loop ends at the first piece end at or after
+    # `stop_after` cycles where the maximum depth is ≥ `stop_depth` [m]; snapshots after it
+    # are not computed and come back as +inf ("deeper than stop_depth"). For forecasts whose
+    # tail only asks *when* a depth is reached (life), not how deep the wear goes past it.
+    stop_depth: Float[Array, ""] | None = None
+    stop_after: Float[Array, ""] | None = None
 
     @property
     def adaptive(self) -> bool:
@@ -54,6 +60,14 @@ class Schedule(eqx.Module):
         (one more compilation), for a run whose error estimate came back inf: the attempt
         count is an estimate, and a run that exhausts it returns a truncated history."""
         return dataclasses.replace(self, attempts=factor * self.attempts)
+
+    def stopping_at(self, depth_m, after_cycles) -> Schedule:
+        """The same schedule with the early stop set (see the class docstring); arrays of
+        the schedule's batch shape (or scalars)."""
+        shape = self.cycles.shape[:-1]
+        return dataclasses.replace(
+            self, stop_depth=jnp.broadcast_to(jnp.asarray(depth_m, jnp.float64), shape),
+            stop_after=jnp.broadcast_to(jnp.asarray(after_cycles, jnp.float64), shape))
 
 
 def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> Schedule:

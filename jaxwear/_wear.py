@@ -311,9 +311,17 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
                 keep(vol + p.wear_coefficient * step * wsum, vol), res, its,
                 new_worn, ws), (step, accept)
 
+    stop = schedule.stop_depth is not None
+
     def finished(c):
         seg = c[2]
-        return (seg >= P) | (cycles[jnp.minimum(seg, P - 1)] <= 0)
+        done = (seg >= P) | (cycles[jnp.minimum(seg, P - 1)] <= 0)
+        if stop:  # at a piece end (pos 0) past `stop_after` with the depth past `stop_depth`
+            past = schedule.cycle_end[jnp.clip(seg - 1, 0, P - 1)] >= schedule.stop_after * (
+                1 - 1e-12)
+            done = done | ((seg > 0) & past & (c[3] == 0.0)
+                           & (jnp.max(c[0]) >= schedule.stop_depth))
+        return done
 
     def body(c, _):
         return lax.cond(finished(c), lambda c: (c, (jnp.zeros(()), jnp.asarray(False))),
@@ -330,7 +338,8 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
     z = jnp.zeros(())
     c0 = (h0, z, jnp.zeros((), jnp.int32), z, jnp.minimum(total / 64, cycles[0]),
           jnp.zeros(n), z, jnp.asarray(False), jnp.zeros(n), jnp.zeros((), jnp.int32),
-          jnp.zeros((), jnp.int32), jnp.zeros((schedule.n_snapshots, n)), z, z,
+          jnp.zeros((), jnp.int32),
+          jnp.full((schedule.n_snapshots, n), jnp.inf if stop else 0.0), z, z,
           jnp.zeros((), jnp.int32), jnp.asarray(-1.0),
           (starts0, jnp.broadcast_to(lax.stop_gradient(h0), (n_reg, n))))
     c, trace = lax.scan(block, c0, None, length=outer)

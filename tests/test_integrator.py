@@ -75,6 +75,28 @@ def test_snapshots_and_order():
     np.testing.assert_array_equal(np.asarray(res.snapshots[0]), np.asarray(res.depth))
 
 
+def test_early_stop_is_the_same_run_cut_short():
+    """`Schedule.stopping_at` (the posterior draws' life forecast): the loop ends at the
+    first piece end past `stop_after` whose depth reached `stop_depth`; snapshots up to it
+    are those of the full run (the same controller, so identical), later ones +inf, and
+    it takes fewer steps with a finite error estimate. Never before `stop_after`."""
+    p = jw.preset("rig")
+    counts = [1000.0 * k for k in range(1, 9)]
+    full_s = build_schedule(p, CFG_RIG, revolutions=8000, snapshots=counts)
+    full = wear_loop(p, CFG_RIG, full_s)
+    mx = np.asarray(full.snapshots).max(axis=1)
+    stop_depth = 0.5 * (mx[3] + mx[4])  # reached between 4000 and 5000 rev
+    res = wear_loop(p, CFG_RIG, full_s.stopping_at(stop_depth, 2000.0))
+    snaps = np.asarray(res.snapshots)
+    np.testing.assert_array_equal(snaps[:5], np.asarray(full.snapshots)[:5])
+    assert snaps[4].max() >= stop_depth and np.all(np.isinf(snaps[5:]))
+    assert int(res.steps) < int(full.steps) and np.isfinite(float(res.error_estimate))
+    late = wear_loop(p, CFG_RIG, full_s.stopping_at(stop_depth, 6000.0))  # not before 6000
+    np.testing.assert_array_equal(np.asarray(late.snapshots)[:6],
+                                  np.asarray(full.snapshots)[:6])
+    assert np.all(np.isinf(np.asarray(late.snapshots)[6:]))
+
+
 def test_tighter_tolerance_converges():
     """Halving the tolerance changes the answer by less than the looser tolerance."""
     p, cfg, run = CASES["rig"]

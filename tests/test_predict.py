@@ -246,8 +246,8 @@ def test_nuts_log_density_is_the_gaussian_posterior(study_path):
     import jax
 
     from jaxwear._calibrate import build_problem, fit, parse_fit
-    from jaxwear._predict import training_study
-    from jaxwear._predict_nuts import initial_position, log_density
+    from jaxwear._predict import parameter_covariance, training_study
+    from jaxwear._predict_nuts import initial_position, log_density, whitening
 
     train = training_study(load_study(study_path), 2000.0)
     problem = build_problem(train, parse_fit(train, "K_d"))
@@ -267,6 +267,21 @@ def test_nuts_log_density_is_the_gaussian_posterior(study_path):
     fd = (float(fixed({"u": u + h})) - float(fixed({"u": u - h}))) / (2 * h)
     ad = float(jax.jacfwd(fixed)({"u": u})["u"][0])
     assert ad == pytest.approx(fd, rel=1e-5)
+
+    # The sampled coordinates: u = û + (σ/σ̂) L v is a change of variables, so the density
+    # in (v, ln σ) is the density in (u, ln σ) times |du/dv| = (σ/σ̂)^p |L| (the constant
+    # |L| dropped): differences between two positions must agree with that Jacobian.
+    cov, _ = parameter_covariance(result, result.noise_um)
+    white = whitening(result, cov)
+    assert float(white.L[0, 0]) == pytest.approx(math.sqrt(cov[0, 0]))
+    logv = jax.jit(log_density(problem, white=white))
+    zs = [{"v": jnp.asarray([a]), "log_noise": jnp.asarray(math.log(s_ml) + b)}
+          for a, b in ((0.3, 0.0), (-1.2, 0.4))]
+    d = [float(logv(q)) - float(logp({"u": white.u_of(q), "log_noise": q["log_noise"]}))
+         for q in zs]
+    assert d[1] - d[0] == pytest.approx(0.4, abs=1e-9)  # p = 1: Δ ln σ
+    assert float(logv({"v": jnp.zeros(1), "log_noise": white.log_noise_hat})) == \
+        pytest.approx(float(logp({"u": z["u"], "log_noise": white.log_noise_hat})), abs=1e-9)
 
 
 def test_adaptive_study_reports_the_forecast_integration(study_path, forecast, tmp_path):
@@ -311,11 +326,8 @@ def test_adaptive_study_reports_the_forecast_integration(study_path, forecast, t
     assert float(jax.jit(log_density(short, noise_um=0.3))(z)) == -math.inf
 
 
-def test_nuts_on_an_adaptive_stiff_joint_starts_where_the_fit_ended(tmp_path):
-    """The boom (bimetal layer) under the default adaptive integrator, K_d started 20x below
-    its fitted value: the schedule's attempt count estimated at the start is far short at
-    the fit. NUTS must still start on a finite density and move (measured before the fix:
-    every transition diverged at -inf, all draws equal to the start)."""
+def _adaptive_boom(tmp_path):
+    """The boom study under the default adaptive integrator at 48 x 36 (in `tmp_path`)."""
     src = Path(__file__).resolve().parents[1] / "calibration" / "boom"
     text = (src / "study.toml").read_text()
     text = "\n".join(ln for ln in text.splitlines()
@@ -323,6 +335,42 @@ def test_nuts_on_an_adaptive_stiff_joint_starts_where_the_fit_ended(tmp_path):
     (tmp_path / "study.toml").write_text(text.replace("[numerics]",
                                                       "[numerics]\nnodes = 48\nsteps_per_rev = 36"))
     (tmp_path / "boom.csv").write_text((src / "boom.csv").read_text())
+    return tmp_path / "study.toml"
+
+
+def test_laplace_life_on_an_adaptive_stiff_joint_reaches_its_end(tmp_path):
+    """The boom under the adaptive integrator, life searched to 10x the last measurement
+    (250 h). Integrating on through the substrate ran out of attempts (error inf, later
+    points left at zero: measured 7428 steps, then truncated); the forecast now stops past
+    2x the layer and must end with its error within the tolerance, a life with both bounds,
+    and the depth at the `--at` point unchanged by the stop (it lies before it)."""
+    import subprocess
+    import sys
+
+    study = _adaptive_boom(tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxwear", "predict", str(study), "--at", "20",
+         "--train-until", "15", "--fit", "K_d", "--out", str(tmp_path / "o"),
+         "--json", str(tmp_path / "p.json")], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    doc = json.loads((tmp_path / "p.json").read_text())
+    integ = doc["integration"]
+    assert 0 < integ["error_estimate_um"] <= integ["tolerance_um"], integ
+    assert not any("integration" in f for f in doc["flags"]), doc["flags"]
+    life = doc["life"][0]
+    assert life["lower"] < life["at"] < life["upper"] < 250.0
+    # the central life is where the central forecast crosses 500 µm: beyond 20 h, where it
+    # is shallower
+    pred = doc["predictions"][0]
+    assert pred["depth_um"] < 500.0 and life["at"] > 20.0
+
+
+def test_nuts_on_an_adaptive_stiff_joint_starts_where_the_fit_ended(tmp_path):
+    """The boom (bimetal layer) under the default adaptive integrator, K_d started 20x below
+    its fitted value: the schedule's attempt count estimated at the start is far short at
+    the fit. NUTS must still start on a finite density and move (measured before the fix:
+    every transition diverged at -inf, all draws equal to the start)."""
+    _adaptive_boom(tmp_path)
     # In a subprocess: its large compiled programs (thousands of static attempts) stay out
     # of the test process. Every full-suite run that died inside XLA (three locally, one in
     # CI, all later in test_wear) ran this test in-process with JAX's persistent cache on.
@@ -339,3 +387,17 @@ def test_nuts_on_an_adaptive_stiff_joint_starts_where_the_fit_ended(tmp_path):
     nuts = json.loads((tmp_path / "p.json").read_text())["nuts"]
     assert nuts["divergences"] < 8
     assert nuts["posterior"]["K_d_per_Pa"]["sd"] > 0
+
+
+def test_draws_past_their_early_stop_hold_a_lower_bound():
+    """A posterior draw's forecast stops once its layer is worn through: the points after
+    repeat its last computed profile (depth never decreases: a lower bound past the layer),
+    per experiment, and a draw that did not stop is untouched."""
+    from jaxwear._predict import fill_past_stop
+
+    inf = np.inf
+    s = np.array([[[1.0, 2.0], [3.0, 5.0], [inf, inf], [inf, inf]],
+                  [[1.0, 1.0], [2.0, 2.0], [3.0, 3.0], [4.0, 4.0]]])
+    f, _ = fill_past_stop(s)
+    np.testing.assert_array_equal(f[0], [[1, 2], [3, 5], [3, 5], [3, 5]])
+    np.testing.assert_array_equal(f[1], s[1])
