@@ -40,7 +40,7 @@ class Schedule(eqx.Module):
     order: tuple = eqx.field(static=True, default=())
     attempts: int = eqx.field(static=True, default=0)
     tolerance: Float[Array, ""] | None = None
-    # Optional early stop (adaptive only): the loop ends at the first piece end at or after
+    # Optional early stop (adaptive only): the loop ends at the first snapshot at or after
     # `stop_after` cycles where the maximum depth is ≥ `stop_depth` [m]; snapshots after it
     # are not computed and come back as +inf ("deeper than stop_depth"). For forecasts whose
     # tail only asks *when* a depth is reached (life), not how deep the wear goes past it.

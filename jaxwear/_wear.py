@@ -316,10 +316,14 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
     def finished(c):
         seg = c[2]
         done = (seg >= P) | (cycles[jnp.minimum(seg, P - 1)] <= 0)
-        if stop:  # at a piece end (pos 0) past `stop_after` with the depth past `stop_depth`
-            past = schedule.cycle_end[jnp.clip(seg - 1, 0, P - 1)] >= schedule.stop_after * (
-                1 - 1e-12)
-            done = done | ((seg > 0) & past & (c[3] == 0.0)
+        if stop:
+            # at the end (pos 0) of a piece that took a snapshot (a regime change alone
+            # would leave the last snapshot short of `stop_depth`), past `stop_after`, with
+            # the depth past `stop_depth`
+            prev = jnp.clip(seg - 1, 0, P - 1)
+            past = schedule.cycle_end[prev] >= schedule.stop_after * (1 - 1e-12)
+            snapped = schedule.snapshot[prev] < schedule.n_snapshots
+            done = done | ((seg > 0) & past & snapped & (c[3] == 0.0)
                            & (jnp.max(c[0]) >= schedule.stop_depth))
         return done
 
