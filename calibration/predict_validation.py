@@ -162,7 +162,8 @@ def boom() -> str:
                          for k, v in r.parameters.items())
         life = r.life[0]
         notes.append(f"- {label}: {pars}; life (500 µm): "
-                     + (f"{life.at:.1f} h [{_f(life.lower)}, {_f(life.upper)}]"
+                     + (f"{life.at:.1f} h [{_f(life.lower)}, {_f(life.upper)}] (each "
+                        f"within {life.numerical_error_bound:.2g} h of the model's crossing)"
                         if life.at is not None else life.reason)
                      + ("; flags: " + "; ".join(r.flags) if r.flags else ""))
     return "\n".join(lines + [""] + notes)

@@ -112,13 +112,25 @@ def plot_fans(out, res):
 
     pl = plt()
     paths = []
-    top = max(p.at for p in res.predictions)
+    last_at = max(p.at for p in res.predictions)
     lives = {x.experiment: x for x in res.life}
     for name, c in res.curves.items():
         fig, ax = pl.subplots(figsize=(7, 4.2))
+        life = lives.get(name)
+        # the chart reaches the life (central, and the band's far edge where found) when it
+        # lies within a few times the forecast range, so the question "when?" has a picture
+        reach = None if life is None or life.at is None else (life.upper or life.at)
+        top = reach * 1.05 if reach is not None and reach <= 4 * last_at else last_at
         m = (c.at <= top * 1.0001) & c.valid
+        # and the first point past the layer, so that the line is seen to cross the limit
+        past = np.flatnonzero(~c.valid & np.isfinite(c.depth_um) & np.isfinite(c.lower_um)
+                              & (c.at <= top * 1.0001))
+        if len(past):
+            m[past[0]] = True
         x = np.r_[0.0, c.at[m]]
-        ax.fill_between(x, np.r_[0.0, c.lower_um[m]], np.r_[0.0, c.upper_um[m]],
+        # a NUTS band edge is +inf where enough draws have worn through: left open there
+        upper = np.where(np.isfinite(c.upper_um), c.upper_um, np.nan)
+        ax.fill_between(x, np.r_[0.0, c.lower_um[m]], np.r_[0.0, upper[m]],
                         color="tab:blue", alpha=0.18,
                         label=f"{res.level:.0%} prediction band (new measurement)")
         ax.fill_between(x, np.r_[0.0, c.conf_lower_um[m]], np.r_[0.0, c.conf_upper_um[m]],
@@ -133,9 +145,14 @@ def plot_fans(out, res):
                         label="measured (held out)")
         if res.train_until is not None:
             ax.axvline(res.train_until, color="0.4", ls=":", lw=1, label="--train-until")
-        life = lives.get(name)
         if life is not None and life.limit_um <= 1.2 * np.nanmax(c.upper_um[m]):
             ax.axhline(life.limit_um, color="tab:red", ls="--", lw=1, label="limit")
+            if life.at is not None and life.at <= top:
+                lo = life.lower if life.lower is not None else life.at
+                hi = min(life.upper if life.upper is not None else top, top)
+                ax.axvspan(lo, hi, color="tab:red", alpha=0.12, lw=0,
+                           label=f"life {life.at:.4g} [{lo:.4g}, "
+                                 f"{'n/a' if life.upper is None else f'{hi:.4g}'}] {res.unit}")
         ax.set_xlabel(f"{res.unit}")
         ax.set_ylabel("maximum wear depth [µm]")
         ax.set_title(f"{name}: forecast ({res.method}), trained "
@@ -210,7 +227,8 @@ def summary_text(res) -> str:
             def f(v):
                 return "n/a" if v is None else f"{v:.4g}"
             lines.append(f"life {x.experiment}: {x.limit_um:g} µm reached at {f(x.at)} "
-                         f"[{f(x.lower)}, {f(x.upper)}] {x.unit}")
+                         f"[{f(x.lower)}, {f(x.upper)}] {x.unit} (each within "
+                         f"{f(x.numerical_error_bound)} {x.unit} of the model's crossing)")
     integ = res.extra.get("integration")
     if integ and integ["integrator"] == "adaptive":
         lines.append(f"integration (adaptive) of the forecast: error estimate "

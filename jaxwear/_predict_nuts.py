@@ -220,9 +220,10 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
              forward_mode: bool = True, cov=None):
     """NUTS posterior of the training problem's parameters and the forecast's predictive.
 
-    Returns (draws dict: `max_um` (D, E, S), `new_um` (D, E, S), `profile_um` (D, E, N) at
-    the last `--at` point's snapshot, `profile_new_um`; extra JSON dict with the sampler's
-    diagnostics: R-hat and bulk ESS per parameter, divergences, time, netCDF path).
+    Returns (draws dict: `max_um` (D, E, S), `new_um` (D, E, S), `snapshots_um`
+    (D, E, S, N), `noise` (D,); extra JSON dict with the sampler's diagnostics: R-hat and
+    bulk ESS per parameter, divergences, time, netCDF path; `forecast_draws(fprob)`, the
+    same draws' dict at another forecast problem's points, for the life's refinement).
     `forward_mode`: gradients by forward mode (p tangents through the wear loop: measured
     faster than reverse mode, which re-runs the checkpointed loop, for p ≤ ~6).
     `cov`: the fit's Laplace covariance of u (p, p) for the whitening (None: L = I).
@@ -343,23 +344,29 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     idx = np.linspace(0, len(flat_u) - 1, n_pred).round().astype(int)
     _log(verbose, f"predict/nuts: sampled in {t_run:.0f} s ({n_div} divergences, "
                   f"{mean_steps:.1f} leapfrog steps per step); forecasting {n_pred} draws")
-    mx, prof = [], []
-    t0 = last = time.perf_counter()
-    for n_done, j in enumerate(idx, 1):
-        s, fprob = forecast(fprob, jnp.asarray(flat_u[j]))  # (E, S, N)
-        s = fill_past_stop(s)[0]
-        mx.append(s.max(axis=-1))
-        prof.append(s)
-        if time.perf_counter() - last > 30:
-            last = time.perf_counter()
-            _log(verbose, f"predict/nuts: forecast {n_done}/{len(idx)} draws "
-                          f"({last - t0:.0f} s)")
+
+    def forecast_draws(fprob):
+        """The thinned draws' forecasts at `fprob`'s points: the draws dict (see above)."""
+        mx, prof, past = [], [], []
+        t0 = last = time.perf_counter()
+        for n_done, j in enumerate(idx, 1):
+            s, fprob = forecast(fprob, jnp.asarray(flat_u[j]))  # (E, S, N)
+            past.append(np.isinf(s).any(axis=-1))  # (E, S): after the draw's early stop
+            s = fill_past_stop(s)[0]
+            mx.append(s.max(axis=-1))
+            prof.append(s)
+            if time.perf_counter() - last > 30:
+                last = time.perf_counter()
+                _log(verbose, f"predict/nuts: forecast {n_done}/{len(idx)} draws "
+                              f"({last - t0:.0f} s)")
+        mx = np.stack(mx)
+        new = new_measurements(mx, np.stack(past), flat_s[idx], np.random.default_rng(seed))
+        return {"max_um": mx, "new_um": new, "snapshots_um": np.stack(prof),  # (D, E, S, N)
+                "noise": flat_s[idx]}
+
+    t0 = time.perf_counter()
+    draws_out = forecast_draws(fprob)
     t_pred = time.perf_counter() - t0
-    mx = np.stack(mx)
-    snaps = np.stack(prof)  # (D, E, S, N)
-    rng = np.random.default_rng(seed)
-    new = mx + flat_s[idx][:, None, None] * rng.standard_normal(mx.shape)
-    draws_out = {"max_um": mx, "new_um": new, "snapshots_um": snaps, "noise": flat_s[idx]}
     path = None
     if out is not None:
         path = out.path("posterior.nc")
@@ -377,7 +384,19 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
         "posterior": diag, "netcdf": None if path is None else str(path),
         "max_r_hat": max((v["r_hat"] or 0.0) for v in diag.values()),
         "min_ess_bulk": min((v["ess_bulk"] or 0.0) for v in diag.values())}}
-    return draws_out, extra_json
+    return draws_out, extra_json, forecast_draws
+
+
+def new_measurements(max_um, past, noise_um, rng):
+    """Posterior-predictive new measurements of the maximum depth (D, E, S) [µm]: each
+    draw's depth `max_um` plus its noise `noise_um` (D,). Where `past` (D, E, S) the draw had
+    stopped, worn through the layer (≥ every allowed limit), before that point: a new
+    measurement there is past the limit (+inf), not the depth the draw stopped at plus noise,
+    which, being only a lower bound, kept the band's lower edge under the limit for good
+    (measured on the boom: "no upper bound" for the life once the grid was fine enough to
+    stop the draws within a micrometre of the layer)."""
+    new = max_um + noise_um[:, None, None] * rng.standard_normal(max_um.shape)
+    return np.where(past, np.inf, new)
 
 
 def _f(x):

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 
 def _adaptive_boom(tmp_path):
@@ -48,6 +49,10 @@ def test_laplace_life_on_an_adaptive_stiff_joint_reaches_its_end(tmp_path):
     assert not any("integration" in f for f in doc["flags"]), doc["flags"]
     life = doc["life"][0]
     assert life["lower"] < life["at"] < life["upper"] < 250.0
+    # refined until every crossing's grid bracket is within 0.5 % of it (the default grid's
+    # 5.2 h steps across the 1 h / 4 h duty blocks were off by 1 h, the band 4x too wide)
+    assert 0 < life["numerical_error_bound"] <= 0.005 * life["upper"], life
+    assert not any("refinements" in f for f in doc["flags"]), doc["flags"]
     # the central life is where the central forecast crosses 500 µm: beyond 20 h, where it
     # is shallower
     pred = doc["predictions"][0]
@@ -78,6 +83,8 @@ def test_nuts_on_an_adaptive_stiff_joint_starts_where_the_fit_ended(tmp_path):
     # found (a stop at a regime change, between snapshots, once left it "not reached")
     life = doc["life"][0]
     assert life["at"] is not None and 20.0 < life["at"] < 150.0, life
+    # the same draws re-forecast on the refined grid (2 draws: a narrow band)
+    assert 0 < life["numerical_error_bound"] <= 0.005 * life["upper"], life
 
 
 def test_draws_past_their_early_stop_hold_a_lower_bound():
@@ -92,3 +99,84 @@ def test_draws_past_their_early_stop_hold_a_lower_bound():
     f, _ = fill_past_stop(s)
     np.testing.assert_array_equal(f[0], [[1, 2], [3, 5], [3, 5], [3, 5]])
     np.testing.assert_array_equal(f[1], s[1])
+
+
+def _staircase(t):
+    """Depth [µm] of a boom-like duty cycle: 50 µm/h in the first hour of every 5, then
+    5 µm/h (monotone, kinked at every block change)."""
+    t = np.asarray(t, float)
+    n, r = np.divmod(t, 5.0)
+    return n * 70.0 + np.where(r < 1.0, 50.0 * r, 50.0 + 5.0 * (r - 1.0))
+
+
+def test_life_crossings_hold_their_bound_and_refine_to_it():
+    """Life on a grid that straddles the duty blocks (5.2 h steps, like the default on the
+    boom): the crossing of a monotone curve lies inside its grid bracket, so every reported
+    life is within its `numerical_error_bound` of the exact crossing (by hand: 500 µm is
+    reached in the fast hour of the 8th period, at 35 + 10/50 = 35.2 h). Refining the
+    brackets shrinks the bound below LIFE_RTOL of the crossing; the grid alone is off by
+    more than the tolerance. Block boundaries on the grid make it exact (linear within)."""
+    from types import SimpleNamespace
+
+    from jaxwear._predict import LIFE_RTOL, life_of, refined_points, regime_boundaries
+
+    exact = 35.2
+    assert _staircase(exact) == pytest.approx(500.0, abs=1e-9)
+    study = SimpleNamespace(config=SimpleNamespace(driver="oscillating"))
+    pts = [np.linspace(0, 250.0, 49)[1:]]
+
+    def life(t):
+        y = _staircase(t)
+        return life_of("boom", t, y, y - 20.0, y + 20.0, 500.0, "hours", 250.0)
+
+    first = life(pts[0])
+    assert abs(first.at - exact) > LIFE_RTOL * exact  # the grid alone is wrong
+    for _ in range(4):
+        x = life(pts[0])
+        assert abs(x.at - exact) <= x.numerical_error_bound * (1 + 1e-12)
+        res = SimpleNamespace(life=[x])
+        finer = refined_points(study, res, pts)
+        if finer is None:
+            break
+        assert len(finer[0]) > len(pts[0])
+        pts = finer
+    assert finer is None and x.numerical_error_bound <= LIFE_RTOL * x.upper
+    assert abs(x.at - exact) < 1e-3 * exact
+
+    boom = SimpleNamespace(config=SimpleNamespace(
+        duty_cycle=(SimpleNamespace(duration_h=1.0), SimpleNamespace(duration_h=4.0))))
+    b = regime_boundaries(boom, 250.0)
+    np.testing.assert_allclose(b[:4], [1.0, 5.0, 6.0, 10.0])
+    assert b[-1] == 250.0 and len(b) == 100
+    grid = np.unique(np.r_[np.linspace(0, 250.0, 49)[1:], b])
+    assert life(grid).at == pytest.approx(exact, abs=1e-9)
+
+
+def test_worn_through_draws_take_the_prediction_band_past_the_limit():
+    """200 draws wearing 10 µm/h, each stopped (worn through) at the first point past the
+    500 µm layer, with 5 µm noise. Past a draw's stop a new measurement is past the limit;
+    filled with the stopped depth plus noise instead, the band's lower edge hovered ~8 µm
+    under the limit for good and the life had no upper end. By hand: the lower edge is
+    past the limit once over 95 % of the draws have stopped."""
+    from jaxwear._predict import draw_quantile, life_of
+    from jaxwear._predict_nuts import new_measurements
+
+    rng = np.random.default_rng(0)
+    t = np.arange(1.0, 101.0)  # hours
+    onset = rng.uniform(40.0, 55.0, 200)  # each draw reaches 500 µm at its own time
+    depth = 500.0 + 10.0 * (t[None, :] - onset[:, None])  # (D, S)
+    stop = np.searchsorted(t, onset)[:, None]  # first point at or past 500 µm: computed
+    past = np.arange(len(t))[None, :] > stop
+    depth = np.where(past, np.take_along_axis(depth, stop, axis=1), depth)  # filled
+    new = new_measurements(depth[:, None], past[:, None], np.full(200, 5.0), rng)[:, 0]
+    lo, hi = draw_quantile(new, 0.05), draw_quantile(new, 0.95)
+    finite = np.isfinite(new).all(axis=0)  # NumPy's quantile where it is defined
+    np.testing.assert_array_equal(lo[finite], np.quantile(new[:, finite], 0.05, axis=0))
+    assert np.isposinf(lo[-1]) and not np.isnan(hi).any()
+    life = life_of("x", t, np.median(depth, axis=0), lo, hi, 500.0, "hours", 100.0)
+    assert life.upper is not None and life.upper <= np.quantile(onset, 0.95) + 2.0, life
+    assert life.lower < life.at < life.upper
+    # the filled depths plus noise, as before: the lower edge never reaches the limit
+    old = depth + 5.0 * rng.standard_normal(depth.shape)
+    assert life_of("x", t, np.median(depth, axis=0), np.quantile(old, 0.05, axis=0), hi,
+                   500.0, "hours", 100.0).upper is None
