@@ -412,37 +412,26 @@ def _band(g, cov, null_dirs, noise, q):
     return sd, np.sqrt(sd ** 2 + noise ** 2)
 
 
-def crossing_bracket(t, y, limit):
-    """(t_before, t_after) of the first grid step over which y reaches `limit` (from (0, 0));
-    None if never. Non-finite y counts as reached at its point (worn through there)."""
+def crossing(t, y, limit):
+    """(t_x, t_before, t_after): the first t at which y reaches `limit` (linear
+    interpolation from (0, 0)) and the grid step it lies in; None if never. Non-finite y
+    counts as reached at its point (the layer is worn through there)."""
     tt = np.concatenate([[0.0], t])
     yy = np.concatenate([[0.0], y])
     for k in range(1, len(tt)):
-        if not np.isfinite(yy[k]) or yy[k] >= limit:
-            return float(tt[k - 1]), float(tt[k])
+        if not np.isfinite(yy[k]):
+            return float(tt[k]), float(tt[k - 1]), float(tt[k])
+        if yy[k] >= limit:
+            y0 = yy[k - 1]
+            x = tt[k - 1] + (limit - y0) / (yy[k] - y0) * (tt[k] - tt[k - 1])
+            return float(x), float(tt[k - 1]), float(tt[k])
     return None
 
 
-def first_crossing(t, y, limit):
-    """First t at which y reaches `limit` (linear interpolation from (0, 0)); None if never.
-    Non-finite y counts as reached at its point (the layer is worn through there)."""
-    b = crossing_bracket(t, y, limit)
-    if b is None:
-        return None
-    k = int(np.searchsorted(t, b[1]))  # t[k] == b[1]
-    if not np.isfinite(y[k]):
-        return b[1]
-    y0 = 0.0 if k == 0 else y[k - 1]
-    return float(b[0] + (limit - y0) / (y[k] - y0) * (b[1] - b[0]))
-
-
 def life_of(name, t, depth, lower, upper, limit, unit, horizon) -> Life:
-    at = first_crossing(t, depth, limit)
-    lo = first_crossing(t, upper, limit)
-    hi = first_crossing(t, lower, limit)
-    brackets = tuple((*b, x) for b, x in zip(
-        (crossing_bracket(t, y, limit) for y in (depth, upper, lower)), (at, lo, hi))
-        if b is not None)
+    found = [crossing(t, y, limit) for y in (depth, upper, lower)]
+    at, lo, hi = (None if c is None else c[0] for c in found)
+    brackets = tuple((a, b, x) for x, a, b in filter(None, found))
     reason = None
     if at is None:
         reason = (f"the forecast does not reach {limit:g} µm within {LIFE_HORIZON:g}x the last "
