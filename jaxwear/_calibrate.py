@@ -3,33 +3,26 @@
 All experiments of a study run in one compiled function (schedules padded to a common
 length), and that one function returns the residuals, the exact forward-mode Jacobian
 through the whole wear loop (`jax.jacfwd`), and the model's snapshots. Everything the fit
-needs (the robust start, every Levenberg-Marquardt trial, both passes, the standard errors)
-is an evaluation of it, so a problem compiles once. The Levenberg-Marquardt iteration runs
-on the host on p × p matrices (p = number of fitted parameters, a handful), or with
-`engine="optimistix"` as `optimistix.LevenbergMarquardt` in one jit whose residual function
-has a custom JVP taking (r, J) from that same compiled evaluation through a host callback:
-letting optimistix differentiate the wear loop itself (`jax.linearize`) would trace and
-compile the loop a second time. Measured, the host loop is as fast cached and ~1 s faster
-cold (it compiles nothing else), hence the default (README, "Calibration output").
+needs (the robust start, every trial, the standard errors) is an evaluation of it, so a
+problem compiles once. The iteration itself is the one least-squares core, `jaxwear.lsq`
+(optimistix's Levenberg-Marquardt pieces, the statistical stop, the noise re-estimated
+inside the loop, the covariance); this module only states the problem.
 
 Parameterisation: positive parameters (K_d, clearances, S_r) are fitted as log-multipliers
 of their start, nested effect strengths linearly around their "off" value in units of a
-typical scale. The clearance-tolerance prior of DESIGN §6 adds one residual per fitted
-clearance, (c - c_nominal)/τ, in units of the noise level (estimated from a first pass);
-τ = inf gives zero rows (free clearances), τ = 0 removes the clearances from the fit.
-With `[fit] angle_tolerance_deg` > 0 each profile's angular registration is fitted too
-(`angle_offset_deg/EXP`, linear, started at the given offset, the same kind of prior row):
-the model is read at the shifted angles by a periodic interpolation differentiable in the
-offset (docs/measurements.md).
-
-Robust start: depth is nearly proportional to K_d, so before the iteration K_d is divided
-by 10 until the model no longer wears through the layer, then rescaled so that the model's
-depth matches the data in least squares. This brings a start 100x off to within a few
-percent, where Levenberg-Marquardt converges in a few steps.
+typical scale, within the effects' bounds. The clearance-tolerance prior of DESIGN §6 adds
+one row per fitted clearance, (c - c_nominal)/τ in units of its standard deviation (the
+core weights the data rows by 1/σ); τ = inf gives zero rows (free clearances), τ = 0
+removes the clearances from the fit. With `[fit] angle_tolerance_deg` > 0 each profile's
+angular registration is fitted too (`angle_offset_deg/EXP`, linear, started at the given
+offset, the same kind of prior row): the model is read at the shifted angles by a periodic
+interpolation differentiable in the offset (docs/measurements.md).
 
 Outcome semantics: a fit that stops without meeting its convergence test still returns its
-result, with `converged = False` and a `message` saying why; only a start that cannot be
-evaluated at all (worn through whatever K_d, or non-finite) raises `FitError`.
+result, with `converged = False`, `status` ("stalled" or "budget") and a `message` saying
+why; only a start that cannot be evaluated at all (worn through whatever K_d, or
+non-finite) raises `FitError`, and a noise level the data cannot determine raises
+`InputError` before any evaluation.
 """
 
 from __future__ import annotations
@@ -37,22 +30,21 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-import time
 from dataclasses import dataclass
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
+from . import lsq
 from ._config import ModelConfig
 from ._errors import InputError
 from ._params import PARAMETER_KEYS, Params, key_to_si
 from ._schedule import Schedule, pad_schedule
 from ._study import Study
 from ._wear import adaptive_attempts, build_schedule, schedule_numerics, wear_loop
-from .effects import effect_parameter_specs, get_effect
+from .effects import effect_parameter_specs, get_effect, product_pairs, project_products
 
 
 class FitError(RuntimeError):
@@ -225,6 +217,7 @@ class Problem(eqx.Module):
     tolerance_um: jax.Array  # clearance prior's standard deviation (inf: no prior)
     nominal_angle_deg: jax.Array  # given registration offsets (experiments,)
     angle_tolerance_deg: jax.Array  # their prior's standard deviation
+    noise_um: float | None = eqx.field(static=True, default=None)  # [fit] noise_um, if given
 
     @property
     def n_data(self) -> int:
@@ -242,22 +235,59 @@ class Problem(eqx.Module):
         return any(f.key == "angle_offset_deg" for f in self.fits)
 
     def values(self, u):
-        """Fitted parameters in user units from u (p,)."""
+        """Fitted parameters in user units from u (p,). A strength fitted with its `per`
+        parameter (`EffectParameter.per`) is the linear coordinate times exp(-u_per): u
+        then measures the product the data identify (running-in: a·S_r)."""
         out = []
         for i, f in enumerate(self.fits):
             if f.log:
                 out.append(self.start[i] * jnp.exp(u[i]))
             else:
                 out.append(self.start[i] + f.scale * u[i])
+        for i, j in product_pairs([f.key for f in self.fits]):
+            out[i] = out[i] * jnp.exp(-u[j])
         return jnp.stack(out) if out else jnp.zeros(0)
+
+    def value_jacobian(self, u) -> np.ndarray:
+        """d values / d u (p, p) at u: diagonal but for the product pairs."""
+        if not self.fits:
+            return np.zeros((0, 0))
+        return np.asarray(jax.jacfwd(self.values)(jnp.asarray(u, jnp.float64)))
+
+    def bounds_u(self):
+        """Bounds on u (p,) from the effects' parameter bounds (others unbounded)."""
+        specs = effect_parameter_specs()
+        s = np.asarray(self.start)
+        lo, hi = np.full(len(self.fits), -np.inf), np.full(len(self.fits), np.inf)
+        for i, f in enumerate(self.fits):
+            if f.key not in specs:
+                continue
+            sp = specs[f.key]
+            if f.log:
+                lo[i] = math.log(sp.lower / s[i]) if sp.lower > 0 else -np.inf
+                hi[i] = math.log(sp.upper / s[i]) if math.isfinite(sp.upper) else np.inf
+            else:
+                lo[i], hi[i] = (sp.lower - s[i]) / f.scale, (sp.upper - s[i]) / f.scale
+        return lo, hi
+
+    def project(self, u) -> np.ndarray:
+        """u with every product strength (`EffectParameter.per`) inside its value bounds,
+        by moving its linear coordinate: the box on u cannot state a bound on
+        linear·exp(-u_per), and an unbounded running-in amplitude (S_r to 0 along the
+        valley of equal a·S_r) makes the wear loop arbitrarily stiff."""
+        return project_products([f.key for f in self.fits], np.asarray(self.start),
+                                [f.scale for f in self.fits], u)
 
     def u_of(self, values):
         """Inverse of `values` (numpy in, numpy out)."""
         v = np.asarray(values, float)
         s = np.asarray(self.start)
+        lin = v.copy()
+        for i, j in product_pairs([f.key for f in self.fits]):
+            lin[i] = v[i] * v[j] / s[j]  # the linear coordinate of the product
         out = []
         for i, f in enumerate(self.fits):
-            out.append(np.log(v[i] / s[i]) if f.log else (v[i] - s[i]) / f.scale)
+            out.append(np.log(v[i] / s[i]) if f.log else (lin[i] - s[i]) / f.scale)
         return np.array(out)
 
     def batched_params(self, u) -> Params:
@@ -396,7 +426,8 @@ def build_problem(study: Study, keys: list[str], start: dict | None = None) -> P
                    tolerance_um=jnp.asarray(study.clearance_tolerance_um, jnp.float64),
                    nominal_angle_deg=jnp.asarray(nominal_angle, jnp.float64),
                    angle_tolerance_deg=jnp.asarray(study.angle_tolerance_deg or 1.0,
-                                                   jnp.float64))
+                                                   jnp.float64),
+                   noise_um=study.noise_um)
 
 
 class Evaluation(eqx.Module):
@@ -455,19 +486,26 @@ def _enough_attempts(problem: Problem, u) -> Problem:
 
 def evaluate(problem: Problem, u, noise_um: float = 1.0) -> Evaluation:
     """Residuals, Jacobian and snapshots at u, as numpy arrays (one compiled function)."""
+    return evaluate_with(problem, u, noise_um)[0]
+
+
+def evaluate_with(problem: Problem, u, noise_um: float = 1.0, *, doublings: int = 3
+                  ) -> tuple[Evaluation, Problem]:
+    """`evaluate`, and the problem it ran (its attempt count raised where u needed more): a
+    fit keeps that problem, so later trials neither repeat the short run nor recompile."""
     problem = _enough_attempts(problem, u)
     u, noise_um = jnp.asarray(u, jnp.float64), jnp.asarray(noise_um, jnp.float64)
     ev = _evaluate_jit(problem, u, noise_um)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
     # layer's rejections), double it (a recompilation) rather than hand LM a NaN.
-    for _ in range(3):
+    for _ in range(doublings):
         if not (problem.schedule.adaptive and not np.isfinite(float(ev.error_estimate))):
             break
         sched = problem.schedule
         problem = dataclasses.replace(
             problem, schedule=sched.more_attempts())
         ev = _evaluate_jit(problem, u, noise_um)
-    return jax.tree.map(np.asarray, ev)
+    return jax.tree.map(np.asarray, ev), problem
 
 
 def _usable(ev: Evaluation) -> bool:
@@ -478,140 +516,6 @@ def _usable(ev: Evaluation) -> bool:
 def _log(verbose, msg):
     if verbose:
         print(msg, file=sys.stderr, flush=True)
-
-
-def robust_start(problem: Problem, u, noise_um: float = 1.0, *, verbose=False):
-    """Bring K_d (if fitted) to the data's scale before Levenberg-Marquardt.
-
-    1. While the model wears through the layer (or is not finite), divide K_d by 10.
-    2. Depth is nearly proportional to K_d: multiply K_d by the least-squares factor
-       a = Σ m·d / Σ d·d between measured m and predicted d (repeated while |ln a| > 2 %,
-       at most 3 times, since wear slightly changes the contact).
-
-    Returns (u, evaluation at u). Raises `FitError` if no K_d down to 1e-8 of the start
-    gives a usable model.
-    """
-    u = np.array(u, dtype=np.float64)
-    ev = evaluate(problem, u, noise_um)
-    k = next((i for i, f in enumerate(problem.fits) if f.key == "K_d_per_Pa"), None)
-    tries = 0
-    while not _usable(ev):
-        if k is None or tries >= 8:
-            why = ("the layer wears through" if float(ev.worn) >= 0
-                   else "the model is not finite")
-            raise FitError(f"cannot start the fit: {why} at the start values "
-                           f"{dict(zip(problem.names, np.asarray(problem.values(u))))}"
-                           + ("" if k is None else " even with K_d reduced 1e8-fold"))
-        u[k] -= math.log(10.0)
-        tries += 1
-        _log(verbose, f"  start: layer worn through or model not finite; K_d / 10 → "
-                      f"{float(problem.values(u)[k]):.3e}")
-        ev = evaluate(problem, u, noise_um)
-    if k is None:
-        return u, ev
-    meas = np.asarray(problem.data.depth_um)
-    for _ in range(3):
-        d = ev.predicted
-        dd = float(d @ d)
-        if not dd > 0:
-            break
-        a = float(d @ meas) / dd
-        if not (a > 0 and math.isfinite(a)) or abs(math.log(a)) < 0.02:
-            break
-        trial = u.copy()
-        trial[k] += math.log(a)
-        ev_t = evaluate(problem, trial, noise_um)
-        if not _usable(ev_t):
-            break
-        u, ev = trial, ev_t
-        _log(verbose, f"  start: K_d rescaled x{a:.3g} to the data → "
-                      f"{float(problem.values(u)[k]):.3e} 1/Pa")
-    return u, ev
-
-
-@dataclass
-class LMOutcome:
-    u: np.ndarray
-    evaluation: Evaluation
-    converged: bool
-    evaluations: int
-    message: str
-
-
-def levenberg_marquardt(problem: Problem, u0, noise_um: float, *, ev0: Evaluation | None = None,
-                        max_evaluations: int = 60, xtol: float = 1e-8, ftol: float = 1e-10,
-                        gtol: float = 1e-8, setol: float = 1e-3,
-                        verbose: bool = False) -> LMOutcome:
-    """Levenberg-Marquardt with Marquardt's diagonal scaling and Nielsen's damping update.
-
-    Every trial point is one call of the compiled residual/Jacobian function; an accepted
-    trial's Jacobian is the next linearisation. Converged when an accepted step changes u
-    by < xtol (u is a log-multiplier: relative change) or by < setol standard errors of
-    every parameter (at the misfit's noise level: moving further cannot matter to the
-    result), the misfit by < ftol relative, or the residual is orthogonal to every Jacobian
-    column to within gtol (MINPACK's tests).
-    Trial points where the model wears through or is not finite are rejected.
-    """
-    u = np.array(u0, dtype=np.float64)
-    ev = evaluate(problem, u, noise_um) if ev0 is None else ev0
-    evals = 0 if ev0 is not None else 1
-    if not _usable(ev):
-        return LMOutcome(u, ev, False, evals, "the model is not usable at the start values "
-                         "(worn through or not finite)")
-    r, J = ev.residuals, ev.jacobian
-    F = 0.5 * float(r @ r)
-    p = J.shape[1]
-    n = problem.n_data
-    if p == 0:
-        return LMOutcome(u, ev, True, evals, "nothing to fit")
-    A, g = J.T @ J, J.T @ r
-    lam, nu = 1e-3, 2.0
-    t0 = time.perf_counter()
-    _log(verbose, f"    LM start: rms residual {math.sqrt(2 * F / max(n, 1)):.4f} µm")
-    while True:
-        col = np.sqrt(np.maximum(np.diag(A), 1e-300))
-        if np.max(np.abs(g) / col) <= gtol * math.sqrt(2 * F + 1e-300):
-            return LMOutcome(u, ev, True, evals, "converged (gradient orthogonal to residuals)")
-        if evals >= max_evaluations:
-            return LMOutcome(u, ev, False, evals, f"did not converge within {max_evaluations} "
-                             f"model evaluations")
-        if lam > 1e16:
-            return LMOutcome(u, ev, False, evals, "stalled: no step reduces the misfit "
-                             "(damping exhausted)")
-        D = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
-        try:
-            step = np.linalg.solve(A + lam * np.diag(D), -g)
-        except np.linalg.LinAlgError:
-            step = np.linalg.lstsq(A + lam * np.diag(D), -g, rcond=None)[0]
-        trial = u + step
-        ev_t = evaluate(problem, trial, noise_um)
-        evals += 1
-        r_t = ev_t.residuals
-        F_t = 0.5 * float(r_t @ r_t) if _usable(ev_t) else math.inf
-        predicted = -(float(step @ g) + 0.5 * float(step @ A @ step))
-        rho = (F - F_t) / predicted if predicted > 0 else -1.0
-        if F_t < F and rho > 0:
-            rel = (F - F_t) / max(F, 1e-300)
-            u, ev, F = trial, ev_t, F_t
-            A, g = ev.jacobian.T @ ev.jacobian, ev.jacobian.T @ ev.residuals
-            lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
-            nu = 2.0
-            _log(verbose, f"    LM {evals:3d}: rms residual {math.sqrt(2 * F / n):.4f} µm, "
-                          f"step {np.max(np.abs(step)):.2e}, λ {lam:.1e} "
-                          f"({time.perf_counter() - t0:.1f} s)")
-            if np.max(np.abs(step)) <= xtol * (1 + np.max(np.abs(u))):
-                return LMOutcome(u, ev, True, evals, "converged (step below tolerance)")
-            cov, unidentified = _covariance(A)
-            se_u = np.sqrt(np.clip(np.diag(cov), 0, None) * 2 * F / max(len(r_t) - p, 1))
-            if np.all((np.abs(step) <= setol * se_u) | unidentified):
-                return LMOutcome(u, ev, True, evals, f"converged (last step < {setol:g} "
-                                 f"standard errors)")
-            if rel <= ftol:
-                return LMOutcome(u, ev, True, evals, "converged (misfit no longer falls)")
-        else:
-            lam *= nu
-            nu *= 2.0
-            _log(verbose, f"    LM {evals:3d}: step rejected, λ → {lam:.1e}")
 
 
 @dataclass
@@ -639,6 +543,11 @@ class FitResult:
     snapshots_um: np.ndarray  # (experiments, snapshots, nodes)
     max_contact_residual: float
     integration: dict | None = None  # error estimate at the fitted values (see `calibrate`)
+    status: str = "converged"  # the core's: converged, stalled, budget
+    noise_used_um: float = 0.0  # σ the data rows were weighted with at the answer
+    noise_given: bool = False
+    step_se: float = 0.0  # the next Gauss-Newton step at the answer, in standard errors
+    resolution: dict | None = None  # the spatial resolution and its check (`calibrate`)
 
     def parameters_json(self) -> dict:
         return {n: {"value": float(v), "stderr": (float(s) if np.isfinite(s) else None)}
@@ -657,13 +566,20 @@ class FitResult:
                             "matrix": [[float(x) if np.isfinite(x) else None for x in row]
                                        for row in np.asarray(self.correlation)]},
             "converged": bool(self.converged),
+            "status": self.status,
             "iterations": int(self.iterations),
+            "model_evaluations": int(self.iterations),
+            "next_step_standard_errors": (float(self.step_se)
+                                          if math.isfinite(self.step_se) else None),
+            "noise_weight_um": float(self.noise_used_um),
+            "noise": "given" if self.noise_given else "estimated from the residuals",
             "message": self.message,
             "flags": list(self.flags),
             "n_data": int(self.n_data),
             "clearance_tolerance_um": tol if math.isfinite(tol) else "inf",
             "max_contact_residual": float(self.max_contact_residual),
             "integration": self.integration,
+            "resolution": self.resolution,
         }
 
     @property
@@ -675,221 +591,143 @@ class FitResult:
         return float(np.sum(self.residuals_um ** 2))
 
 
-# optimistix engine. optimistix differentiates its residual function itself (jax.linearize
-# at every step); through the wear loop that traces the loop a second time (primal and
-# recomputed tangent copies, ~2x the compile of `_evaluate_jit`). Instead the residual
-# function handed to optimistix has a custom JVP whose rule returns J·du with (r, J) from
-# one forward-mode evaluation: from the study's compiled `_evaluate_jit` through a host
-# callback (the engine's path: the wear loop is compiled once per study, shared with the
-# robust start and the standard errors), or traced inline (`inline=True`: one more compile
-# of the loop, kept for measurement). The callback memoises evaluations, so the Jacobian at
-# the solution (for the covariance) is the one optimistix used, and it counts evaluations.
-
-_HOST_MODELS: dict = {}  # token -> (u ↦ (r, J) in numpy, default device), during one solve
+def point(problem: Problem, u) -> lsq.Point:
+    """The problem at u as the least-squares core sees it: data rows, prior rows in units of
+    their standard deviation (the evaluation's noise weight 1), usability and the adaptive
+    integrator's error estimate: its step choice makes the model's error jump between
+    nearby parameters, which sets the floor of a meaningful decrease. The paper
+    integrator's fixed steps give a smooth bias instead, no floor (0)."""
+    ev = evaluate(problem, u, 1.0)
+    return _as_point(problem, u, ev)
 
 
-def _call_host_model(token, u):
-    model, device = _HOST_MODELS[int(token)]
-    # JAX runs callbacks under `default_device(<the CPU>)`, which is part of the jit cache
-    # key: without restoring the caller's setting, `_evaluate_jit` would trace and compile
-    # again (measured: +9 s on a 48-node grid).
-    with jax.default_device(device):
-        return model(np.asarray(u, np.float64))
+def _as_point(problem: Problem, u, ev: Evaluation) -> lsq.Point:
+    n = problem.n_data
+    err = ev.error_estimate
+    err = (float(err) if problem.schedule.adaptive and err is not None and np.isfinite(err)
+           else 0.0)
+    return lsq.Point(u=np.asarray(u, np.float64), r=ev.residuals[:n], predicted=ev.predicted,
+                     J=ev.jacobian[:n], r_prior=ev.residuals[n:], J_prior=ev.jacobian[n:],
+                     usable=_usable(ev), error_um=err, extra=ev)
 
 
-@eqx.filter_jit
-def _optimistix_solve(problem: Problem | None, u0, noise_um, token, n_rows: int,
-                      max_steps: int, rtol: float, atol: float):
-    """optimistix Levenberg-Marquardt in one jit; (u, success, steps)."""
-    p = u0.shape[0]
-    shapes = (jax.ShapeDtypeStruct((n_rows,), jnp.float64),
-              jax.ShapeDtypeStruct((n_rows, p), jnp.float64))
-
-    def model(v):
-        if problem is None:
-            return jax.pure_callback(_call_host_model, shapes, token, v)
-        ev = _evaluate_jit(problem, v, noise_um)
-        # a trial where the layer wears through is a misfit, not a minimum (as in "lm")
-        bad = (ev.worn >= 0) | ~jnp.all(jnp.isfinite(ev.residuals))
-        return jnp.where(bad, 1e100, ev.residuals), jnp.where(bad, 0.0, ev.jacobian)
-
-    @jax.custom_jvp
-    def residuals(v):
-        return model(v)[0]
-
-    @residuals.defjvp
-    def residuals_jvp(primals, tangents):
-        r, J = model(primals[0])
-        return r, J @ tangents[0]
-
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(lambda v, _: residuals(v), solver, u0, max_steps=max_steps,
-                             throw=False)
-    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+def _unusable_point(problem: Problem, u) -> lsq.Point:
+    """A trial the fit declines to evaluate (see `fit`): rejected as unusable."""
+    n, p = problem.n_data, len(problem.fits)
+    m = _n_prior_rows(problem)
+    return lsq.Point(u=np.asarray(u, np.float64), r=np.full(n, np.inf),
+                     predicted=np.full(n, np.nan), J=np.zeros((n, p)),
+                     r_prior=np.zeros(m), J_prior=np.zeros((m, p)), usable=False)
 
 
-_OPTX_RTOL, _OPTX_ATOL = 1e-6, 1e-5
+def _n_prior_rows(problem: Problem) -> int:
+    return sum(f.key in ("clearance_mm", "angle_offset_deg") for f in problem.fits)
 
 
-def _n_rows(problem: Problem) -> int:
-    """Residual rows: data plus one prior row per fitted clearance or angle offset."""
-    return problem.n_data + sum(f.key in ("clearance_mm", "angle_offset_deg")
-                                for f in problem.fits)
+def check_noise_determined(problem: Problem, noise_um: float | None, *, hint: str) -> None:
+    """Refuse, before any evaluation, what is known then: a noise level the data cannot
+    determine (σ̂ needs more data rows than fitted parameters; `hint` names how to give σ),
+    and a per-experiment parameter that no measured row can see (an experiment without
+    data, its clearance free of any prior)."""
+    n, p = problem.n_data, len(problem.fits)
+    noise_um = problem.noise_um if noise_um is None else noise_um
+    if noise_um is None and p and n <= p:
+        raise InputError(f"the {n} data rows do not determine the noise level with {p} fitted "
+                         f"parameters ({', '.join(problem.names)}); give the measurement "
+                         f"noise with {hint} (or fit fewer parameters, or add data)")
+    seen = set(np.asarray(problem.data.exp).tolist())
+    free_prior = not math.isfinite(float(problem.tolerance_um))
+    blind = [f.name for f in problem.fits if f.experiment is not None
+             and f.experiment not in seen and (f.key != "clearance_mm" or free_prior)]
+    if blind:
+        raise InputError(f"no measured row can see {', '.join(blind)}: the experiment has no "
+                         f"profile or history; give its data, a finite [fit] "
+                         f"clearance_tolerance_um, or leave it out of the fit")
 
 
-def _run_optimistix(problem, u0, noise_um, host_model, n_rows, max_steps, rtol, atol):
-    """`_optimistix_solve` with `host_model` (u ↦ (r, J), numpy) registered for its callback."""
-    token = id(host_model)
-    _HOST_MODELS[token] = (host_model, jax.config.jax_default_device)
-    try:
-        return _optimistix_solve(
-            problem, jnp.asarray(u0, jnp.float64), jnp.asarray(noise_um, jnp.float64),
-            jnp.asarray(token, jnp.int64), n_rows, max_steps, rtol, atol)
-    finally:
-        del _HOST_MODELS[token]
-
-
-def _fit_optimistix(problem: Problem, u0, noise_um: float, *, ev0: Evaluation | None = None,
-                    max_evaluations: int = 60, rtol: float = _OPTX_RTOL,
-                    atol: float = _OPTX_ATOL, inline: bool = False,
-                    verbose: bool = False) -> LMOutcome:
-    """`optx.LevenbergMarquardt` on the study's residuals (see the comment above).
-
-    Converged when optimistix's Cauchy test holds: the last accepted step changes every
-    u (log-multipliers: relative) by < atol + rtol·|u| and every residual by < atol +
-    rtol·|r| µm. atol carries the test: rtol·|u| would depend on how far the start was off
-    (u is measured from it). With 1e-5 it lands within 2e-4 standard errors of "lm"'s
-    minimum on the benchmark's rig study, with as many model evaluations (64 nodes) or one
-    more (360 nodes: "lm" stops on a step < 1e-3 standard errors, one step earlier).
-    Trial points where the model wears through or is not finite get residuals of 1e100
-    (rejected by the trust region). Returns the same `LMOutcome` as `levenberg_marquardt`.
-    """
-    u0 = np.asarray(u0, np.float64)
-    cache: dict = {} if ev0 is None else {u0.tobytes(): ev0}
-    count = [0]
-    t0 = time.perf_counter()
-
-    def host_model(v):
-        key = v.tobytes()
-        ev = cache.get(key)
-        if ev is None:
-            ev = evaluate(problem, v, noise_um)
-            cache[key] = ev
-            count[0] += 1
-            r = ev.residuals
-            _log(verbose, f"    optimistix {count[0]:3d}: rms residual "
-                          f"{math.sqrt(float(r @ r) / max(problem.n_data, 1)):.4f} µm "
-                          f"({time.perf_counter() - t0:.1f} s)")
-        if not _usable(ev):
-            return np.full_like(ev.residuals, 1e100), np.zeros_like(ev.jacobian)
-        return ev.residuals, ev.jacobian
-
-    u_new, ok, steps = _run_optimistix(problem if inline else None, u0, noise_um, host_model,
-                                       _n_rows(problem), max_evaluations, rtol, atol)
-    u_new = np.asarray(u_new)
-    ev = cache.get(u_new.tobytes())
-    if ev is None:  # inline, or optimistix returned a point it did not evaluate
-        ev = evaluate(problem, u_new, noise_um)
-    ok = bool(ok) and _usable(ev)
-    msg = ("converged (optimistix Levenberg-Marquardt: step and residual change below "
-           "tolerance)" if ok else f"optimistix Levenberg-Marquardt did not converge within "
-           f"{max_evaluations} steps")
-    return LMOutcome(u_new, ev, ok, count[0] if not inline else int(steps), msg)
-
-
-def fit(problem: Problem, u0=None, *, max_steps: int = 60, rtol: float = 1e-8,
-        verbose: bool = False, robust: bool = True, engine: str = "lm") -> FitResult:
-    """Levenberg-Marquardt fit, then Gauss-Newton standard errors and correlations.
+def fit(problem: Problem, u0=None, *, noise_um: float | None = None,
+        max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
+        label: str = "fit") -> FitResult:
+    """Least-squares fit through the one core (`jaxwear.lsq.solve`), then standard errors,
+    correlations and flags.
 
     **Arguments:**
     - `u0`: start in the problem's parameterisation (default: the problem's start values).
-    - `max_steps`: model evaluations allowed per pass. `rtol`: step tolerance on u
-      (`"lm"`; optimistix's tests: `_fit_optimistix`).
-    - `verbose`: progress of every step on stderr. `robust`: rescale K_d first (see
-      `robust_start`).
-    - `engine`: `"lm"` (default): Levenberg-Marquardt on the host around the study's one
-      compiled residual-and-Jacobian evaluation; `"optimistix"`: `optx.LevenbergMarquardt`
-      in one jit, its residual function taking (r, J) from that same evaluation (see
-      `_fit_optimistix`). Both reach the same minimum (tested) with the same robust
-      start, priors and standard errors (from the Jacobian at the solution). `"lm"` stays
-      the default because it was measured faster cold (optimistix compiles its own solver
-      loop, ~1 s) and as fast cached (README, "Calibration output").
+    - `noise_um`: measurement noise σ [µm] if known (weights the data rows against the
+      priors); default: the study's `[fit] noise_um`, else re-estimated from the residuals
+      inside the loop (one pass).
+    - `max_evaluations`: budget of the iteration (the robust start's evaluations come on
+      top; all are counted in `iterations`).
+    - `verbose`: one line per evaluation on stderr. `robust`: rescale K_d first.
 
-    Two passes when fitted clearances have a finite prior: the first weights the prior with
-    a 1 µm noise guess, the second with the noise level estimated from the first pass's
-    residuals. Both reuse the one compiled evaluation.
+    Raises `InputError` before any evaluation when σ is not given and the data rows do not
+    outnumber the fitted parameters; `FitError` when no start can be evaluated.
     """
-    if engine not in ("optimistix", "lm"):
-        raise ValueError(f"engine must be 'optimistix' or 'lm', got {engine!r}")
+    noise_um = problem.noise_um if noise_um is None else noise_um
+    check_noise_determined(problem, noise_um, hint="[fit] noise_um")
     p = len(problem.fits)
-    n = problem.n_data
     u = np.zeros(p) if u0 is None else np.asarray(u0, np.float64)
-    noise = 1.0
+    log = (lambda m: _log(True, m)) if verbose else None
+    held = [problem]
+
+    def start_model(v):
+        # the largest attempt count any evaluation needed is kept for the next ones
+        ev, used = evaluate_with(held[0], v, 1.0)
+        if used.schedule.attempts > held[0].schedule.attempts:
+            held[0] = used
+        return _as_point(used, v, ev)
+
+    def model(v):
+        # A trial that needs far more integration steps than the fit's current point (a
+        # stiff corner: running-in over a millimetre, K_d 100x) is rejected unevaluated:
+        # the trust region then shrinks towards where the model is affordable, and a fit
+        # that truly goes there gets there in steps (at most 4x the cost each). A trial
+        # doubles the attempt count once at most (the start three times).
+        if (held[0].schedule.adaptive and _enough_attempts(held[0], v).schedule.attempts
+                > 4 * held[0].schedule.attempts):
+            return _unusable_point(held[0], v)
+        ev, used = evaluate_with(held[0], v, 1.0, doublings=1)
+        if used.schedule.attempts > held[0].schedule.attempts:
+            held[0] = used
+        return _as_point(used, v, ev)
+
+    k = next((i for i, f in enumerate(problem.fits) if f.key == "K_d_per_Pa"), None)
     if robust and p:
-        u, ev = robust_start(problem, u, noise, verbose=verbose)
+        u, pt, evals0, why = lsq.robust_start(start_model, u, k, measured=np.asarray(
+            problem.data.depth_um), log=log)
+        if why:
+            raise FitError(f"cannot start the fit: {why} "
+                           f"{dict(zip(problem.names, np.asarray(problem.values(u))))}")
     else:
-        ev = evaluate(problem, u, noise)
-    converged, evals, message = True, 0, "nothing to fit"
-    passes = 2 if problem.has_prior else 1
-    for stage in range(passes if p else 0):
-        _log(verbose, f"  fit pass {stage + 1}/{passes} ({p} parameters, {n} data rows"
-                      + (f", prior weighted with noise {noise:.3g} µm)" if passes == 2 else ")"))
-        if engine == "optimistix":
-            out = _fit_optimistix(problem, u, noise, ev0=ev, max_evaluations=max_steps,
-                                  verbose=verbose)
-        else:
-            out = levenberg_marquardt(problem, u, noise, ev0=ev, max_evaluations=max_steps,
-                                      xtol=rtol, verbose=verbose)
-        u, ev = out.u, out.evaluation
-        converged, evals, message = out.converged, evals + out.evaluations, out.message
-        r = ev.residuals[:n]
-        new_noise = max(float(np.sqrt(np.sum(r ** 2) / max(n - p, 1))), 1e-6)
-        if stage + 1 < passes:
-            # The prior rows scale with the noise: re-evaluate them at the new weight.
-            noise = new_noise
-            ev = evaluate(problem, u, noise)
-    return summarize(problem, u, noise, converged, evals, message=message, evaluation=ev)
+        pt, evals0 = start_model(u), 1
+    lo, hi = problem.bounds_u()
+    _log(verbose, f"  fit: {p} parameters, {problem.n_data} data rows")
+    out = lsq.solve(model, u, point0=pt, lower=lo, upper=hi, noise_um=noise_um,
+                    max_evaluations=max_evaluations, label=label, log=log,
+                    project=problem.project)
+    return summarize(problem, out, evals0 + out.evaluations)
 
 
-def _covariance(JtJ):
-    """Gauss-Newton covariance (JᵀJ)⁻¹ of u and a mask of parameters the data leave
-    undetermined (with a component along a null direction of JᵀJ). A pseudo-inverse alone
-    would give those a zero variance, i.e. claim that they are known exactly."""
-    p = JtJ.shape[0]
-    if not np.all(np.isfinite(JtJ)):
-        return np.full((p, p), np.nan), np.ones(p, bool)
-    w, V = np.linalg.eigh(JtJ)
-    null = w <= 1e-10 * max(float(np.max(w)), 1e-300)
-    unidentified = np.sum(V[:, null] ** 2, axis=1) > 1e-6
-    inv = np.where(null, 0.0, 1.0 / np.where(null, 1.0, w))
-    return (V * inv) @ V.T, unidentified
-
-
-def summarize(problem: Problem, u, noise_guess, converged=True, steps=0, *, message=None,
-              evaluation: Evaluation | None = None) -> FitResult:
-    """FitResult at u: RMSE, noise estimate, Gauss-Newton standard errors, flags.
-
-    `noise_guess` is the noise level the prior rows were weighted with.
-    """
-    u = np.asarray(u, np.float64)
-    ev = evaluate(problem, u, noise_guess) if evaluation is None else evaluation
+def summarize(problem: Problem, out: lsq.Outcome, evaluations: int) -> FitResult:
+    """FitResult at the core's answer: values, standard errors (the core's covariance at the
+    answer), correlations, RMSE, flags."""
+    u, ev = out.u, out.point.extra
     n = problem.n_data
     p = len(problem.fits)
     pred = np.asarray(ev.predicted)
     meas = np.asarray(problem.data.depth_um)
     r = pred - meas
-    dof = max(n - p, 1)
-    noise = float(np.sqrt(np.sum(r ** 2) / dof))
+    noise = float(np.sqrt(np.sum(r ** 2) / max(n - p, 1)))
     flags = []
     J = np.asarray(ev.jacobian)
     if p:
-        Jn = J / max(noise, 1e-12)  # residuals in units of the noise
-        Jn[n:] = J[n:] / max(noise_guess, 1e-12)  # prior rows: in units of τ already
-        JtJ = Jn.T @ Jn
-        cov_u, unidentified = _covariance(JtJ)
         vals = np.asarray(problem.values(u))
-        deriv = np.array([vals[i] if f.log else f.scale for i, f in enumerate(problem.fits)])
-        se = np.sqrt(np.clip(np.diag(cov_u), 0, None)) * np.abs(deriv)
+        # covariance of the values (delta method through the parameterisation, exact for
+        # its diagonal part); a value that depends on an undetermined u is undetermined
+        G = problem.value_jacobian(u)
+        cov_u = G @ out.cov.cov @ G.T
+        unidentified = np.any((np.abs(G) > 0) & out.cov.undetermined[None, :], axis=1)
+        se = np.sqrt(np.clip(np.diag(cov_u), 0, None))
         se[unidentified] = np.inf
         d = np.sqrt(np.clip(np.diag(cov_u), 1e-300, None))
         corr = cov_u / np.outer(d, d)
@@ -915,13 +753,15 @@ def summarize(problem: Problem, u, noise_guess, converged=True, steps=0, *, mess
                                  f"{corr[i, j]:+.3f} (|r| > 0.99, not separately identifiable)")
     else:
         vals, se, corr = np.zeros(0), np.zeros(0), np.zeros((0, 0))
+    if out.status != "converged":
+        flags.append(f"the fit did not converge ({out.status}): {out.message}")
     exp_idx = np.asarray(problem.data.exp)
     per = {}
     for i, name in enumerate(problem.exp_names):
         m = exp_idx == i
         if m.any():
             per[name] = float(np.sqrt(np.mean(r[m] ** 2)))
-    msg = message or ("converged" if converged else "did not converge within the step limit")
+    msg, converged = out.message, out.converged
     if float(ev.worn) >= 0:
         msg += "; the layer wears through at the fitted values"
         converged = False
@@ -932,15 +772,17 @@ def summarize(problem: Problem, u, noise_guess, converged=True, steps=0, *, mess
                      correlation=np.asarray(corr), u=np.asarray(u),
                      rmse_um=float(np.sqrt(np.mean(r ** 2))), rmse_per_experiment=per,
                      noise_um=noise, residuals_um=r, predicted_um=pred, measured_um=meas,
-                     row_experiment=exp_idx, converged=converged, iterations=int(steps),
+                     row_experiment=exp_idx, converged=converged, iterations=int(evaluations),
                      message=msg, flags=flags, jacobian=J, problem=problem,
                      snapshots_um=np.asarray(ev.snapshots),
                      max_contact_residual=float(ev.max_residual),
-                     integration=_integration(problem, ev))
+                     integration=_integration(problem, ev), status=out.status,
+                     noise_used_um=float(out.noise_um), noise_given=out.noise_given,
+                     step_se=float(out.step_se))
 
 
 def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=False,
-              max_steps: int = 60, engine: str = "lm") -> FitResult:
+              max_evaluations: int = 30, noise_um: float | None = None) -> FitResult:
     """Fit a study's parameters to its data (DESIGN §7 `calibrate`).
 
     **Arguments:**
@@ -949,15 +791,107 @@ def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=Fal
       the effects the study switches on are always added.
     - `start`: optional start values by output name (user units), e.g.
       `{"K_d_per_Pa": 1e-12, "clearance_mm/n276": 0.06}`.
-    - `engine`: `"lm"` (default) or `"optimistix"` (see `fit`).
+    - `noise_um`: measurement noise σ [µm] if known (default: the study's `[fit] noise_um`,
+      else estimated inside the fit).
+    - `max_evaluations`: the fit's budget of model evaluations.
 
     **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
     """
     keys = with_registration(study, parse_fit(study, fit_spec))
+    return fit_study(study, keys, start=start, noise_um=noise_um,
+                     max_evaluations=max_evaluations, verbose=verbose)
+
+
+def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | None = None,
+              max_evaluations: int = 30, verbose: bool = False) -> FitResult:
+    """The whole fit of a study: build the problem, refuse what is known before any
+    evaluation, fit, re-check the integration error at the answer and, where the study
+    leaves the resolution to the error (DESIGN §6), fit at the coarsest level of
+    `_resolution.LEVELS` and check the answer against the next finer level (one
+    Gauss-Newton step there must move no parameter by more than 0.1 standard error; else
+    refit at the finer level from the answer). `result.resolution` reports it, and
+    `result.iterations` counts every model evaluation of all levels (checks included)."""
+    from . import _resolution as res
+
+    noise_um = study.noise_um if noise_um is None else noise_um
+    kw = dict(noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose)
+    if not study.auto_resolution:
+        result = _fit_at(study, keys, start, **kw)
+        result.resolution = res.given(study)
+        return result
+    levels = res.LEVELS
+    result = _fit_at(res.at_level(study, levels[0]), keys, start, **kw)
+    spent = 0  # evaluations of the coarser levels' fits and of the checks
+    for i, level in enumerate(levels):
+        if i + 1 == len(levels):
+            result.resolution = res.report(level, None, kind="fit", value=None, ok=False)
+            result.flags.append(f"resolution: the fit needed the finest level {level[0]} x "
+                                f"{level[1]}, which is not checked against a finer one")
+            break
+        finer = levels[i + 1]
+        ratio = refinement_step(res.at_level(study, finer), keys, result)
+        spent += 1
+        ok = ratio <= res.FIT_SE_TOL
+        _log(verbose, f"  resolution {level[0]} x {level[1]}: a Gauss-Newton step at "
+                      f"{finer[0]} x {finer[1]} moves the answer by {ratio:.2g} standard "
+                      f"errors" + ("" if ok else f" (> {res.FIT_SE_TOL:g}): refit there"))
+        if ok:
+            result.resolution = res.report(level, finer, kind="fit", value=ratio, ok=True)
+            break
+        spent += result.iterations
+        result = _fit_at(res.at_level(study, finer), keys,
+                         dict(zip(result.names, map(float, result.values))), **kw)
+    # every model evaluation of the answer: all levels' fits and the forward checks
+    result.iterations += spent
+    return result
+
+
+def _fit_at(study: Study, keys, start, *, noise_um, max_evaluations, verbose) -> FitResult:
     problem = build_problem(study, keys, start)
-    result = fit(problem, max_steps=max_steps, verbose=verbose, engine=engine)
-    return recheck_integration(study, result, max_steps=max_steps, verbose=verbose,
-                               engine=engine)
+    check_noise_determined(problem, noise_um, hint="[fit] noise_um")
+    result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose)
+    return recheck_integration(study, result, noise_um=noise_um,
+                               max_evaluations=max_evaluations, verbose=verbose)
+
+
+@eqx.filter_jit
+def _predict_jit(problem: Problem, u):
+    """Model depth at every row [µm] and whether the model is usable there (forward only: a
+    resolution check needs no Jacobian at the finer level, see `refinement_step`)."""
+    snaps, res = problem.snapshots(u)
+    ok = (jnp.max(res.worn_through_cycle) < 0) & jnp.isfinite(jnp.max(res.error_estimate))
+    return problem.predict_from(snaps, u), ok
+
+
+def refinement_step(finer: Study, keys, result: FitResult) -> float:
+    """The largest move, in standard errors, of one Gauss-Newton step of the `finer`
+    study's problem from the fitted values of `result`.
+
+    The step takes the finer level's residuals (one forward run there) and the fit's own
+    Jacobian: what a finer grid changes is the residual, by the discretisation error; its
+    effect on the Jacobian changes the step only at second order. This keeps the check to
+    one forward compilation and run at the finer level (the Jacobian there would cost ~3x
+    the compilation and ~7x the run, measured on the rig at 180 x 144)."""
+    prob = build_problem(finer, keys, dict(zip(result.names, map(float, result.values))))
+    p = len(prob.fits)
+    if not p:
+        return 0.0
+    u0 = jnp.zeros(p)
+    prob = _enough_attempts(prob, u0)
+    pred, ok = _predict_jit(prob, u0)
+    for _ in range(3):  # the attempt count is an estimate (as in `evaluate_with`)
+        if bool(ok) or not prob.schedule.adaptive:
+            break
+        prob = dataclasses.replace(prob, schedule=prob.schedule.more_attempts())
+        pred, ok = _predict_jit(prob, u0)
+    pred = np.asarray(pred)
+    n = prob.n_data
+    J = np.asarray(result.jacobian)
+    prior = np.asarray(prob.prior_residuals(u0, 1.0))
+    pt = lsq.Point(u=np.zeros(p), r=pred - np.asarray(prob.data.depth_um), predicted=pred,
+                   J=J[:n], r_prior=prior, J_prior=J[n:], usable=bool(ok))
+    lo, hi = prob.bounds_u()
+    return lsq.step_in_standard_errors(pt, result.noise_used_um, lo, hi)[0]
 
 
 def _integration(problem: Problem, ev: Evaluation) -> dict:
@@ -992,11 +926,13 @@ def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **f
             result.flags.append(line.removeprefix("warning: "))
         return result
     tol = study.wear_tolerance_um
+    checks = 0  # evaluations of the check itself (counted with the fit's)
     for k in range(refits + 1):
         # schedules (and attempt counts) at the fitted values
         fitted = dataclasses.replace(problem, schedule=_schedules(
             dataclasses.replace(study, wear_tolerance_um=tol), per_exp(result.u)))
         ev = evaluate(fitted, result.u)
+        checks += 1
         err = float(ev.error_estimate)
         if err <= study.wear_tolerance_um or k == refits:
             break
@@ -1008,6 +944,7 @@ def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **f
             result.u, **fit_kw)
         problem = result.problem
     result.integration = _integration(fitted, ev)
+    result.iterations += checks
     if err <= study.wear_tolerance_um:
         return result
     note = (f"integration error estimate {err:.3g} µm at the fitted values exceeds the "

@@ -34,6 +34,8 @@ class ModelConfig:
     - `nodes`, `steps_per_rev`: N and n_steps.
     - `effects`: names of the candidate effects switched on (§5).
     - `duty_cycle`: oscillating driver's blocks, repeated (boom: 20° 1 h, then 1° 4 h).
+    - `shape`: a non-parametric correction of the local wear rate (`effects.shape`), used
+      by `diagnose --shape`; None (default) is the model as written.
     """
 
     driver: str = "crank_slider"
@@ -49,6 +51,7 @@ class ModelConfig:
     duty_cycle: tuple[DutyBlock, ...] = field(
         default_factory=lambda: (DutyBlock(20.0, 1.0), DutyBlock(1.0, 4.0)))
     newton_iterations: int = 40
+    shape: object = None  # effects.shape.ShapeBasis: exp(g(z)) on the local rate (diagnose)
 
     def __post_init__(self):
         checks = [

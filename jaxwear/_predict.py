@@ -38,8 +38,17 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from ._calibrate import FitResult, build_problem, fit, parse_fit, recheck_integration
+from ._calibrate import (
+    FitResult,
+    build_problem,
+    check_noise_determined,
+    fit,
+    fit_study,
+    parse_fit,
+    with_registration,
+)
 from ._errors import InputError
+from ._resolution import at_level
 from ._study import Experiment, History, Profile, Study
 
 LIFE_HORIZON = 10.0  # life is searched up to this multiple of the last measured count
@@ -141,6 +150,7 @@ class PredictResult:
     profiles: dict = field(repr=False)  # experiment -> dict of arrays (last --at point)
     measured: dict = field(repr=False)  # experiment -> (points, max depth µm, trained?)
     extra: dict = field(default_factory=dict)
+    fit_resolution: dict | None = None  # the fit's spatial resolution and its check
 
     def to_json(self) -> dict:
         doc = {
@@ -160,7 +170,8 @@ class PredictResult:
             "noise": "given" if self.noise_given else "estimated from the training residuals",
             "dof": self.dof,
             "quantile": _jf(self.quantile),
-            "fit": {"converged": self.fit_converged, "message": self.fit_message},
+            "fit": {"converged": self.fit_converged, "message": self.fit_message,
+                    "resolution": self.fit_resolution},
             "flags": list(self.flags),
         }
         doc.update(self.extra)
@@ -509,19 +520,28 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     at, limit_um = _check_args(study, at, train_until, level, limit_um, method, noise_um)
     unit = unit_of_study(study)
     train = training_study(study, train_until)
-    keys = parse_fit(study, fit_spec or (list(study.fit) if study.fit else "K_d,clearance"))
+    keys = with_registration(study, parse_fit(
+        study, fit_spec or (list(study.fit) if study.fit else "K_d,clearance")))
+    if noise_um is None:
+        noise_um = study.noise_um
     problem = build_problem(train, keys)
+    # known before any evaluation: σ̂ needs more training rows than fitted parameters
+    check_noise_determined(problem, noise_um, hint="--noise-um (or [fit] noise_um)")
     _log(verbose, f"predict: fitting {', '.join(problem.names)} to {problem.n_data} rows "
                   f"(first call compiles the model)")
-    result = fit(problem, verbose=verbose)
+    # the fit re-checks its integration error at the answer (refitting at a tighter
+    # tolerance if above it) and chooses its resolution where the study leaves it open;
+    # the forecast runs at the tolerance and resolution the fit ended with
+    result = fit_study(train, keys, noise_um=noise_um, verbose=verbose)
+    problem = result.problem
     flags = []
-    if study.integrator != "paper":
-        # the error at the fitted values (refitted at a tighter tolerance if above it); the
-        # forecast runs at the tolerance the fit ended with
-        result = recheck_integration(train, result, verbose=verbose)
-        tol = (result.integration or {}).get("tolerance_um")
-        if tol is not None and tol < study.wear_tolerance_um:
-            study = replace(study, wear_tolerance_um=tol)
+    resolution = result.resolution
+    if study.auto_resolution:
+        study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
+        train = training_study(study, train_until)
+    tol = (result.integration or {}).get("tolerance_um")
+    if study.integrator != "paper" and tol is not None and tol < study.wear_tolerance_um:
+        study = replace(study, wear_tolerance_um=tol)
     m_stable = stable_update(study, result) if study.integrator == "paper" else math.inf
     if study.revolutions_per_update > m_stable:
         # The explicit update is near its stability limit at the fitted K_d: the depth may
@@ -535,17 +555,12 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         study = replace(study, revolutions_per_update=m_new)
         train = training_study(study, train_until)
         problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))))
-        result = fit(problem, verbose=verbose)
+        result = fit(problem, noise_um=noise_um, verbose=verbose)
+        result.resolution = resolution
     n, p = problem.n_data, len(problem.names)
     dof = n - p
-    flags += result.flags
-    if not result.converged:
-        flags.append(f"the fit did not converge: {result.message}")
+    flags += result.flags  # a fit that did not converge says so there
     if noise_um is None:
-        if dof <= 0:
-            raise InputError(f"--noise-um: the {n} training rows do not determine the noise "
-                             f"level with {p} fitted parameters ({', '.join(problem.names)}); "
-                             f"give the measurement noise with --noise-um (or train on more data)")
         noise, q = result.noise_um, t_quantile(level, dof)
     else:
         noise, q = float(noise_um), t_quantile(level, math.inf)
@@ -632,13 +647,15 @@ def _param_table(result: FitResult, cov, q, null_dirs):
     vals = np.asarray(result.values)
     # a parameter with a component along an undetermined direction has no standard error
     unknown = np.sum(null_dirs ** 2, axis=1) > 1e-6
+    G = prob.value_jacobian(result.u)  # diagonal but for product pairs (EffectParameter.per)
     out = {}
     for i, (name, f) in enumerate(zip(result.names, prob.fits)):
+        touches = np.any((np.abs(G[i]) > 0) & unknown)
         se_u = math.inf if unknown[i] else math.sqrt(max(cov[i, i], 0.0))
         if f.log:
             se, lo, hi = vals[i] * se_u, vals[i] * math.exp(-q * se_u), vals[i] * math.exp(q * se_u)
         else:
-            se = f.scale * se_u
+            se = math.inf if touches else math.sqrt(max(float(G[i] @ cov @ G[i]), 0.0))
             lo, hi = vals[i] - q * se, vals[i] + q * se
         out[name] = {"value": float(vals[i]), "stderr": _jf(se), "lower": _jf(lo),
                      "upper": _jf(hi)}
@@ -725,5 +742,6 @@ def _assemble(study, train, at, points, limit_um, level, method, unit, train_unt
                          parameters=_param_table(result, cov, q, null_dirs), noise_um=float(noise),
                          noise_given=noise_given, dof=int(dof), quantile=float(q),
                          fit_converged=bool(result.converged), fit_message=result.message,
+                         fit_resolution=result.resolution,
                          flags=flags, curves=curves, profiles=profiles, measured=measured,
                          extra=extra)

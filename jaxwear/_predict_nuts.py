@@ -48,7 +48,7 @@ import numpy as np
 
 from ._errors import InputError
 from ._predict import fill_past_stop
-from .effects import effect_parameter_specs
+from .effects import effect_parameter_specs, product_pairs
 
 LEAPFROG_GUESS = 10  # mean leapfrog steps per NUTS step (measured ~6 on the rig test, dense mass)
 
@@ -87,6 +87,10 @@ def log_prior(problem, u):
             lp = lp - 0.5 * (u[i] / math.log(100.0)) ** 2
         else:
             lp = lp - 0.5 * (u[i] / 10.0) ** 2
+    # a strength fitted as a product with its `per` parameter (value = linear·e^(-u_j)):
+    # uniform in the value means + log |d value / d u_i| = -u_j in u
+    for i, j in product_pairs([f.key for f in problem.fits]):
+        lp = lp - u[j]
     return lp
 
 
@@ -260,19 +264,30 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     @eqx.filter_jit
     def fcs(fp, u):
         snaps, res = fp.snapshots(u)
-        return snaps, jnp.max(res.error_estimate)
+        return snaps, jnp.max(res.error_estimate), jnp.max(res.steps)
+
+    # the forecasts' integration, over every draw: the largest error estimate [m] and step
+    # count (the "integration" block of the JSON, as laplace's for its one forecast)
+    integ = {"error": 0.0, "steps": 0}
 
     def forecast(fp, u):
         """Snapshots (E, S, N) [µm] at u, raising the static attempt count (a compilation)
         where a draw needs more integration steps; returns the problem it ran with."""
-        for _ in range(4):
-            snaps, err = fcs(fp, u)
-            if np.isfinite(float(err)) or not fp.schedule.adaptive:
+        first = fp.schedule.attempts
+        for i in range(4):
+            snaps, err, steps = fcs(fp, u)
+            if np.isfinite(float(err)) or not fp.schedule.adaptive or i == 3:
                 break
             fp = _more_attempts(fp, 2)
         if not np.isfinite(float(err)):
-            raise RuntimeError("predict/nuts: a posterior draw's forecast ran out of "
-                               "integration attempts at 16x the estimate")
+            # the last run's attempt count, as a multiple of the first (not a doubling
+            # that was never run)
+            raise RuntimeError(f"predict/nuts: a posterior draw's forecast ran out of "
+                               f"integration attempts: {fp.schedule.attempts} attempted steps "
+                               f"({fp.schedule.attempts / max(first, 1):g}x the first "
+                               f"estimate, {first}) did not reach its end")
+        integ["error"] = max(integ["error"], float(err))
+        integ["steps"] = max(integ["steps"], int(steps))
         return np.asarray(snaps), fp
 
     t0 = time.perf_counter()
@@ -347,6 +362,7 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
 
     def forecast_draws(fprob):
         """The thinned draws' forecasts at `fprob`'s points: the draws dict (see above)."""
+        integ.update(error=0.0, steps=0)
         mx, prof, past = [], [], []
         t0 = last = time.perf_counter()
         for n_done, j in enumerate(idx, 1):
@@ -361,17 +377,21 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
                               f"({last - t0:.0f} s)")
         mx = np.stack(mx)
         new = new_measurements(mx, np.stack(past), flat_s[idx], np.random.default_rng(seed))
+        # the same dict object each time: a refined forecast updates the JSON's block
+        extra_json["integration"].update(integration_block(fprob.schedule, integ))
         return {"max_um": mx, "new_um": new, "snapshots_um": np.stack(prof),  # (D, E, S, N)
                 "noise": flat_s[idx]}
 
+    extra_json = {"integration": {}}
     t0 = time.perf_counter()
     draws_out = forecast_draws(fprob)
     t_pred = time.perf_counter() - t0
     path = None
-    if out is not None:
-        path = out.path("posterior.nc")
-        idata.to_netcdf(str(path), engine="h5netcdf")
-    extra_json = {"nuts": {
+    if out is not None:  # through a temporary name, like every other output
+        path = out.write_with("posterior.nc",
+                              lambda tmp: idata.to_netcdf(str(tmp), engine="h5netcdf"))
+    r_hat_flags = r_hat_warnings(diag, chains)
+    extra_json["nuts"] = {
         "sampler": "numpyro NUTS (dense mass matrix, "
                    + ("forward-mode" if forward_mode else "reverse-mode") + " gradients)",
         "chains": chains, "warmup": warmup, "draws": draws, "seed": seed,
@@ -382,9 +402,44 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
         "parameterisation": ("whitened by the Laplace covariance"
                              + ("" if noise_um is not None else ", scaled by σ/σ̂")),
         "posterior": diag, "netcdf": None if path is None else str(path),
-        "max_r_hat": max((v["r_hat"] or 0.0) for v in diag.values()),
-        "min_ess_bulk": min((v["ess_bulk"] or 0.0) for v in diag.values())}}
+        # a non-finite R-hat (a stuck chain, or one chain only) is reported as null and
+        # flagged; it once became 0.0 here, hiding the worst chain
+        "max_r_hat": worst(diag, "r_hat", max),
+        "min_ess_bulk": worst(diag, "ess_bulk", min),
+        "flags": r_hat_flags}
     return draws_out, extra_json, forecast_draws
+
+
+def worst(diag: dict, key: str, pick):
+    """`pick` (max or min) of `key` over the parameters; None (JSON null) when any of them
+    is not finite (`_f` gives None), or when there are none."""
+    vals = [v[key] for v in diag.values()]
+    if not vals or any(x is None for x in vals):
+        return None
+    return pick(vals)
+
+
+def r_hat_warnings(diag: dict, chains: int) -> list[str]:
+    """Flags for parameters whose R-hat is not finite."""
+    bad = [k for k, v in diag.items() if v["r_hat"] is None]
+    if not bad:
+        return []
+    why = ("R-hat needs at least 2 chains (--chains)" if chains < 2 else
+           "a chain did not move (constant draws) or gave non-finite values")
+    return [f"nuts: R-hat is not finite for {', '.join(bad)} ({why}): convergence is not "
+            f"checked; max_r_hat is null"]
+
+
+def integration_block(schedule, integ: dict) -> dict:
+    """The JSON "integration" block of the posterior draws' forecasts (the form of
+    laplace's): the largest error estimate [µm] and step count over the draws."""
+    adaptive = schedule.adaptive
+    err = integ["error"] * 1e6
+    return {"integrator": "adaptive" if adaptive else "paper",
+            "error_estimate_um": (err if math.isfinite(err) else "inf") if adaptive else None,
+            "steps": int(integ["steps"]),
+            "tolerance_um": float(np.max(np.asarray(schedule.tolerance))) * 1e6
+            if adaptive else None}
 
 
 def new_measurements(max_um, past, noise_um, rng):

@@ -96,7 +96,16 @@ def simulate_outputs(study: Study) -> list[str]:
 def simulate_study(study: Study, out=None, plots=True) -> dict:
     """Run every experiment; write profiles, snapshots, plots and a summary under `out`."""
     from . import _report as rep
+    from ._resolution import for_forward
 
+    def peaks(st):
+        length = common_length(st)
+        return [float(np.max(np.asarray(run_experiment(st, e, pad_to=length).depth))) * 1e6
+                for e in st.experiments]
+
+    # where the study leaves nodes and steps open, the coarsest level whose peak depths agree
+    # with the next finer level's within 0.1 % (DESIGN §6)
+    study, resolution = for_forward(study, peaks, log=progress)
     n = study.config.nodes
     angles = np.arange(n) * 360.0 / n
     rows, snap_rows, summary = [], [], {}
@@ -158,5 +167,5 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
             col = "hours" if osc else "revolutions"
             out.write_csv("snapshots.csv", ["experiment", col, "angle_deg", "depth_um"],
                           snap_rows)
-        out.write_json("summary.json", {"experiments": summary})
+        out.write_json("summary.json", {"experiments": summary, "resolution": resolution})
     return summary

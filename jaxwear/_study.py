@@ -7,7 +7,9 @@ Everything a user can get wrong is checked here, before any computation, and rep
 from __future__ import annotations
 
 import csv
+import errno
 import math
+import os
 import sys
 import tomllib
 from dataclasses import dataclass, field
@@ -32,6 +34,7 @@ class Profile:
     revolutions: np.ndarray
     path: str
     angle_offset_deg: float = 0.0
+    depth_column: str = "depth_um"  # the file's depth column(s), for plausibility messages
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,7 @@ class History:
     hours: np.ndarray
     depth: np.ndarray
     path: str
+    depth_column: str = "depth_mm"
 
 
 @dataclass(frozen=True)
@@ -75,6 +79,9 @@ class Study:
     integrator: str = "adaptive"  # or "paper" (fixed M = revolutions_per_update, eq 23)
     wear_tolerance_um: float = 0.002
     angle_tolerance_deg: float = 0.0
+    noise_um: float | None = None  # [fit] noise_um: measurement noise σ if known
+    # nodes / steps_per_rev absent from [numerics]: chosen by the error (DESIGN §6)
+    auto_resolution: bool = False
     raw: dict = field(default_factory=dict, repr=False)
 
     def params(self, exp: Experiment | None = None) -> Params:
@@ -133,14 +140,10 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
 
     Returns (the header names used, in the order `columns + present optional`, and an array
     with those columns)."""
-    if not path.exists():
-        raise InputError(f"{path}: data file not found")
+    _exists(path, "data file")
     if path.is_dir():
         raise InputError(f"{path}: is a folder; expected a data file")
-    try:
-        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not data
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read data file ({e})") from None
+    text = read_text(path, "data file")
     rows = list(csv.reader(line for line in text.splitlines() if line.strip()))
     if not rows:
         raise InputError(f"{path}: empty file; expected a header {','.join(columns)}")
@@ -183,13 +186,53 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
 
 
 NOISE_WARN_LEVELS = 5.0  # a depth below -5 noise levels is worth a look at the scan's zero
+# Plausibility of the units (a warning where another reading is possible, an error where
+# none is): angle_deg all below 2π over more than a handful of rows reads like radians (a
+# scar is tens of degrees wide); a deepest point under 0.5 µm is below what a gauge
+# resolves and far below any scar the model makes, like millimetres under a µm header.
+RADIANS_MIN_ROWS = 6
+PLAUSIBLE_SCAR_UM = 0.5
+
+
+def _exists(path: Path, what: str) -> None:
+    """`InputError` unless `path` exists: a symbolic link loop or a link to nothing is
+    named as such (a loop once read "not found")."""
+    try:
+        path.stat()
+        return
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise InputError(f"{path}: symbolic link loop (the link leads back to itself); "
+                             f"point it at the {what}") from None
+    if path.is_symlink():
+        raise InputError(f"{path}: symbolic link to {os.readlink(path)!r}, which does not "
+                         f"exist; point it at the {what}")
+    raise InputError(f"{path}: {what} not found")
+
+
+def read_text(path: Path, what: str) -> str:
+    """The file as UTF-8 text (a byte-order mark is not data). A byte that is not UTF-8
+    (Latin-1 or Windows-1252 from a spreadsheet) is reported with its line and column,
+    not its byte offset."""
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise InputError(f"{path}: cannot read the {what} ({e.strerror or e})") from None
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        col = e.start - (raw.rfind(b"\n", 0, e.start) + 1) + 1
+        raise InputError(f"{path}: line {line}: byte 0x{raw[e.start]:02x} at column {col} "
+                         f"is not UTF-8 (Latin-1 or Windows-1252?); save the file as UTF-8"
+                         ) from None
 
 
 def _header(path: Path) -> list[str]:
     """The header names of a CSV file (errors are left to `_read_csv`)."""
     try:
         text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError):
+    except (OSError, UnicodeDecodeError, ValueError):
         return []
     for line in text.splitlines():
         if line.strip():
@@ -252,6 +295,9 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
         for i, r in enumerate(revs, start=2):
             if not r > 0:
                 raise InputError(f"{path}: line {i}: revolutions {r:g} must be > 0")
+    _check_angles_in_degrees(path, a[:, 0])
+    if not raw_scans:
+        _check_not_tiny(path, depth, used[1])
     sigma = robust_noise(a[:, 0], depth, revs)
     if math.isfinite(sigma) and sigma > 0:
         low = depth < -NOISE_WARN_LEVELS * sigma
@@ -262,7 +308,51 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
                   f"lowest {depth[j] * 1e6:.3g} µm at line {j + 2}): check the scan's zero "
                   f"and sign", file=sys.stderr)
     angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
-    return Profile(angle, depth, revs, str(path), float(angle_offset_deg))
+    column = "radius_before_um,radius_after_um" if raw_scans else used[1]
+    return Profile(angle, depth, revs, str(path), float(angle_offset_deg), column)
+
+
+def _check_angles_in_degrees(path: Path, angle_deg: np.ndarray) -> None:
+    """A warning when every angle lies below 2π: radians under a degrees header?"""
+    distinct = np.unique(angle_deg)
+    if len(distinct) >= RADIANS_MIN_ROWS and float(np.max(distinct)) < 2 * math.pi:
+        print(f"warning: {path}: all {len(distinct)} angle_deg values lie in [0, "
+              f"{float(np.max(distinct)):.3g}], below 2π = 6.28: radians under a degrees "
+              f"header? angle_deg expects degrees (multiply by 180/π = 57.3)",
+              file=sys.stderr)
+
+
+def _check_not_tiny(path: Path, depth: np.ndarray, column: str) -> None:
+    """A warning when the deepest point is below `PLAUSIBLE_SCAR_UM`: mm under a µm
+    header? (`depth` in m.)"""
+    deepest = float(np.max(depth)) * 1e6
+    if column == "depth_um" and 0 < deepest < PLAUSIBLE_SCAR_UM:
+        print(f"warning: {path}: the deepest point is {deepest:.3g} µm, below what a gauge "
+              f"resolves (~{PLAUSIBLE_SCAR_UM:g} µm) and far below any wear scar: "
+              f"millimetres under a µm header? If the values are in mm, name the column "
+              f"depth_mm", file=sys.stderr)
+
+
+def check_depth_scale(study_path: Path, where: str, data, params: Params) -> None:
+    """Refuse (exit 2) measured depths deeper than the layer plus the clearance: no reading
+    of them fits the bearing (a `depth_mm` column holding µm, e.g. 195 "mm", once ran a
+    calibration for minutes without a word). `data` is a `Profile` or `History`."""
+    deepest = float(np.max(data.depth))
+    layer, clearance = float(params.layer_thickness), float(params.clearance)
+    if not deepest > layer + clearance:
+        return
+    line = int(np.argmax(data.depth)) + 2
+    column = data.depth_column
+    if column in ("depth_mm",):
+        hint = "micrometres under a mm header? Name the column depth_um"
+    elif column == "depth_um":
+        hint = "nanometres under a µm header? Give the depths in µm"
+    else:
+        hint = "check the columns' unit (µm) and which scan is before and which after"
+    raise InputError(f"{data.path}: line {line}: {column} gives a depth of "
+                     f"{deepest * 1e3:.4g} mm, deeper than the layer ({layer * 1e3:g} mm) "
+                     f"plus the clearance ({clearance * 1e3:g} mm) of {where} in "
+                     f"{study_path.name}: {hint}")
 
 
 def read_history(path: Path) -> History:
@@ -272,15 +362,17 @@ def read_history(path: Path) -> History:
     for i, (t, d) in enumerate(a, start=2):
         if not t > 0:
             raise InputError(f"{path}: line {i}: hours {t:g} must be > 0")
-    return History(a[:, 0], a[:, 1] * (1e-6 if header[1] == "depth_um" else 1e-3),
-                   str(path))
+    depth = a[:, 1] * (1e-6 if header[1] == "depth_um" else 1e-3)
+    if header[1] == "depth_um":
+        _check_not_tiny(path, depth, "depth_um")
+    return History(a[:, 0], depth, str(path), header[1])
 
 
 _MODEL_KEYS = {"preset", "contact", "effects", "parameters", "algorithm", "scla_passes",
                "gamma0_deg", "bushing", "double_layer", "duty_cycle"}
 _NUMERIC_KEYS = {"nodes", "steps_per_rev", "revolutions_per_update", "integrator",
                  "wear_tolerance_um"}
-_FIT_KEYS = {"clearance_tolerance_um", "angle_tolerance_deg", "parameters"}
+_FIT_KEYS = {"clearance_tolerance_um", "angle_tolerance_deg", "parameters", "noise_um"}
 _EXP_FIXED = {"name", "revolutions", "hours", "profile", "history", "angle_offset_deg"}
 
 
@@ -315,8 +407,13 @@ def _check_geometry(path, where, params: Params):
 def _data_file(path: Path, where: str, name: str):
     """A data file named by the study must be a file beside it (or under its folder)."""
     f = path.parent / name
-    if not f.exists():
-        _fail(path, f"{where}: data file {name!r} not found (looked for {f})")
+    try:
+        _exists(f, "data file")
+    except InputError as e:
+        reason = str(e).removeprefix(f"{f}: ")
+        if reason == "data file not found":
+            _fail(path, f"{where}: data file {name!r} not found (looked for {f})")
+        _fail(path, f"{where}: data file {name!r}: {reason}")
     if not f.is_file():
         _fail(path, f"{where}: {name!r} is not a file (looked for {f})")
 
@@ -324,14 +421,13 @@ def _data_file(path: Path, where: str, name: str):
 def load_study(path) -> Study:
     """Read and validate a study file (DESIGN §6). Raises `InputError` on bad input."""
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: study file not found")
+    _exists(path, "study file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a study file (TOML)")
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
+        raw = tomllib.loads(read_text(path, "study file"))
     except tomllib.TOMLDecodeError as e:
         raise InputError(f"{path}: TOML syntax error: {e}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: cannot read ({e})") from None
     _check_keys(path, "", raw, {"model", "numerics", "experiment", "fit"})
     model = raw.get("model", {})
     _check_keys(path, "model", model, _MODEL_KEYS)
@@ -394,6 +490,9 @@ def load_study(path) -> Study:
     if "nodes" in num:
         cfg_kw["nodes"] = int(_number(path, "numerics.nodes", num["nodes"], positive=True,
                                       integer=True))
+    # Resolution chosen by the error where neither is given (DESIGN §6); a study that gives
+    # one of them keeps the other's default, as given.
+    auto = "nodes" not in num and "steps_per_rev" not in num
     if "steps_per_rev" in num:
         cfg_kw["steps_per_rev"] = int(_number(path, "numerics.steps_per_rev",
                                               num["steps_per_rev"], positive=True, integer=True))
@@ -423,6 +522,9 @@ def load_study(path) -> Study:
         tol = math.inf  # a huge whole number means no prior, like "inf"
     angle_tol = _number(path, "fit.angle_tolerance_deg", fit.get("angle_tolerance_deg", 0.0),
                         nonneg=True)
+    noise = None
+    if "noise_um" in fit:
+        noise = _number(path, "fit.noise_um", fit["noise_um"], positive=True)
     fit_params = fit.get("parameters", [])
     if not isinstance(fit_params, list):
         _fail(path, "fit.parameters must be a list of names")
@@ -474,7 +576,7 @@ def load_study(path) -> Study:
                 if np.all(np.isnan(r)):
                     profile = Profile(profile.angle, profile.depth,
                                       np.full(len(r), revs), profile.path,
-                                      profile.angle_offset_deg)
+                                      profile.angle_offset_deg, profile.depth_column)
                 elif np.max(r) > revs + 1e-9:
                     _fail(path, f"{where}: profile {e['profile']} has revolutions up to "
                                 f"{np.max(r):g} > experiment revolutions {revs:g}")
@@ -489,14 +591,17 @@ def load_study(path) -> Study:
                 _fail(path, f"{where}: history goes to {np.max(history.hours):g} h > hours")
         exp = Experiment(ename, overrides, revs, hours, profile, history)
         st = Study(path, name, config, params, (exp,), M, float(tol), tuple(fit_params),
-                   integrator, wear_tol, angle_tol, raw)
+                   integrator, wear_tol, angle_tol, noise, auto, raw)
         try:
             p = st.params(exp)
         except InputError as err:
             _fail(path, f"{where}: {err}")
         _check_geometry(path, where, p)
+        for data in (profile, history):
+            if data is not None:
+                check_depth_scale(path, where, data, p)
         if config.driver == "crank_slider" and not float(p.speed) > 0:
             _fail(path, f"{where}: speed_rpm must be > 0")
         experiments.append(exp)
     return Study(path, name, config, params, tuple(experiments), M, float(tol),
-                 tuple(fit_params), integrator, wear_tol, angle_tol, raw)
+                 tuple(fit_params), integrator, wear_tol, angle_tol, noise, auto, raw)

@@ -292,9 +292,12 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
             u[i] = model.u_of(name, cl)
             truth["clearance_mm"][model.exp_names[c.experiment]] = cl
     for eff, params in hid.items():
-        for key, v in params.items():
+        # log (shape) parameters first: a strength fitted as a product with one of them
+        # needs its partner's u to map its value (`Model.u_of`)
+        for key, v in sorted(params.items(), key=lambda kv: not (
+                kv[0] in model.index and model.columns[model.index[kv[0]]].log)):
             if key in model.index:
-                u[model.index[key]] = model.u_of(key, v)
+                u[model.index[key]] = model.u_of(key, v, u)
             else:
                 raise InputError(f"--hidden {eff}: {key} is not a parameter of the study's "
                                  f"candidates")
@@ -424,15 +427,3 @@ def _write(out: OutputDir, planned: Study, cfg: ModelConfig, exps, truth) -> Pat
     # the CSVs first: a study file under its final name always has its data beside it
     out.write_text("truth.json", json.dumps(truth, indent=2) + "\n")
     return out.write_text("study.toml", "\n".join(lines) + "\n")
-
-
-def cmd_synth(args):
-    """`jaxwear synth --hidden EFFECT[=STRENGTH] ... --out DIR`."""
-    res = synthesize(args.hidden, args.conditions, noise_um=args.noise_um, seed=args.seed,
-                     out=args.out, angle_offset_deg=args.angle_offset_deg, verbose=True)
-    n = sum(len(e.profile.angle) if e.profile is not None else len(e.history.hours)
-            for e in res.study.experiments)
-    hidden = ", ".join(f"{k}({', '.join(f'{kk}={vv:g}' for kk, vv in v.items())})"
-                       for k, v in res.truth["hidden"].items()) or "none"
-    print(f"wrote {res.study_path} ({len(res.study.experiments)} experiments, {n} rows; "
-          f"hidden: {hidden}); truth in {res.study_path.parent / 'truth.json'}")

@@ -25,6 +25,7 @@ from ._load import LoadHistory, load_history
 from ._params import Params
 from ._schedule import Schedule, bucket, crank_segments, duty_segments, make_schedule
 from .effects import RateContext, get_effect
+from .effects.shape import shape_log_factor
 
 
 class WearResult(eqx.Module):
@@ -82,9 +83,12 @@ def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, s
                         friction=friction, iterations=cfg.newton_iterations, start=start)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
     if effects:
-        ctx = RateContext(sol.pressure, slide, dt, sliding)
+        ctx = RateContext(sol.pressure, slide, dt, sliding, angle)
         for eff in effects:
             rate = eff.local_rate(p, rate, ctx)
+    if cfg.shape is not None:
+        rate = rate * jnp.exp(shape_log_factor(cfg.shape, p, sol.pressure, slide, dt,
+                                               sliding, angle))
     dh = jnp.sum(rate, axis=0)
     work = jnp.sum(jnp.sum(sol.pressure, axis=1) * area * slide)
     return dh, work, sol

@@ -97,9 +97,9 @@ def derived(model: Model, fit: Fit) -> dict:
             or fit.values is None or fit.cov_u is None):
         return out
     a, sr = float(fit.values[ia]), float(fit.values[isr])
-    free = list(np.flatnonzero(fit.mask))
-    g = np.zeros(len(free))
-    g[free.index(ia)] = model.columns[ia].scale * sr  # a linear in u
-    g[free.index(isr)] = a * sr  # S_r log in u
+    free = np.flatnonzero(fit.mask)
+    G = model.value_jacobian(fit.ev.u)[np.ix_(free, free)]
+    fa, fs = list(free).index(ia), list(free).index(isr)
+    g = sr * G[fa] + a * G[fs]  # d(a·S_r)/du over the free columns
     out["running_in_excess_m"] = (a * sr, float(np.sqrt(max(g @ fit.cov_u @ g, 0.0))))
     return out

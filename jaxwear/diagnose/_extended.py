@@ -14,7 +14,7 @@ from .._config import ModelConfig
 from .._params import Params
 from .._schedule import Schedule
 from .._wear import wear_loop
-from ..effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
+from ..effects import STRUCTURAL_CANDIDATES, get_effect, product_pairs, registered_effects
 
 
 @dataclass(frozen=True)
@@ -51,9 +51,13 @@ class Extended(eqx.Module):
     start: jax.Array  # (P,) start values, key units
 
     def values(self, u):
+        """Values in the keys' units; a strength with its `per` parameter is fitted as their
+        product (`EffectParameter.per`, as calibrate's `Problem.values`)."""
         out = []
         for i, c in enumerate(self.columns):
             out.append(self.start[i] * jnp.exp(u[i]) if c.log else self.start[i] + c.scale * u[i])
+        for i, j in product_pairs([c.key for c in self.columns]):
+            out[i] = out[i] * jnp.exp(-u[j])
         return jnp.stack(out)
 
     def batched_params(self, u) -> Params:
@@ -94,6 +98,13 @@ def _evaluate_ext(ext: Extended, u):
     return snaps, J, mres, worn, sliding, err, steps
 
 
+@eqx.filter_jit
+def _predict_ext(ext: Extended, u):
+    """Snapshots [µm], worn-through cycle and error estimate [µm] at u, no Jacobian."""
+    snaps, res = ext.snapshots(u)
+    return snaps, jnp.max(res.worn_through_cycle), jnp.max(res.error_estimate) * 1e6
+
+
 @dataclass(frozen=True)
 class Eval:
     """Extended model at u: rows and prior rows in µm, their Jacobian w.r.t. u."""
@@ -110,6 +121,7 @@ class Eval:
     sliding_m: np.ndarray  # (E,) total sliding distance of each experiment [m]
     error_um: float = 0.0  # integration error estimate, largest experiment [µm] (0: eq 23)
     steps: int = 0  # accepted integration steps (updates), largest experiment
+    J_snaps: np.ndarray | None = None  # d snapshots / d u (E, S, N, P) [µm]
 
     @property
     def usable(self) -> bool:

@@ -1,15 +1,16 @@
-"""Fitting a subset of the extended parameters (host-side Levenberg-Marquardt) and the
-standard errors at a fit."""
+"""Fits of a subset of the extended parameters and their standard errors, through the one
+least-squares core (`jaxwear.lsq`)."""
 
 from __future__ import annotations
 
 import math
 import sys
-import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .. import lsq
+from ..effects import project_products
 from ._extended import Eval
 from ._model import Model
 
@@ -27,9 +28,11 @@ class Fit:
     message: str
     cov_u: np.ndarray | None = None  # (free, free), noise-scaled
     values: np.ndarray | None = None
-    stderr: np.ndarray | None = None
+    stderr: np.ndarray | None = None  # inf where the data do not determine the parameter
     contact: str | None = None
     unstable: bool = False  # the wear loop's derivatives were unstable at the fit
+    status: str = "converged"  # the core's: converged, stalled, budget, unusable
+    undetermined: tuple = ()  # names of parameters the data leave undetermined
 
     @property
     def rss(self) -> float:
@@ -42,6 +45,25 @@ class Fit:
     @property
     def rmse(self) -> float:
         return float(np.sqrt(np.mean(self.ev.r ** 2)))
+
+    @property
+    def flags(self) -> list[str]:
+        """What a reader must know about this fit (as `calibrate`'s flags)."""
+        out = []
+        if self.status != "converged":
+            out.append(f"the fit did not converge ({self.status}): {self.message}")
+        if self.undetermined:
+            out.append(f"the data do not determine {', '.join(self.undetermined)} (Jacobian "
+                       f"rank deficient: no standard error)")
+        return out
+
+
+# A refit is done when the next Gauss-Newton step is under 0.1 standard error: it would change
+# χ² by ~0.01, the ln Bayes factor by half that, against the ln 20 that separates candidates.
+# (calibrate's 0.01 is for reported values; a misspecified candidate's large residuals make
+# Gauss-Newton converge only linearly, measured ~0.75 per step, so 0.01 would cost ~8 more
+# evaluations per refit for nothing a verdict can see.)
+REFIT_SE_TOL = 0.1
 
 
 def _objective(ev: Eval) -> float:
@@ -59,102 +81,75 @@ def _log(verbose, msg):
         print(msg, file=sys.stderr, flush=True)
 
 
-def fit_masked(model: Model, mask, u0, *, label="base", groups=(), ev0: Eval | None = None,
-               max_evaluations: int = 40, f_tol: float = 0.0, verbose=False) -> Fit:
-    """Levenberg-Marquardt (Marquardt scaling, Nielsen damping) over the free columns,
-    with bounds enforced by projection. Every trial is one evaluation of the compiled
-    extended model. Stops when an accepted step changes the objective by < 1e-6 relative
-    or by < `f_tol` [µm², the objective's unit], or when the Gauss-Newton step would lower
-    it by < `f_tol` (checked before evaluating it), or u by < 1e-8, or when no step reduces
-    it, or after `max_evaluations`."""
+def _point(ev: Eval, noise_um: float, adaptive: bool) -> lsq.Point:
+    """The core's view of an evaluation. The core weights data rows by 1/σ and takes prior
+    rows as they are; diagnose's objective is Q = Σr² + Σr_prior² (prior rows in µm), so
+    the prior rows are divided by σ too: the core then minimises Q/σ², the same fit. The
+    integrator's error sets the core's floor only where its steps adapt (as calibrate's)."""
+    return lsq.Point(u=ev.u, r=ev.r, predicted=ev.pred, J=ev.J, r_prior=ev.r_prior / noise_um,
+                     J_prior=ev.J_prior / noise_um, usable=ev.usable,
+                     error_um=(float(ev.error_um) if adaptive and math.isfinite(ev.error_um)
+                               else 0.0),
+                     extra=ev)
+
+
+def fit_masked(model: Model, mask, u0, *, noise_um: float, label="base", groups=(),
+               ev0: Eval | None = None, max_evaluations: int = 20, verbose=False) -> Fit:
+    """The free columns `mask` fitted by `lsq.solve` (bounds by projection), from u0, with
+    the data's noise level `noise_um` [µm] (diagnose's estimate from neighbour differences,
+    held fixed: the candidates are compared at one noise level); a start where the model
+    wears through first lowers K_d (`lsq.robust_start`, step 1)."""
     mask = np.asarray(mask, bool)
     lo, hi = model.bounds_u()
     u = np.clip(np.array(u0, np.float64), lo, hi)
-    ev = model.evaluate(u) if ev0 is None else ev0
-    evals = 1 if ev0 is None else 0
-    if not ev.usable:
-        # worn through at the start: K_d down until the model is usable
+
+    sigma = max(float(noise_um), 1e-9)
+
+    def evaluate(v):
+        return _point(model.evaluate(v), sigma, model.ext.schedule.adaptive)
+
+    log = (lambda m: _log(True, m)) if verbose else None
+    if ev0 is not None and ev0.usable:
+        pt0, evals = _point(ev0, sigma, model.ext.schedule.adaptive), 0
+    else:
         kd = model.index.get("K_d_per_Pa")
-        for _ in range(8):
-            if kd is None or ev.usable:
-                break
-            u[kd] -= math.log(10.0)
-            ev, evals = model.evaluate(u), evals + 1
-        if not ev.usable:
-            return Fit(label, tuple(groups), mask, ev, False, evals,
-                       "the model is not usable at the start (worn through or not finite)")
-    F = _objective(ev)
-    lam, nu = 1e-3, 2.0
-    t0 = time.perf_counter()
-    message, converged = f"did not converge within {max_evaluations} evaluations", False
-    while evals < max_evaluations:
-        J, r = _system(ev, mask)
-        A, g = J.T @ J, J.T @ r
-        col = np.sqrt(np.maximum(np.diag(A), 1e-300))
-        free_u = u[mask]
-        # gradient test on the components not pinned at a bound by the gradient's sign
-        at_lo = (free_u <= lo[mask] + 1e-12) & (g > 0)
-        at_hi = (free_u >= hi[mask] - 1e-12) & (g < 0)
-        gt = np.where(at_lo | at_hi, 0.0, g)
-        if np.max(np.abs(gt) / col, initial=0.0) <= 1e-9 * math.sqrt(F + 1e-300):
-            message, converged = "converged (gradient)", True
-            break
-        if lam > 1e16:
-            message, converged = "converged (no step reduces the misfit)", True
-            break
-        if f_tol > 0:
-            # Gauss-Newton decrement g'A⁻¹g over the components free to move: what a full
-            # step could still remove. Below the tolerance the trial is not worth its
-            # evaluation (near the minimum the linearisation is accurate).
-            k = ~(at_lo | at_hi)
-            s_gn = np.linalg.lstsq(A[np.ix_(k, k)], -g[k], rcond=None)[0]
-            if -float(g[k] @ s_gn) < f_tol:
-                message, converged = "converged (predicted decrease below tolerance)", True
-                break
-        D = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
-        step = np.linalg.lstsq(A + lam * np.diag(D), -g, rcond=None)[0]
-        trial = u.copy()
-        trial[mask] = np.clip(u[mask] + step, lo[mask], hi[mask])
-        step = trial[mask] - u[mask]
-        ev_t = model.evaluate(trial)
-        evals += 1
-        F_t = _objective(ev_t) if ev_t.usable else math.inf
-        pred = -(2 * float(step @ g) + float(step @ A @ step))
-        rho = (F - F_t) / pred if pred > 0 else -1.0
-        if F_t < F and rho > 0:
-            rel = (F - F_t) / max(F, 1e-300)
-            F_old = F
-            u, ev, F = trial, ev_t, F_t
-            lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
-            nu = 2.0
-            _log(verbose, f"    {label}: rms {math.sqrt(np.mean(ev.r ** 2)):.4f} µm "
-                          f"({evals} evaluations, {time.perf_counter() - t0:.1f} s)")
-            # 1e-6 of the objective is ~1e-3 of one noise variance here: far below what
-            # the evidence or the standard errors resolve
-            if (rel <= 1e-6 or F_old - F <= f_tol
-                    or np.max(np.abs(step)) <= 1e-8 * (1 + np.max(np.abs(u)))):
-                message, converged = "converged", True
-                break
-        else:
-            lam *= nu
-            nu *= 2.0
-    return Fit(label, tuple(groups), mask, ev, converged, evals, message)
+        u, pt0, evals, why = lsq.robust_start(evaluate, u, kd if kd is not None and mask[kd]
+                                              else None, measured=model.measured,
+                                              log=log, rescales=0)
+        if why:
+            return Fit(label, tuple(groups), mask, pt0.extra, False, evals, why,
+                       status="unusable")
+    cols = model.columns
+    out = lsq.solve(evaluate, u, point0=pt0, free=mask, lower=lo, upper=hi,
+                    noise_um=sigma, max_evaluations=max_evaluations, se_tol=REFIT_SE_TOL,
+                    project=lambda v: project_products([c.key for c in cols],
+                                                      np.asarray(model.ext.start),
+                                                      [c.scale for c in cols], v),
+                    label=f"  {label}", log=log)
+    names = [model.names[i] for i, bad in zip(np.flatnonzero(mask), out.cov.undetermined)
+             if bad]
+    return Fit(label, tuple(groups), mask, out.point.extra, out.converged,
+               evals + out.evaluations, out.message, status=out.status,
+               undetermined=tuple(names))
 
 
 def finish(model: Model, fit: Fit, noise_um: float) -> Fit:
-    """Standard errors of the free parameters (Gauss-Newton, residuals in units of
-    max(noise, rms misfit), so an inadequate model does not get falsely small errors)."""
-    J, r = _system(fit.ev, fit.mask)
+    """Standard errors of the free parameters: the core's covariance with the residuals in
+    units of max(noise, rms misfit), so an inadequate model does not get falsely small
+    errors; parameters the data leave undetermined get an infinite standard error."""
+    J, _ = _system(fit.ev, fit.mask)
     n, k = model.n, fit.k
-    s2 = max(noise_um ** 2, float(fit.ev.r @ fit.ev.r) / max(n - k, 1))
-    Jn = J.copy()
-    Jn[:n] /= math.sqrt(s2)
-    Jn[n:] /= max(model.noise_weight, 1e-12)  # prior rows are (c - c_nom)/τ · weight
-    cov = np.linalg.pinv(Jn.T @ Jn, rcond=1e-13, hermitian=True)
+    s = math.sqrt(max(noise_um ** 2, float(fit.ev.r @ fit.ev.r) / max(n - k, 1)))
+    Jw = J.copy()
+    Jw[:n] /= s
+    Jw[n:] /= max(model.noise_weight, 1e-12)  # prior rows are (c - c_nom)/τ · weight
+    c = lsq.covariance(Jw)
     vals = model.values(fit.ev.u)
     idx = np.flatnonzero(fit.mask)
-    deriv = np.array([vals[i] if model.columns[i].log else model.columns[i].scale
-                      for i in idx])
+    # delta method through the parameterisation (diagonal but for product pairs)
+    G = model.value_jacobian(fit.ev.u)[np.ix_(idx, idx)]
+    bad = np.any((np.abs(G) > 0) & c.undetermined[None, :], axis=1)
     se = np.full(len(vals), np.nan)
-    se[idx] = np.sqrt(np.clip(np.diag(cov), 0, None)) * np.abs(deriv)
-    return replace(fit, cov_u=cov, values=vals, stderr=se)
+    se[idx] = np.where(bad, np.inf, np.sqrt(np.clip(np.diag(G @ c.cov @ G.T), 0, None)))
+    names = tuple(model.names[i] for i, b in zip(idx, bad) if b)
+    return replace(fit, cov_u=c.cov, values=vals, stderr=se, undetermined=names)

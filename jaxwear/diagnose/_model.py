@@ -7,13 +7,22 @@ import time
 from dataclasses import replace
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._params import key_to_si
 from .._study import Study
-from ..effects import STRUCTURAL_CANDIDATES, effect_parameter_specs
-from ._extended import Column, Eval, Extended, _candidate_parameters, _evaluate_ext, candidate_names
+from ..effects import STRUCTURAL_CANDIDATES, effect_parameter_specs, product_pairs
+from ._extended import (
+    Column,
+    Eval,
+    Extended,
+    _candidate_parameters,
+    _evaluate_ext,
+    _predict_ext,
+    candidate_names,
+)
 
 
 class Model:
@@ -31,12 +40,15 @@ class Model:
     first_evaluation_s = 0.0  # the last evaluation that compiled (the first of its shape)
 
     def __init__(self, study: Study, problem=None, *, candidates=None, contact=None,
-                 noise_weight: float = 1.0):
+                 noise_weight: float = 1.0, shape=None):
         from .._calibrate import build_problem, parse_fit
 
         self.study = study
         if problem is None:
-            problem = build_problem(study, parse_fit(study, "K_d,clearance"))
+            # the study's [fit] parameters, as calibrate fits them (registration offsets
+            # are not fitted here: the candidates are compared at the given registration)
+            problem = build_problem(study, parse_fit(
+                study, list(study.fit) if study.fit else "K_d,clearance"))
         self.problem = problem
         cfg = study.config
         self.candidates = candidate_names(cfg) if candidates is None else list(candidates)
@@ -46,7 +58,10 @@ class Model:
             cfg_ext = STRUCTURAL_CANDIDATES["double_layer"].configure(cfg_ext)
         if contact is not None:
             cfg_ext = cfg_ext.replace(contact=contact)
+        if shape is not None:
+            cfg_ext = cfg_ext.replace(shape=shape)
         self.contact = contact
+        self.shape = shape
         self.base_cfg = cfg
         columns, names, start = [], [], []
         specs = effect_parameter_specs()
@@ -72,6 +87,16 @@ class Model:
                     start.append(v if v > 0 else spec.default)
                 else:
                     start.append(spec.off)
+        if shape is not None:
+            # the coefficients of exp(g(z)) (`effects.shape`), 0 = the model as written
+            n_exp = len(exp_names)
+            p0 = eqx.tree_at(lambda p: p.effect_params, p0, {
+                **p0.effect_params, **{k: jnp.zeros(n_exp) for k in shape.keys()}})
+            for key in shape.keys():
+                columns.append(Column(key, None, False, 1.0, 1.0, "shape", -math.inf,
+                                      math.inf))
+                names.append(key)
+                start.append(0.0)
         self.columns = tuple(columns)
         self.names = names
         self.index = {n: i for i, n in enumerate(names)}
@@ -122,7 +147,7 @@ class Model:
 
     def _variant(self, contact, noise_weight) -> Model:
         return Model(self.study, self.problem, candidates=self.candidates, contact=contact,
-                     noise_weight=noise_weight)
+                     noise_weight=noise_weight, shape=self.shape)
 
     def with_contact(self, contact: str | None) -> Model:
         """The same model with another contact choice (None: the study's; one more compiled
@@ -137,10 +162,21 @@ class Model:
     def values(self, u) -> np.ndarray:
         return np.asarray(self.ext.values(jnp.asarray(u, jnp.float64)))
 
-    def u_of(self, name: str, value: float) -> float:
+    def u_of(self, name: str, value: float, u=None) -> float:
+        """u of one column for `value`, the other columns at u (default 0: their starts);
+        a product strength needs its partner's u (see `Extended.values`)."""
         i = self.index[name]
         c, s = self.columns[i], float(self.ext.start[i])
-        return math.log(value / s) if c.log else (value - s) / c.scale
+        if c.log:
+            return math.log(value / s)
+        for a, b in product_pairs([col.key for col in self.columns]):
+            if a == i:
+                value = value * math.exp(0.0 if u is None else float(u[b]))
+        return (value - s) / c.scale
+
+    def value_jacobian(self, u) -> np.ndarray:
+        """d values / d u (P, P) at u."""
+        return np.asarray(jax.jacfwd(self.ext.values)(jnp.asarray(u, jnp.float64)))
 
     def bounds_u(self):
         lo, hi = [], []
@@ -192,7 +228,29 @@ class Model:
         r_prior, J_prior = self._prior_rows(u)
         return Eval(u=u, pred=pred, r=pred - self.measured, J=Jr, r_prior=r_prior,
                     J_prior=J_prior, snaps=snaps, max_residual=float(mres), worn=float(worn),
-                    sliding_m=np.asarray(sliding), error_um=float(err), steps=int(steps))
+                    sliding_m=np.asarray(sliding), error_um=float(err), steps=int(steps),
+                    J_snaps=J)
+
+    def predict(self, u) -> np.ndarray:
+        """Model depth at every row [µm] at u, forward only (no Jacobian: a check of a
+        linearised answer costs one plain evaluation); NaN rows where the model wore
+        through or its integration ran out of attempts."""
+        Model.evaluations += 1
+        t0 = time.perf_counter()
+        snaps, worn, err = (np.asarray(x) for x in _predict_ext(self.ext, jnp.asarray(
+            np.asarray(u, np.float64))))
+        Model.evaluation_s += time.perf_counter() - t0
+        if float(worn) >= 0 or not np.isfinite(float(err)):
+            return np.full(self.n, np.nan)
+        return self._rows(snaps)
+
+    def _rows(self, snaps) -> np.ndarray:
+        prof = snaps[self.row_exp, self.row_snap]
+        rows = np.arange(self.n)
+        pred = prof[rows, self._i0] * (1 - self._w) + prof[rows, self._i1] * self._w
+        if self._is_max.any():
+            pred = np.where(self._is_max, prof.max(axis=1), pred)
+        return pred
 
     def integration(self, ev: Eval) -> dict:
         """The integration report of an evaluation (same keys as `calibrate`'s)."""

@@ -53,6 +53,7 @@ class Diagnosis:
     wall_s: float = 0.0
     log: list = field(default_factory=list)
     compare_fits: dict = field(default_factory=dict)
+    resolution: dict | None = None  # the spatial resolution used and its check (DESIGN §6)
 
     @property
     def missing_effect(self):
@@ -77,6 +78,9 @@ class Diagnosis:
             if c.fit is not None:
                 d["parameters"] = self.parameters_json(c.fit)
                 d["converged"] = c.fit.converged
+                d["fit_status"] = c.fit.status
+                d["model_evaluations"] = c.fit.evaluations
+                d["flags"] = c.fit.flags
             else:
                 d["parameters"] = {k: {"value": v, "stderr": None}
                                    for k, v in (c.screen.start if c.screen else {}).items()}
@@ -93,7 +97,9 @@ class Diagnosis:
                     rmse_per_experiment(m, self.base.ev.r),
                 "loo_rmse_per_experiment_um": self.loo_before,
                 "loo_rmse_um": _mean_sq(self.loo_before), "tests": self.base_tests.to_json(),
-                "converged": self.base.converged, "n_data": m.n,
+                "converged": self.base.converged, "fit_status": self.base.status,
+                "model_evaluations": self.base.evaluations, "flags": self.base.flags,
+                "n_data": m.n, "resolution": self.resolution,
                 "where_it_fails": where_it_fails(m, self.base.ev.r),
                 "integration": m.integration(self.base.ev)}
         after = {"model": self.final.label, "effects": list(self.final.groups),

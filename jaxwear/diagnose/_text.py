@@ -69,6 +69,20 @@ def _describe(effect: str) -> str:
 
 
 def summarize_verdict(diag: Diagnosis) -> str:
+    """The verdict paragraph, ending with the fits that did not converge (a refit out of its
+    budget or stalled still counts with what it reached: its evidence is a lower bound)."""
+    text = _verdict_text(diag)
+    fits = [("the base fit", diag.base)] + [(f"the refit with {c.effect}", c.fit)
+                                              for c in diag.candidates if c.fit is not None]
+    late = [f"{name} ({f.status}, {f.evaluations} evaluations)" for name, f in fits
+            if not f.converged]
+    if late:
+        text += (f" Not converged: {'; '.join(late)}; each is used with the misfit it "
+                 f"reached, so its evidence is a lower bound.")
+    return text
+
+
+def _verdict_text(diag: Diagnosis) -> str:
     t = diag.base_tests
     noise = diag.noise_um
     head = (f"The base model (as the study states it, {diag.base.k} fitted parameters) fits "

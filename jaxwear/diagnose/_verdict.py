@@ -20,7 +20,7 @@ from ._evidence import (
 )
 from ._fit import _log, _objective, finish, fit_masked
 from ._model import Model
-from ._refit import REFIT_F_TOL, _check_derivatives, _noise, _refit, _second_stage, _tests_for
+from ._refit import _check_derivatives, _noise, _refit, _second_stage, _tests_for
 from ._result import Candidate, Diagnosis
 from ._screen import screen
 from ._stats import ALPHA, neighbour_pairs
@@ -36,9 +36,24 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
              noise_um: float | None = None) -> Diagnosis:
     """Diagnose a study (module docstring). Progress on stderr when `verbose`.
 
-    `noise_um`: a known measurement noise level [µm]; default: estimated from the data.
+    `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
+    else estimated from the data.
     """
+    if noise_um is None:
+        noise_um = study.noise_um
     t0 = time.perf_counter()
+    resolution = None
+    if study.auto_resolution:
+        # the resolution the base model's fit needs, checked at its answer (DESIGN §6);
+        # the candidates are then fitted at that level
+        from .._calibrate import fit_study, parse_fit
+        from .._resolution import at_level
+
+        _log(verbose, f"diagnose {study.path}: choosing the resolution by the base fit")
+        r = fit_study(study, parse_fit(study, list(study.fit) if study.fit else
+                                       "K_d,clearance"), noise_um=noise_um, verbose=verbose)
+        resolution = r.resolution
+        study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
     evals0 = Model.evaluations
     _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
     model = Model(study)
@@ -71,14 +86,14 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             u0[kd] += math.log(a)  # depth is nearly proportional to K_d
             ev0 = None
     _log(verbose, f"  base fit ({int(model.base_mask.sum())} parameters)")
-    base = fit_masked(model, model.base_mask, u0, label="base", ev0=ev0,
-                      f_tol=REFIT_F_TOL * noise ** 2, verbose=verbose)
+    base = fit_masked(model, model.base_mask, u0, noise_um=noise, label="base", ev0=ev0,
+                      verbose=verbose)
     noise_data, noise = noise, _noise(model, base.ev.r, noise_um)[0]
     if model.prior_cols and abs(noise / noise_data - 1) > 0.1:
         model = model.with_noise_weight(noise)
         models = {None: model}
-        base = fit_masked(model, model.base_mask, base.ev.u, label="base",
-                          ev0=model.reweigh(base.ev), f_tol=REFIT_F_TOL * noise ** 2,
+        base = fit_masked(model, model.base_mask, base.ev.u, noise_um=noise, label="base",
+                          ev0=model.reweigh(base.ev),
                           verbose=verbose)
     noise, nu = _noise(model, base.ev.r, noise_um)
     base = finish(model, base, noise)
@@ -175,7 +190,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                      base_tests=base_tests, screens=scores, candidates=ordered, status=status,
                      effects=effects, partial=partial, alternatives=alternatives, final=final,
                      final_tests=final_tests, loo_before=loo(model, base),
-                     loo_after=loo(by_contact(final.contact), final))
+                     loo_after=loo(by_contact(final.contact), final), resolution=resolution)
     diag = replace(diag, summary=summarize_verdict(diag), wall_s=time.perf_counter() - t0)
     _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
                   + f" in {diag.wall_s:.1f} s ({Model.evaluations - evals0} model "

@@ -10,6 +10,8 @@ from ._base import EffectParameter as EffectParameter
 from ._base import RateContext as RateContext
 from ._base import effect_parameter_specs as effect_parameter_specs
 from ._base import get_effect as get_effect
+from ._base import product_pairs as product_pairs
+from ._base import project_products as project_products
 from ._base import register_effect as register_effect
 from ._base import registered_effects as registered_effects
 from ._base import safe_power as safe_power

@@ -31,6 +31,7 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,11 @@ class EffectParameter:
     - `scale`: typical size of a fitted change (key's unit); sets the fit's scaling.
     - `realistic`: strength that `jaxwear synth` hides by default: detectable in the
       paper's rig matrix at 0.3 µm noise, and plausible for the physics (see docs/effects.md).
+    - `per`: the key of a `log` parameter of the same effect such that data fix the product
+      of the two (running-in: the excess a·S_r, not a and S_r apart). Where both are
+      fitted, the fit's coordinate of this one measures value·per/per_start (the product)
+      instead of the value: the valley of equal products becomes a coordinate axis, which
+      is what lets a quadratic model follow it. Values and outputs are unchanged.
     """
 
     to_si: float
@@ -61,19 +67,23 @@ class EffectParameter:
     log: bool = False
     scale: float = 1.0
     realistic: float | None = None
+    per: str | None = None
 
 
 class RateContext(eqx.Module):
     """What a local wear-rate hook may use, for one cycle (all SI).
 
     `pressure` (steps, nodes) [Pa]; `slide` dS_i (steps,) [m]; `dt` Δt_i (steps,) [s];
-    `sliding_distance` S at the start of the block [m].
+    `sliding_distance` S at the start of the block [m]; `load_angle` θ_W (steps,) [rad],
+    the direction of the joint load in the bushing frame (its turn rate marks impacts at
+    force reversals; `effects.shape.state_variables` computes it and the others).
     """
 
     pressure: object
     slide: object
     dt: object
     sliding_distance: object
+    load_angle: object = None
 
 
 class Effect(eqx.Module):
@@ -178,6 +188,28 @@ def effect_parameter_specs() -> dict[str, EffectParameter]:
     for eff in _REGISTRY.values():
         out.update(eff.parameters)
     return out
+
+
+def product_pairs(keys) -> list[tuple[int, int]]:
+    """(i, j) for every fitted key i whose `per` names another fitted key j (see
+    `EffectParameter.per`): the fit then uses value_i = linear_i · exp(-u_j)."""
+    specs = effect_parameter_specs()
+    keys = list(keys)
+    return [(i, keys.index(specs[k].per)) for i, k in enumerate(keys)
+            if k in specs and specs[k].per is not None and specs[k].per in keys]
+
+
+def project_products(keys, start, scale, u):
+    """u with each product strength's value (linear·exp(-u_per), see `product_pairs`)
+    clipped into its [lower, upper] by its linear coordinate (numpy)."""
+    specs = effect_parameter_specs()
+    u = np.array(u, np.float64)
+    for i, j in product_pairs(keys):
+        sp = specs[keys[i]]
+        lin = (start[i] + scale[i] * u[i])
+        val = np.clip(lin * np.exp(-u[j]), sp.lower, sp.upper)
+        u[i] = (val * np.exp(u[j]) - start[i]) / scale[i]
+    return u
 
 
 def safe_power(x, exponent):

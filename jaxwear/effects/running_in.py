@@ -26,7 +26,7 @@ class RunningIn(Effect):
     parameters = {
         "running_in_amplitude": EffectParameter(
             1.0, 1.0, 0.0, 0.0, 100.0, "a: initial excess wear factor [-]", scale=1.0,
-            realistic=1.0),
+            realistic=1.0, per="running_in_distance_m"),
         "running_in_distance_m": EffectParameter(
             1.0, 20.0, 20.0, 1e-3, 1e5, "S_r: sliding distance of running-in [m]", log=True),
     }
