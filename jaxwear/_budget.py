@@ -8,6 +8,19 @@ wear updates, `nodes = 100000000` for arrays of steps × nodes floats far beyond
   eq 23) makes at most ceil(cycles / M) updates, plus one per further duty-cycle segment
   and one per snapshot (each may split an update); cycles = revolutions, or
   hours × 3600 / swing_period_s for the oscillating joint.
+- the adaptive integrator (the default) has no fixed M: its steps are bounded by what it
+  needs, not by a cap. Stability: the explicit 3(2) pair is stable while ΔN·λ ≲ 2.5 with
+  λ = K_d k S_cycle per cycle (DESIGN §4; k the foundation stiffness of the unworn layer,
+  S_cycle the sliding per cycle; `_wear.adaptive_attempts`), so a piece of c cycles takes at
+  least c λ / 2.5 steps, and about 3.4x that in attempts at the limit (rejections, and
+  accepted steps below the limit: measured on the boom; 4x is used). Accuracy: ~40 steps
+  at the default tolerance, growing like tol^(-1/3) (3rd order). Plus 4 per piece (regime starts,
+  snapshots). Each attempt evaluates 3 cycles (first-same-as-last), so the estimate's
+  "updates" are cycle evaluations: 3 × attempts. λ comes from the study's parameters by
+  closed forms (no model evaluation): S_cycle = R_pin × 4 asin(L1/L2) per revolution of the
+  crank-slider (the coupler's swing), R_pin × 4 A per swing of amplitude A. `revolutions =
+  1e15` on the rig (λ = 1.4e-3) thus needs ~2.3e12 attempts, refused at once, where a cap
+  of 4096 steps once let it run for hours.
 - contact work: updates × nodes × steps_per_rev contact node-steps (one Newton solve per
   step over all nodes). Measured throughput on one CPU core pair: ~4-6e7 node-steps/s (rig,
   360 × 360 and 128 × 128, M = 100); the time in the message assumes 3e7/s.
@@ -32,11 +45,16 @@ DEFAULT_MAX_WORK = 1e11  # contact node-steps per model evaluation
 NODE_STEPS_PER_S = 3e7  # conservative CPU throughput, for the time in the message
 LIVE_ARRAYS = 12  # (steps, nodes) float64 arrays alive in one vectorised contact solve
 SCHEDULE_BYTES_PER_UPDATE = 160  # 4 Python float lists, then 4 arrays
-# The adaptive integrator takes about as many steps as eq 23 at the default M (measured:
-# ~25-60 on the rig, ~750 on the boom), bounded here by a cap; its schedule is built on
-# the fly, so it holds no per-update lists.
+# The adaptive integrator's schedule is built on the fly, so it holds no per-update lists.
 ADAPTIVE_LOOP = True
-ADAPTIVE_MAX_STEPS = 4096
+STABILITY_LIMIT = 2.5  # |λ ΔN| of the Bogacki-Shampine pair (as `_wear.adaptive_attempts`)
+# attempts per stability-limited step: accepted steps average below the limit and about a
+# third are rejected (measured on the boom, 25 h at 360 x 360: 752 + 286 attempts where the
+# limit alone gives 307, i.e. 3.4)
+ATTEMPTS_PER_STABLE_STEP = 4.0
+ACCURACY_STEPS = 40.0  # accuracy-limited steps at the default tolerance (rig: 25-32)
+STEPS_PER_PIECE = 4.0  # a piece's start (regime change, snapshot) costs a few steps
+EVALUATIONS_PER_ATTEMPT = 3.0  # new cycle evaluations per attempted step (FSAL)
 
 
 @dataclass(frozen=True)
@@ -50,6 +68,7 @@ class WorkEstimate:
     memory_bytes: float
     nodes: int
     steps_per_rev: int
+    stable_cycles: float | None = None  # adaptive: the stability limit of a step [cycles]
 
     @property
     def seconds(self) -> float:
@@ -67,14 +86,54 @@ def _cycles_and_segments(study, exp) -> tuple[float, float]:
     return float(exp.revolutions or 0.0), 1.0
 
 
+def stiff_rates(study, exp) -> list[tuple[float, float]]:
+    """[(λ [1/cycle], share of the cycles)] per duty regime of one experiment: λ = K_d k
+    S_cycle, the decay rate of the stiff mode that bounds explicit steps (DESIGN §4), by
+    closed forms from the parameters (k of the unworn layer, in series with the backing
+    for a double layer; S_cycle from the kinematics), as `_wear._regime_rates` computes it
+    from the load history, without evaluating the model."""
+    from ._contact import equivalent_modulus
+
+    cfg = study.config
+    p = study.params(exp)
+    compliance = float(p.layer_thickness) / float(equivalent_modulus(p.layer_modulus,
+                                                                     p.layer_poisson))
+    if cfg.double_layer:
+        compliance += float(p.backing_thickness) / float(equivalent_modulus(
+            p.backing_modulus, p.backing_poisson))
+    k = 1.0 / compliance if compliance > 0 else math.inf
+    kd, r_pin = float(p.wear_coefficient), float(p.pin_radius)
+    if cfg.driver == "oscillating":
+        per_block = sum(b.duration_h for b in cfg.duty_cycle)
+        return [(kd * k * r_pin * 4.0 * math.radians(b.amplitude_deg),
+                 b.duration_h / per_block if per_block > 0 else 1.0) for b in cfg.duty_cycle]
+    ratio = min(1.0, float(p.crank_length) / float(p.coupler_length))
+    return [(kd * k * r_pin * 4.0 * math.asin(ratio), 1.0)]
+
+
+def adaptive_attempts_estimate(study, exp, cycles: float, pieces: float) -> float:
+    """Attempted steps of the adaptive integrator over `cycles` in `pieces` pieces (see the
+    module docstring): stability-limited, accuracy-limited and per-piece steps."""
+    with_stiff = sum(cycles * share * lam for lam, share in stiff_rates(study, exp)
+                     if lam > 0 and share > 0)  # (inf x 0 would be NaN)
+    stable = ATTEMPTS_PER_STABLE_STEP * with_stiff / STABILITY_LIMIT
+    tol = float(getattr(study, "wear_tolerance_um", 0.002) or 0.002)
+    accuracy = ACCURACY_STEPS * max(1.0, (0.002 / tol) ** (1 / 3))
+    return stable + accuracy + STEPS_PER_PIECE * pieces
+
+
 def wear_updates(study, exp) -> tuple[float, float]:
-    """(cycles, wear updates) of one experiment, from the quantities every integrator has."""
+    """(cycles, wear updates) of one experiment, from the quantities every integrator has;
+    for the adaptive integrator "updates" are cycle evaluations (3 per attempted step)."""
     cycles, segments = _cycles_and_segments(study, exp)
     M = float(study.revolutions_per_update)
     snaps = float(len(exp.snapshot_points))
-    by_m = math.ceil(cycles / M) if math.isfinite(cycles / M) else math.inf
     if ADAPTIVE_LOOP and getattr(study, "integrator", "paper") == "adaptive":
-        return cycles, min(by_m, ADAPTIVE_MAX_STEPS) + segments + snaps
+        attempts = adaptive_attempts_estimate(study, exp, cycles, segments + snaps)
+        if not math.isfinite(attempts):
+            return cycles, math.inf
+        return cycles, EVALUATIONS_PER_ATTEMPT * math.ceil(attempts)
+    by_m = math.ceil(cycles / M) if math.isfinite(cycles / M) else math.inf
     # Σ_segments ceil(c_s / M) ≤ ceil(cycles / M) + segments - 1; a snapshot splits one more
     return cycles, by_m + segments - 1 + snaps
 
@@ -90,8 +149,12 @@ def estimate_work(study, *, tangents: int = 0) -> WorkEstimate:
         schedule = 0.0 if ADAPTIVE_LOOP and study.integrator == "adaptive" else updates
         mem = (8.0 * per_cycle * LIVE_ARRAYS * (1 + tangents)
                + SCHEDULE_BYTES_PER_UPDATE * schedule)
+        stable = None
+        if ADAPTIVE_LOOP and study.integrator == "adaptive":
+            lam = max((lam for lam, _ in stiff_rates(study, exp)), default=0.0)
+            stable = STABILITY_LIMIT / lam if lam > 0 else math.inf
         est = WorkEstimate(exp.name, cycles, updates, updates * per_cycle, mem, cfg.nodes,
-                           cfg.steps_per_rev)
+                           cfg.steps_per_rev, stable)
         if worst is None or (est.node_steps, est.memory_bytes) > (worst.node_steps,
                                                                   worst.memory_bytes):
             worst = est
@@ -149,8 +212,14 @@ def check_work(study, *, tangents: int = 0) -> WorkEstimate:
     work_limit, mem_limit = max_work(), max_memory_bytes()
     problems, env = [], []
     if not est.node_steps <= work_limit:
+        how = f"{est.updates:.3g} wear updates"
+        if not paper:
+            unit = "swing cycles" if osc else "revolutions"
+            how = (f"{est.updates:.3g} cycle evaluations of the adaptive integrator (its "
+                   f"steps stay stable up to ~{est.stable_cycles:.3g} {unit}, over "
+                   f"{est.cycles:.3g} {unit})")
         problems.append(
-            f"too much work to finish: {est.updates:.3g} wear updates × {est.nodes} nodes × "
+            f"too much work to finish: {how} × {est.nodes} nodes × "
             f"{est.steps_per_rev} steps_per_rev = {est.node_steps:.3g} contact node-steps "
             f"({_duration(est.seconds)} at {NODE_STEPS_PER_S:.0e}/s; limit {work_limit:.3g})")
         env.append("JAXWEAR_MAX_WORK")

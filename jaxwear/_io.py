@@ -9,13 +9,16 @@ which refuses (`InputError`, exit 2) an output folder that is a file, and any pl
 profile/history CSVs (for `synth`, the conditions study and its data). Names not planned are
 checked again when written. Every file is written to a temporary name in its folder and
 renamed over the final name (`os.replace`, atomic on POSIX and Windows), so an interrupted
-run leaves the previous file or none, never half a file.
+run leaves the previous file or none, never half a file. Each output folder is created and
+probed with a real file (removed at once) before any work, so that an output that cannot be
+written is refused (exit 2) before the computation, not after it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import json
 import os
 import tempfile
@@ -59,6 +62,7 @@ class OutputDir:
         self.root = Path(root)
         self._inputs = {_key(Path(p)) for p in inputs}
         self.json_file = Path(json_file) if json_file else None
+        _no_link_loop(self.root, "--out")
         if self.root.exists() and not self.root.is_dir():
             raise InputError(f"{self.root}: --out must be a folder, and this is a file"
                              + (" (an input of this run)" if self._is_input(self.root) else ""))
@@ -66,19 +70,24 @@ class OutputDir:
             self._check(self.root / name, "--out")
         if self.json_file is not None:
             self._check(self.json_file, "--json")
-        try:
-            self.root.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise InputError(f"{self.root}: cannot create the output folder ({e.strerror})"
-                             ) from None
+        # Each folder is created and written to now (a probe file, removed at once): an
+        # unwritable output (permissions, a read-only mount, /proc, a path under a file)
+        # was found only when the results were written, after the whole computation.
+        _writable_folder(self.root, "--out")
+        if self.json_file is not None:
+            _writable_folder(self.json_file.parent, "--json")
 
     def _is_input(self, p: Path) -> bool:
         return _key(p) in self._inputs or ("path", p.resolve()) in self._inputs
 
     def _check(self, p: Path, option: str) -> Path:
+        _no_link_loop(p, option)
         if self._is_input(p):
             raise InputError(f"{p}: refusing to replace an input file of this run; choose "
                              f"another {option}")
+        if p.is_dir():  # a file cannot be renamed over a folder
+            raise InputError(f"{p}: is a folder, and {option} writes a file by this name; "
+                             f"move it away or choose another {option}")
         return p
 
     def path(self, name: str) -> Path:
@@ -123,10 +132,45 @@ class OutputDir:
         # relative to the working folder, not to --out
         return self.write_json(self.json_file.resolve(), obj)
 
+    def write_with(self, name: str, writer) -> Path:
+        """`writer(path)` writes `root/name` through a library that wants a file name
+        (e.g. netCDF): it gets a temporary name in the folder, renamed over `name` after."""
+        p = self.path(name)
+        with atomic_path(p) as tmp:
+            writer(tmp)
+        return p
+
     def savefig(self, fig, name: str, dpi: int = 110) -> Path:
         p = self.path(name)
         save_figure(fig, p, dpi)
         return p
+
+
+def _no_link_loop(p: Path, option: str) -> None:
+    """Refuse a path that is (or runs through) a symbolic link loop, named as such."""
+    try:
+        p.stat()
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise InputError(f"{p}: symbolic link loop (the link leads back to itself); "
+                             f"fix the link or choose another {option}") from None
+
+
+def _writable_folder(folder: Path, option: str) -> None:
+    """Create `folder` (with its parents) and write and remove a probe file in it; an
+    `InputError` (exit 2) naming the folder and the reason when that fails."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"{folder}: cannot create the output folder ({e.strerror or e}); "
+                         f"choose another {option}") from None
+    try:
+        fd, probe = tempfile.mkstemp(dir=folder, prefix=".jaxwear-probe-", suffix=".part")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise InputError(f"{folder}: cannot write to the output folder ({e.strerror or e}); "
+                         f"choose another {option}") from None
 
 
 def open_outputs(study, out, *, planned: Iterable[str] = (), json_file=None,
@@ -168,6 +212,23 @@ def atomic_open(path, mode: str = "w", **kw):
             yield f
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, _mode())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_path(path):
+    """A temporary file name beside `path` for a writer that opens files itself; on
+    success it replaces `path`, on any error it is removed and `path` is left as it was."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    os.close(fd)
+    try:
+        yield Path(tmp)
         os.chmod(tmp, _mode())
         os.replace(tmp, path)
     except BaseException:

@@ -10,7 +10,6 @@ around a study's first experiment.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ import numpy as np
 
 from ._config import ModelConfig
 from ._errors import InputError
+from ._numbers import MAX_POINTS, parse_range  # noqa: F401  (the CLI range parser)
 from ._parallel import sharded_vmap
 from ._params import PARAMETER_KEYS, Params, key_to_si
 from ._schedule import Schedule
@@ -241,35 +241,6 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         else None)
 
 
-MAX_POINTS = 100_000  # grid points of one sweep (each is a whole wear simulation)
-
-
-def parse_range(option: str, text: str) -> np.ndarray:
-    """`START:STOP:COUNT` (inclusive, evenly spaced), `A,B,C` or a single value."""
-    text = str(text).strip()
-    try:
-        if ":" in text:
-            a, b, n = text.split(":")
-            count = int(n)
-            if count < 1 or str(count) != n.strip():
-                raise ValueError
-            a, b = float(a), float(b)
-        else:
-            count = None
-            vals = np.array([float(x) for x in text.split(",")])
-    except ValueError:
-        raise InputError(f"{option} {text!r}: expected START:STOP:COUNT (e.g. 100:300:21), "
-                         f"a comma-separated list or one value") from None
-    if count is not None:
-        if count > MAX_POINTS:
-            raise InputError(f"{option} {text!r}: {count} values; at most {MAX_POINTS} per "
-                             f"sweep")
-        vals = np.linspace(a, b, count)
-    if not np.all(np.isfinite(vals)):
-        raise InputError(f"{option} {text!r}: values must be finite")
-    return vals
-
-
 def _heatmap(path, title, label, res: SweepResult, z):
     from ._io import save_figure
     from ._report import plt
@@ -298,81 +269,3 @@ def _heatmap(path, title, label, res: SweepResult, z):
     fig.tight_layout()
     save_figure(fig, path)
     pl.close(fig)
-
-
-SWEEP_OUTPUTS = ("sweep.csv", "sweep_peak_depth.png", "sweep_worn_volume.png")
-
-
-def cmd_sweep(args):
-    """`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11`."""
-    from ._budget import check_work
-    from ._io import open_outputs
-    from ._study import load_study
-
-    study = load_study(args.study)
-    exp = study.experiments[0]
-    p = study.params(exp)
-    osc = study.config.driver == "oscillating"
-    grid = {}
-    if args.speed_rpm is not None:
-        if osc:
-            raise InputError("--speed-rpm: the study's joint is oscillating (no crank speed); "
-                             "sweep --clearance-mm only")
-        grid["speed_rpm"] = parse_range("--speed-rpm", args.speed_rpm)
-    if args.clearance_mm is not None:
-        grid["clearance_mm"] = parse_range("--clearance-mm", args.clearance_mm)
-    if not grid:
-        raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
-                         "--clearance-mm START:STOP:COUNT")
-    total = math.prod(len(v) for v in grid.values())
-    if total > MAX_POINTS:
-        raise InputError(f"sweep: {total} grid points; at most {MAX_POINTS} (each is a whole "
-                         f"wear simulation): give fewer values")
-    out = open_outputs(study, args.out, planned=SWEEP_OUTPUTS)
-    check_work(study)
-    total = math.prod(len(v) for v in grid.values())
-    what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
-    print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first chunk "
-          f"compiles the model", file=sys.stderr, flush=True)
-    t0 = time.perf_counter()
-    res = sweep(study, grid=grid, progress=True)
-    dt = time.perf_counter() - t0
-    pts = res.points()
-    cols = ["clearance_mm"] if osc else ["speed_rpm", "clearance_mm"]
-    fixed = {k: float(p.get(k)) / key_to_si(k) for k in cols}
-    valid = res.valid.ravel()
-    rows = []
-    for i in range(total):
-        keyvals = [pts[k][i] if k in pts else fixed[k] for k in cols]
-        ok = valid[i]
-        rows.append(keyvals + [res.peak_depth_um.ravel()[i] if ok else np.nan,
-                               res.worn_volume_mm3.ravel()[i] if ok else np.nan,
-                               res.peak_angle_deg.ravel()[i] if ok else np.nan,
-                               res.worn_through_cycle.ravel()[i],
-                               res.error_estimate_um.ravel()[i], res.steps.ravel()[i]])
-    unit = "cycle" if osc else "revolution"
-    out.write_csv("sweep.csv", cols + ["peak_depth_um", "worn_volume_mm3", "peak_angle_deg",
-                                       f"worn_through_{unit}", "integration_error_um",
-                                       "integration_steps"], rows)
-    _heatmap(out.path("sweep_peak_depth.png"), f"{exp.name}, {what}: peak wear depth",
-             "peak depth [µm]", res, res.peak_depth_um)
-    _heatmap(out.path("sweep_worn_volume.png"), f"{exp.name}, {what}: worn volume",
-             "worn volume [mm³]", res, res.worn_volume_mm3)
-    v = res.valid
-    print(f"sweep of {total} points in {dt:.1f} s: peak depth "
-          f"{np.nanmin(np.where(v, res.peak_depth_um, np.nan)):.4g} to "
-          f"{np.nanmax(np.where(v, res.peak_depth_um, np.nan)):.4g} µm, worn volume "
-          f"{np.nanmin(np.where(v, res.worn_volume_mm3, np.nan)):.4g} to "
-          f"{np.nanmax(np.where(v, res.worn_volume_mm3, np.nan)):.4g} mm³"
-          if v.any() else f"sweep of {total} points in {dt:.1f} s: every point wore through")
-    err = res.error_estimate_um[np.isfinite(res.error_estimate_um)]
-    if err.size:
-        how = (f"adaptive, tolerance {res.tolerance_um:g} µm" if res.tolerance_um is not None
-               else "eq 23, Euler's estimate")
-        print(f"integration ({how}): error estimate up to {err.max():.3g} µm, "
-              f"{int(res.steps.min())}-{int(res.steps.max())} steps per point")
-    if not v.all():
-        print(f"{int((~v).sum())} points wore through the layer (or the contact or the "
-              f"integration did not converge): NaN in sweep.csv, marked in the plots")
-    print(f"wrote {out.root / 'sweep.csv'}, sweep_peak_depth.png, sweep_worn_volume.png")
-    return res

@@ -1,0 +1,81 @@
+"""Command line: `jaxwear simulate|calibrate|diagnose|synth|sweep|sensitivity|predict`
+(DESIGN §7).
+
+Exit codes: 0 done, 2 bad input (one line naming the file, key, line or option), 1 anything
+else. Set JAXWEAR_DEBUG=1 to see tracebacks. Every verb takes the same path (`_pipeline`):
+parse, load the study, check the outputs, estimate the work, run.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from ._parser import Parser, join_negative_values, value_options
+
+
+def _verbs():
+    from .calibrate import Calibrate
+    from .diagnose import Diagnose
+    from .predict import Predict
+    from .sensitivity import Sensitivity
+    from .simulate import Simulate
+    from .sweep import Sweep
+    from .synth import Synth
+
+    return [Simulate(), Calibrate(), Diagnose(), Synth(), Sweep(), Sensitivity(), Predict()]
+
+
+def _enable_cache():
+    # A persistent compilation cache makes the second start of the CLI fast. Opt out with
+    # JAXWEAR_NO_CACHE=1. This is the CLI's choice; the library never touches it.
+    if os.environ.get("JAXWEAR_NO_CACHE"):
+        return
+    import jax
+
+    cache = os.environ.get("JAXWEAR_CACHE_DIR",
+                           str(Path.home() / ".cache" / "jaxwear" / "jax-compilation"))
+    try:
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    except Exception:  # an unwritable home is no reason to fail
+        pass
+
+
+def build_parser() -> Parser:
+    ap = Parser(prog="jaxwear", description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="verb_name", required=True, metavar="VERB")
+    for verb in _verbs():
+        verb.add_to(sub)
+    return ap
+
+
+def main(argv=None) -> int:
+    from .._errors import InputError
+
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    try:
+        ap = build_parser()
+        args = ap.parse_args(join_negative_values(argv, value_options(ap)))
+        _enable_cache()
+        args.verb.execute(args)
+    except InputError as e:
+        print(f"jaxwear: error: {_one_line(e)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxwear: interrupted", file=sys.stderr)
+        return 1
+    except Exception as e:  # one line, never a traceback, unless asked for
+        if os.environ.get("JAXWEAR_DEBUG"):
+            raise
+        print(f"jaxwear: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).splitlines())
+
+
+__all__ = ["build_parser", "main"]
