@@ -121,9 +121,33 @@ def test_hidden_effect_is_found_and_its_strength_recovered(name):
         assert abs(fitted[key]["value"] - true) < 3 * fitted[key]["stderr"], (key, fitted[key])
 
 
-def test_null_data_adequate_in_at_least_9_of_10_seeds():
-    statuses = [diagnose(_synth([], seed=100 + s).study).status for s in range(10)]
-    assert statuses.count("adequate") >= 9, statuses
+NULL_SEEDS = 10
+
+
+def test_null_data_false_alarm_rate_at_the_stated_alpha():
+    """Null data (no hidden effect; truth at 2x the nodes and steps and M/10, noise on the
+    whole scan): every seed must be `adequate`.
+
+    The stated level: `ALPHA` = 1e-3 is the family-wise level of the "is it noise?"
+    decision (Bonferroni over the chi-square, autocorrelation and score tests). With n
+    independent null studies the number of false alarms is binomial(n, <= ALPHA), so
+    P(at least one in n = 10) <= 1 - (1 - 1e-3)^10 = 0.995 %: at the 1 % level the bound is
+    0 false alarms in 10 (allowing 1 would need P(X >= 2) = 4.5e-5: a 10-100x inflated rate
+    could pass). Second, sharper check of the same statement: a valid family-wise p-value
+    has P(p_min < x) <= x for every x, also at x = 0.1 where 10 seeds can see it: the count
+    of p_min < 0.1 is binomial(10, <= 0.1), P(X >= 5) = 0.16 %, so at most 4 are allowed
+    (miscalibrated p-values, e.g. a discretisation misfit taken as signal, fail this first).
+    Measured: 0 of 30 alarms, p_min < 0.1 in 2 of 10 (0.035, 0.072), about 2 s a seed."""
+    from jaxwear.diagnose._stats import ALPHA
+
+    assert ALPHA == 1e-3  # the level the bounds above are derived for
+    diags = [diagnose(_synth([], seed=100 + s).study) for s in range(NULL_SEEDS)]
+    statuses = [d.status for d in diags]
+    assert statuses.count("adequate") == NULL_SEEDS, statuses
+    p_min = [d.base_tests.p_min for d in diags]
+    assert sum(p < 0.1 for p in p_min) <= 4, p_min
+    for d in diags:  # the verdict follows the stated test: no effect, nothing left unexplained
+        assert d.effects == [] and d.partial == [] and not d.base_tests.systematic
 
 
 def _landing_angles(speed_rpm):
@@ -163,14 +187,28 @@ def test_physics_outside_the_library_is_unexplained():
 
 @pytest.mark.slow
 def test_two_hidden_effects():
-    """Running-in and friction at once: both named, or the first named with an
-    unexplained remainder."""
-    d = diagnose(_synth(["running_in", "friction"], seed=8).study)
-    if d.status == "effect_found":
-        assert set(d.effects) == {"running_in", "friction"}, d.summary
-        assert d.final.rmse <= 1.3 * NOISE
-    else:
-        assert d.status == "unexplained" and d.partial[:1] in (["running_in"], ["friction"])
+    """Running-in and friction at once (realistic strengths, a = 1, S_r = 20 m, μ = 0.1):
+    the physics implies both are missing, so the verdict must name both (the pair's second
+    stage), fit to noise level, and recover each strength within 3 standard errors (the
+    single-effect test's bound). Measured: effect_found with both, RMSE 0.309 µm, strengths
+    within 0.2 and 1.3 SE."""
+    res = _synth(["running_in", "friction"], seed=8)
+    d = diagnose(res.study)
+    assert d.status == "effect_found", d.summary
+    assert set(d.effects) == {"running_in", "friction"}, d.summary
+    assert d.partial == []
+    assert d.final.rmse <= 1.3 * NOISE
+    doc = d.to_json()
+    assert set(doc["candidates"][0]["effect"].split("+")) == {"running_in", "friction"}
+    fitted = doc["candidates"][0]["parameters"]
+    for name in ("running_in", "friction"):
+        for key, spec in _params(name).items():
+            if spec.log:
+                continue
+            true = res.truth["hidden"][name][key]
+            assert fitted[key]["stderr"] > 0
+            assert abs(fitted[key]["value"] - true) < 3 * fitted[key]["stderr"], (key,
+                                                                                 fitted[key])
 
 
 # -------------------------------------------------------------------------- CLI
@@ -183,8 +221,10 @@ def test_cli_writes_the_design_json_and_a_self_contained_report(tmp_path):
     doc = json.loads(js.read_text())
     assert set(doc["baseline"]) >= {"rmse_um", "noise_um", "parameters"}
     assert set(doc["verdict"]) >= {"status", "missing_effect", "summary"}
-    assert doc["verdict"]["status"] in ("adequate", "effect_found", "unexplained")
+    # speed dependence hidden at its realistic strength (q = 0.3): found, and only it
+    assert doc["verdict"]["status"] == "effect_found", doc["verdict"]["summary"]
     assert doc["verdict"]["missing_effect"] == "speed_dependence"
+    assert doc["verdict"]["effects"] == ["speed_dependence"]
     for c in doc["candidates"]:
         assert set(c) >= {"effect", "rmse_um", "parameters", "evidence"}
     ev = [c["evidence"] for c in doc["candidates"]]
