@@ -107,6 +107,26 @@ def with_registration(study: Study, keys: list[str]) -> list[str]:
     return list(keys)
 
 
+def registered(study: Study, result) -> Study:
+    """`study` with every scan rotated by its fitted registration (`angle_offset_deg/EXP`
+    of `result`, a `FitResult`) and the registration then held (`angle_tolerance_deg` 0):
+    what diagnose compares its candidates at, after the base fit found the offsets."""
+    from dataclasses import replace
+
+    fitted = dict(zip(result.names, map(float, result.values)))
+    exps = []
+    for e in study.experiments:
+        name = f"angle_offset_deg/{e.name}"
+        if e.profile is not None and name in fitted:
+            shift = fitted[name] - e.profile.angle_offset_deg
+            prof = replace(e.profile, angle=np.mod(e.profile.angle + np.deg2rad(shift),
+                                                   2 * np.pi),
+                           angle_offset_deg=fitted[name])
+            e = replace(e, profile=prof)
+        exps.append(e)
+    return replace(study.with_experiments(exps), angle_tolerance_deg=0.0)
+
+
 def fit_parameters(study: Study, keys: list[str]) -> list[FitParameter]:
     specs = effect_parameter_specs()
     out = []

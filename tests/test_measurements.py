@@ -62,6 +62,23 @@ def test_registration_offset_is_fitted_and_recovered():
     _check_base_recovery(f, res.truth, kd_rel=0.02)
 
 
+def test_diagnose_honours_the_registration():
+    """Null data scanned 3° off: with the study's 5° registration prior, diagnose fits the
+    offsets with the base model (calibrate's path) and finds nothing missing; told the
+    registration is exact (tolerance 0), the same scans read as systematic misfit (so the
+    first half can fail)."""
+    from jaxwear.diagnose import diagnose
+
+    res = synthesize([], "paper", noise_um=NOISE, seed=3, numerics=SMALL, angle_offset_deg=3.0)
+    held = diagnose(res.study)
+    assert held.base_tests.systematic, held.summary
+    d = diagnose(replace(res.study, angle_tolerance_deg=5.0))
+    assert d.status == "adequate", d.summary
+    for e in d.study.experiments:  # the diagnosed study holds the fitted registration
+        assert abs(e.profile.angle_offset_deg - 3.0) < 0.4, e.profile.angle_offset_deg
+    assert d.base.rmse < 1.1 * NOISE < held.base.rmse
+
+
 def test_angle_offset_jacobian_matches_finite_differences():
     """d(residual)/d(offset) of the differentiable periodic interpolation, against a
     central difference of the residuals themselves."""

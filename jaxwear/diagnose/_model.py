@@ -46,7 +46,8 @@ class Model:
         self.study = study
         if problem is None:
             # the study's [fit] parameters, as calibrate fits them (registration offsets
-            # are not fitted here: the candidates are compared at the given registration)
+            # are not: `diagnose` fits them with the base model first and holds them,
+            # `_calibrate.registered`)
             problem = build_problem(study, parse_fit(
                 study, list(study.fit) if study.fit else "K_d,clearance"))
         self.problem = problem

@@ -43,17 +43,26 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         noise_um = study.noise_um
     t0 = time.perf_counter()
     resolution = None
-    if study.auto_resolution:
-        # the resolution the base model's fit needs, checked at its answer (DESIGN §6);
-        # the candidates are then fitted at that level
-        from .._calibrate import fit_study, parse_fit
+    if study.auto_resolution or study.angle_tolerance_deg > 0:
+        # the base model's fit by calibrate's path: the resolution it needs, checked at its
+        # answer (DESIGN §6), and the scans' registration where the study fits it; the
+        # candidates are then compared at that level and that registration (held)
+        from .._calibrate import fit_study, parse_fit, registered, with_registration
         from .._resolution import at_level
 
-        _log(verbose, f"diagnose {study.path}: choosing the resolution by the base fit")
-        r = fit_study(study, parse_fit(study, list(study.fit) if study.fit else
-                                       "K_d,clearance"), noise_um=noise_um, verbose=verbose)
-        resolution = r.resolution
-        study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
+        _log(verbose, f"diagnose {study.path}: the base fit by calibrate's path (resolution"
+                      f"{', registration' if study.angle_tolerance_deg > 0 else ''})")
+        keys = with_registration(study, parse_fit(study, list(study.fit) if study.fit else
+                                                  "K_d,clearance"))
+        r = fit_study(study, keys, noise_um=noise_um, verbose=verbose)
+        if study.auto_resolution:
+            resolution = r.resolution
+            study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
+        if study.angle_tolerance_deg > 0:
+            study = registered(study, r)
+            _log(verbose, "  registration held at the fitted offsets: " + ", ".join(
+                f"{n.split('/', 1)[1]} {v:+.2f}°" for n, v in zip(r.names, r.values)
+                if n.startswith("angle_offset_deg/")))
     evals0 = Model.evaluations
     _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
     model = Model(study)
