@@ -49,6 +49,10 @@ def run(cmd: list[str], json_path: Path | None) -> tuple[float, dict | None, str
     return wall, doc, proc.stderr
 
 
+def _f(x) -> str:
+    return "null" if x is None else f"{x:.1f}"
+
+
 def evaluations_in(stderr: str) -> str:
     m = re.findall(r"\((\d+) model evaluations\)", stderr)
     return m[-1] if m else "?"
@@ -93,6 +97,8 @@ def main(argv=None) -> int:
              [str(tmp / "rig" / "study.toml")], "92-109 s", "<= 90 s"),
             ("diagnose the 5-experiment rig study, speed effect", "diagnose",
              [str(tmp / "rig_speed" / "study.toml")], "513 s", "<= 90 s"),
+            ("diagnose --shape, the same study (issue 20: <= 60 s more)", "diagnose",
+             [str(tmp / "rig_speed" / "study.toml"), "--shape"], "-", "row above + 60 s"),
         ]
         if args.nuts:
             cases.append(("NUTS on the boom, 2 x (100 + 100), --noise-um 5", "predict",
@@ -115,11 +121,14 @@ def main(argv=None) -> int:
                 extra = doc["verdict"]["status"] + (
                     f" ({doc['verdict']['missing_effect']})"
                     if doc["verdict"]["missing_effect"] else "")
+                if "shape" in doc:
+                    extra += f"; shape best: {doc['shape']['best']}"
             else:
-                evals = evaluations_in(err)
+                evals = (doc.get("fit") or {}).get("model_evaluations") or "?"
                 p = doc["predictions"]
-                extra = "; ".join(f"{x['at']:g} h: {x['depth_um']:.1f} [{x['lower_um']:.1f}, "
-                                  f"{x['upper_um']:.1f}] µm" for x in p)
+                extra = "; ".join(f"{x['at']:g} h: {_f(x['depth_um'])} [{_f(x['lower_um'])}, "
+                                  f"{_f(x['upper_um'])}] µm (measured {_f(x['measured_um'])})"
+                                  for x in p)
             rows.append((label, before, target, f"{wall:.1f} s", str(evals), extra))
             print(f"{label}: {wall:.1f} s, {evals} evaluations, {extra}", flush=True)
     finally:

@@ -58,6 +58,7 @@ from .diagnose import diagnose as diagnose  # noqa: E402
 from .effects import Effect as Effect  # noqa: E402
 from .effects import EffectParameter as EffectParameter  # noqa: E402
 from .effects import register_effect as register_effect  # noqa: E402
+from .effects import unregister_effect as unregister_effect  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -72,5 +73,6 @@ __all__ = [
     "diagnose", "estimate_work", "input_files", "load_history", "load_study", "make_schedule",
     "open_outputs", "points_mesh", "predict", "preset", "register_effect", "sensitivities",
     "sharded_fn", "sharded_vmap", "simulate", "solve_contact", "stiffness_per_area",
-    "study_sensitivities", "sweep", "synthesize", "wear_loop", "write_diagnosis",
+    "study_sensitivities", "sweep", "synthesize", "unregister_effect", "wear_loop",
+    "write_diagnosis",
 ]

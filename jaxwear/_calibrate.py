@@ -667,7 +667,7 @@ def check_noise_determined(problem: Problem, noise_um: float | None, *, hint: st
 
 def fit(problem: Problem, u0=None, *, noise_um: float | None = None,
         max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
-        label: str = "fit") -> FitResult:
+        label: str = "fit", se_tol: float = lsq.SE_TOL) -> FitResult:
     """Least-squares fit through the one core (`jaxwear.lsq.solve`), then standard errors,
     correlations and flags.
 
@@ -679,6 +679,7 @@ def fit(problem: Problem, u0=None, *, noise_um: float | None = None,
     - `max_evaluations`: budget of the iteration (the robust start's evaluations come on
       top; all are counted in `iterations`).
     - `verbose`: one line per evaluation on stderr. `robust`: rescale K_d first.
+    - `se_tol`: the stop, as a fraction of a standard error (`lsq.solve`).
 
     Raises `InputError` before any evaluation when σ is not given and the data rows do not
     outnumber the fitted parameters; `FitError` when no start can be evaluated.
@@ -724,7 +725,7 @@ def fit(problem: Problem, u0=None, *, noise_um: float | None = None,
     _log(verbose, f"  fit: {p} parameters, {problem.n_data} data rows")
     out = lsq.solve(model, u, point0=pt, lower=lo, upper=hi, noise_um=noise_um,
                     max_evaluations=max_evaluations, label=label, log=log,
-                    project=problem.project)
+                    project=problem.project, se_tol=se_tol)
     return summarize(problem, out, evals0 + out.evaluations)
 
 
@@ -823,7 +824,8 @@ def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=Fal
 
 
 def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | None = None,
-              max_evaluations: int = 30, verbose: bool = False) -> FitResult:
+              max_evaluations: int = 30, verbose: bool = False,
+              se_tol: float = lsq.SE_TOL) -> FitResult:
     """The whole fit of a study: build the problem, refuse what is known before any
     evaluation, fit, re-check the integration error at the answer and, where the study
     leaves the resolution to the error (DESIGN §6), fit at the coarsest level of
@@ -834,7 +836,8 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
     from . import _resolution as res
 
     noise_um = study.noise_um if noise_um is None else noise_um
-    kw = dict(noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose)
+    kw = dict(noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
+              se_tol=se_tol)
     if not study.auto_resolution:
         result = _fit_at(study, keys, start, **kw)
         result.resolution = res.given(study)
@@ -866,12 +869,15 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
     return result
 
 
-def _fit_at(study: Study, keys, start, *, noise_um, max_evaluations, verbose) -> FitResult:
+def _fit_at(study: Study, keys, start, *, noise_um, max_evaluations, verbose,
+            se_tol) -> FitResult:
     problem = build_problem(study, keys, start)
     check_noise_determined(problem, noise_um, hint="[fit] noise_um")
-    result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose)
+    result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
+                 se_tol=se_tol)
     return recheck_integration(study, result, noise_um=noise_um,
-                               max_evaluations=max_evaluations, verbose=verbose)
+                               max_evaluations=max_evaluations, verbose=verbose,
+                               se_tol=se_tol)
 
 
 @eqx.filter_jit

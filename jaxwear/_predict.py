@@ -51,6 +51,11 @@ from ._errors import InputError
 from ._resolution import at_level
 from ._study import Experiment, History, Profile, Study
 
+# The forecast's fit stops when the next step would move every parameter by < 0.1 of its
+# standard error (calibrate's reported values: 0.01): a forecast then moves by < 0.1 of
+# its model band, which is what a band can show; on the boom with running-in, 3 training
+# rows, the last 0.1 -> 0.01 took 6 more evaluations along the amplitude/distance valley.
+FORECAST_SE_TOL = 0.1
 LIFE_HORIZON = 10.0  # life is searched up to this multiple of the last measured count
 LAPLACE_STOP_LAYERS = 2.0  # Laplace forecasts stop past this multiple of the layer (life tail)
 METHODS = ("laplace", "nuts")
@@ -151,6 +156,7 @@ class PredictResult:
     measured: dict = field(repr=False)  # experiment -> (points, max depth µm, trained?)
     extra: dict = field(default_factory=dict)
     fit_resolution: dict | None = None  # the fit's spatial resolution and its check
+    fit_evaluations: int | None = None  # model evaluations of the fit, checks included
 
     def to_json(self) -> dict:
         doc = {
@@ -171,7 +177,8 @@ class PredictResult:
             "dof": self.dof,
             "quantile": _jf(self.quantile),
             "fit": {"converged": self.fit_converged, "message": self.fit_message,
-                    "resolution": self.fit_resolution},
+                    "resolution": self.fit_resolution,
+                    "model_evaluations": self.fit_evaluations},
             "flags": list(self.flags),
         }
         doc.update(self.extra)
@@ -416,9 +423,14 @@ def _band(g, cov, null_dirs, noise, q):
     var = np.einsum("...i,ij,...j->...", g, cov, g)
     sd = np.sqrt(np.clip(var, 0, None))
     if null_dirs.shape[1]:
-        # a forecast that moves along an undetermined direction has no finite band
-        leak = np.linalg.norm(g @ null_dirs, axis=-1) > 1e-6 * np.maximum(
-            np.linalg.norm(g, axis=-1), 1e-300)
+        # A forecast that moves along an undetermined direction has no finite band. "Moves":
+        # by more than 1 % of the noise level per unit step along it (u's units are a
+        # typical change: a factor e of a log parameter, `scale` of a linear one). A
+        # relative test alone flagged forecasts whose derivative along it is the
+        # integrator's round-off: the boom's running-in distance S_r, once running-in ends
+        # before the first measurement, fixes nothing the forecast at 20 h depends on.
+        along = np.linalg.norm(g @ null_dirs, axis=-1)
+        leak = along > np.maximum(1e-6 * np.linalg.norm(g, axis=-1), 0.01 * noise)
         sd = np.where(leak, np.inf, sd)
     return sd, np.sqrt(sd ** 2 + noise ** 2)
 
@@ -532,7 +544,8 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     # the fit re-checks its integration error at the answer (refitting at a tighter
     # tolerance if above it) and chooses its resolution where the study leaves it open;
     # the forecast runs at the tolerance and resolution the fit ended with
-    result = fit_study(train, keys, noise_um=noise_um, verbose=verbose)
+    result = fit_study(train, keys, noise_um=noise_um, verbose=verbose,
+                       se_tol=FORECAST_SE_TOL)
     problem = result.problem
     flags = []
     resolution = result.resolution
@@ -555,7 +568,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         study = replace(study, revolutions_per_update=m_new)
         train = training_study(study, train_until)
         problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))))
-        result = fit(problem, noise_um=noise_um, verbose=verbose)
+        result = fit(problem, noise_um=noise_um, verbose=verbose, se_tol=FORECAST_SE_TOL)
         result.resolution = resolution
     n, p = problem.n_data, len(problem.names)
     dof = n - p
@@ -714,7 +727,10 @@ def _assemble(study, train, at, points, limit_um, level, method, unit, train_unt
         # Past the central forecast's wear-through the model is extrapolated (first point
         # beyond the layer): its values still place the crossing between two grid points.
         def fin(v):
-            return np.where(np.isfinite(v), v, np.inf)[life_mask]
+            # NaN (worn through) counts as reached; a band of ±inf (no band: an
+            # undetermined direction) stays as it is: the upper reaches at once, the lower
+            # never
+            return np.where(np.isnan(v), np.inf, v)[life_mask]
 
         if life:
             lives.append(life_of(e.name, pts[life_mask], fin(depth), fin(p_lo), fin(p_hi),
@@ -743,5 +759,6 @@ def _assemble(study, train, at, points, limit_um, level, method, unit, train_unt
                          noise_given=noise_given, dof=int(dof), quantile=float(q),
                          fit_converged=bool(result.converged), fit_message=result.message,
                          fit_resolution=result.resolution,
+                         fit_evaluations=int(result.iterations),
                          flags=flags, curves=curves, profiles=profiles, measured=measured,
                          extra=extra)

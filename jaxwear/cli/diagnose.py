@@ -1,8 +1,9 @@
-"""`jaxwear diagnose STUDY.toml [--out DIR] [--json FILE]` (DESIGN §7).
+"""`jaxwear diagnose STUDY.toml [--shape] [--out DIR] [--json FILE]` (DESIGN §7).
 
 Writes under DIR: `diagnosis.json` (the §7 document), `residuals.csv` (one row per measured
 point: measured, base model and the model after, in µm) and `report.html`; `--json FILE`
-the document too.
+the document too. With the shape analysis (`--shape`, or an unexplained verdict):
+`shape_<variable>.png` per state variable (and `shape_after_effect_<variable>.png`).
 """
 
 from __future__ import annotations
@@ -15,11 +16,22 @@ from ._pipeline import Verb, fit_columns
 DIAGNOSE_OUTPUTS = ("diagnosis.json", "residuals.csv", "report.html")
 
 
+def shape_outputs() -> tuple[str, ...]:
+    """The shape analysis's figures (written when it runs: `--shape`, or an unexplained
+    verdict): `shape_<variable>.png`, and `shape_after_effect_<variable>.png` on top of
+    an effect found."""
+    from ..effects.shape import VARIABLES
+
+    return tuple(f"shape_{n}.png" for n in VARIABLES) + tuple(
+        f"shape_after_effect_{n}.png" for n in VARIABLES)
+
+
 def open_diagnose_outputs(study, out_dir, json_file=None):
     """The output guard of `diagnose` (before any work)."""
     from .._io import open_outputs
 
-    return open_outputs(study, out_dir, planned=DIAGNOSE_OUTPUTS, json_file=json_file)
+    return open_outputs(study, out_dir, planned=DIAGNOSE_OUTPUTS + shape_outputs(),
+                        json_file=json_file)
 
 
 def residual_table(diag) -> tuple[list[str], list[tuple]]:
@@ -56,6 +68,15 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     header, rows = residual_table(diag)
     out.write_csv("residuals.csv", header, rows)
     out.write_text("report.html", report_html(diag, doc))
+    for prefix, res in (("shape", diag.shape), ("shape_after_effect", diag.shape_after_effect)):
+        if res is not None:
+            from .._report import plt
+            from ..diagnose._shape_plot import shape_figure
+
+            for v in res.variables:
+                fig = shape_figure(res, v.name)
+                out.savefig(fig, f"{prefix}_{v.name}.png")
+                plt().close(fig)
     out.write_json_file(doc)
     return doc
 
@@ -65,8 +86,13 @@ class Diagnose(Verb):
     help = "find the physics the base model is missing"
     takes_json = True
 
+    def add_arguments(self, p):
+        p.add_argument("--shape", action="store_true",
+                       help="always analyse the shape of the missing wear (default: only "
+                            "when the verdict is unexplained)")
+
     def outputs(self, study, opts):
-        return list(DIAGNOSE_OUTPUTS)
+        return list(DIAGNOSE_OUTPUTS + shape_outputs())
 
     def tangents(self, study, opts):
         from .._calibrate import parse_fit, with_registration
@@ -89,7 +115,7 @@ class Diagnose(Verb):
         dia = importlib.import_module("jaxwear.diagnose")
 
         args = opts["args"]
-        diag = dia.diagnose(study, verbose=True)
+        diag = dia.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)))
         doc = write_outputs(diag, out)
         v = doc["verdict"]
         name = " + ".join(v["effects"]) if v["effects"] else "none"

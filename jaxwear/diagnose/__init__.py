@@ -29,6 +29,9 @@ The steps, each a function below:
    reported as alternatives the data cannot tell apart.
 5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the DESIGN §7 JSON
    (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
+6. **The shape of the missing wear** (`_shape`; always with `shape=True`, else when the
+   verdict is `unexplained`): a smooth correction exp(g(z)) of the local wear rate along
+   each state variable, its share of the misfit, a p-value and where g peaks.
 
 Why one extended model: compiling the wear loop costs far more than evaluating it, so the
 base model, every candidate and every pair of candidates are evaluated by the same
@@ -59,6 +62,8 @@ from ._fit import Fit, finish, fit_masked
 from ._model import Model
 from ._result import METHOD_NOTE, Candidate, Diagnosis
 from ._screen import SHAPE_GRID, Screen, screen
+from ._shape import ShapeResult, VariableShape, shape_analysis, threshold
+from ._shape_plot import shape_figure
 from ._stats import (
     ALPHA,
     Tests,
@@ -83,4 +88,5 @@ __all__ = [
     "finish", "fit_masked", "lag1_autocorrelation", "line_residuals", "loo",
     "measurement_series", "neighbour_differences", "neighbour_pairs", "noise_level", "norm_sf",
     "rmse_per_experiment", "run_tests", "screen", "summarize_verdict", "where_it_fails",
+    "ShapeResult", "VariableShape", "shape_analysis", "shape_figure", "threshold",
 ]

@@ -301,6 +301,11 @@ def report_html(diag, doc: dict) -> str:
         "<h2>Fitted parameters (after)</h2>", _table(par_rows, ["parameter", "value", "SE"]),
         "<h2>Figures</h2>",
     ]
+    for title, res in (("The shape of the missing wear", diag.shape),
+                       ("The shape of what is still missing after the effect",
+                        diag.shape_after_effect)):
+        if res is not None:
+            parts += _shape_section(title, res)
     parts += [_img(src, alt) for alt, src in figs if src]
     parts.append(f"<h2>Method</h2><p>{html.escape(doc['method'])}</p>")
     parts.append(f"<p>{html.escape(_integration_text(a['integration']))}</p>")
@@ -315,3 +320,27 @@ def _integration_text(integ: dict) -> str:
                 f"{integ['tolerance_um']:g} µm, {integ['steps']} steps.")
     return (f"Wear integration (the paper's eq 23): {integ['steps']} updates, no error "
             "estimate; halve numerics.revolutions_per_update to measure it.")
+
+
+def _shape_section(title: str, res) -> list[str]:
+    """The shape analysis: its sentence, a table of the variables and the figure of the
+    variable that explains most (`_shape`)."""
+    from ._shape_plot import shape_figure
+
+    rows = [(v.name, f"{v.explained_fraction:.0%}", _num(v.dof, ".1f"), _num(v.p_value, ".1e"),
+             "yes" if v.significant else "no",
+             f"{_num(v.peak_at, '.4g')} [{_num(v.lower, '.4g')}, {_num(v.upper, '.4g')}] "
+             f"{v.unit}") for v in res.variables]
+    out = [f"<h2>{html.escape(title)}</h2>", f"<p>{html.escape(res.sentence)}</p>",
+           _table(rows, ["state variable", "misfit explained", "dof", "p", "significant",
+                         "peak [90 % band]"]),
+           "<p>Each row: a smooth correction exp(g(z)) of the local wear rate along one state "
+           "variable, fitted to the misfit through the wear loop with a roughness penalty "
+           "chosen by generalised cross-validation; p from simulations of the null with the "
+           f"penalty choice included, significant below α/{len(res.variables)} "
+           f"(α = {res.alpha:g}, Bonferroni).</p>"]
+    show = res.best or max(res.variables, key=lambda v: v.explained_fraction).name
+    out.append(_img(_png(shape_figure(res, show)),
+                    f"g({show}): the extra wear the data ask for"
+                    + ("" if res.best else " (not significant: the largest share shown)")))
+    return out

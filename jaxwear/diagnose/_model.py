@@ -236,14 +236,19 @@ class Model:
         """Model depth at every row [µm] at u, forward only (no Jacobian: a check of a
         linearised answer costs one plain evaluation); NaN rows where the model wore
         through or its integration ran out of attempts."""
+        return self._rows(self.snapshots(u))
+
+    def snapshots(self, u) -> np.ndarray:
+        """Model snapshots (E, S, N) [µm] at u, forward only; NaN where the model wore
+        through or its integration ran out of attempts."""
         Model.evaluations += 1
         t0 = time.perf_counter()
         snaps, worn, err = (np.asarray(x) for x in _predict_ext(self.ext, jnp.asarray(
             np.asarray(u, np.float64))))
         Model.evaluation_s += time.perf_counter() - t0
         if float(worn) >= 0 or not np.isfinite(float(err)):
-            return np.full(self.n, np.nan)
-        return self._rows(snaps)
+            return np.full(snaps.shape, np.nan)
+        return snaps
 
     def _rows(self, snaps) -> np.ndarray:
         prof = snaps[self.row_exp, self.row_snap]

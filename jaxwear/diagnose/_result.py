@@ -54,6 +54,8 @@ class Diagnosis:
     log: list = field(default_factory=list)
     compare_fits: dict = field(default_factory=dict)
     resolution: dict | None = None  # the spatial resolution used and its check (DESIGN §6)
+    shape: object = None  # _shape.ShapeResult on top of the base fit (--shape, unexplained)
+    shape_after_effect: object = None  # the same on top of the effect found
 
     @property
     def missing_effect(self):
@@ -118,6 +120,9 @@ class Diagnosis:
                         "partial": list(self.partial), "alternatives": list(self.alternatives),
                         "confident": self.status != "effect_found" or not self.alternatives},
             "after": after,
+            **({"shape": self.shape.to_json()} if self.shape is not None else {}),
+            **({"shape_after_effect": self.shape_after_effect.to_json()}
+               if self.shape_after_effect is not None else {}),
             "study": str(self.study.path),
             "wall_time_s": self.wall_s,
             "method": METHOD_NOTE,

@@ -33,11 +33,13 @@ COMPARABLE = 0.5
 
 
 def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
-             noise_um: float | None = None) -> Diagnosis:
+             noise_um: float | None = None, shape: bool = False, seed: int = 0) -> Diagnosis:
     """Diagnose a study (module docstring). Progress on stderr when `verbose`.
 
     `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
-    else estimated from the data.
+    else estimated from the data. `shape`: always analyse the shape of the missing wear
+    (`_shape`); without it, only when the verdict is `unexplained` (DESIGN §7); `seed`
+    of its null simulations.
     """
     if noise_um is None:
         noise_um = study.noise_um
@@ -200,7 +202,19 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                      effects=effects, partial=partial, alternatives=alternatives, final=final,
                      final_tests=final_tests, loo_before=loo(model, base),
                      loo_after=loo(by_contact(final.contact), final), resolution=resolution)
-    diag = replace(diag, summary=summarize_verdict(diag), wall_s=time.perf_counter() - t0)
+    summary = summarize_verdict(diag)
+    if shape or status == "unexplained":
+        from ._shape import shape_analysis
+
+        shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
+                             verbose=verbose)
+        after = None
+        if status == "effect_found":
+            after = shape_analysis(by_contact(final.contact), final, noise, nu,
+                                   after=" + ".join(effects), seed=seed, verbose=verbose)
+        diag = replace(diag, shape=shp, shape_after_effect=after)
+        summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else []))
+    diag = replace(diag, summary=summary, wall_s=time.perf_counter() - t0)
     _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
                   + f" in {diag.wall_s:.1f} s ({Model.evaluations - evals0} model "
                     f"evaluations)")

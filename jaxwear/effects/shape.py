@@ -18,11 +18,12 @@ State variables (`VARIABLES`), per step i of a cycle and node j of the bore:
 | `load_turn_rate_deg_per_s` | deg/s | how fast the load direction θ_W turns (impacts at reversal) |
 | `bore_angle_deg` | deg | node angle on the bore, 360 j / nodes |
 
-The two angles are periodic: their basis is `periodic` cubic B-splines on the circle. The
-others use clamped uniform cubic B-splines on [lo, hi] (the range met in the data, set by
-`diagnose._shape`), z clamped to it: beyond the data g is flat, never extrapolated. The
-load turn rate spans decades (slow turning through most of the cycle, a jump at a force
-reversal), so its coordinate is log10(1 + z / z0).
+The two angles are periodic: their basis is cubic B-splines on the circle. The others use
+cubic B-splines uniform in the wear-weighted quantile of z (`ShapeVariable`, the quantiles
+set by `diagnose._shape` from the data's own states): the load turn rate, which spans
+decades (slow turning through most of the cycle, a jump at a force reversal), and the
+sliding speed, low only near reversals where little wears, get their resolution where the
+wear is.
 """
 
 from __future__ import annotations
@@ -32,27 +33,29 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-# name -> (unit, periodic, coordinate)
-VARIABLES: dict[str, tuple[str, bool, str]] = {
-    "cycle_phase_deg": ("deg", True, "linear"),
-    "pressure_MPa": ("MPa", False, "linear"),
-    "sliding_speed_m_per_s": ("m/s", False, "linear"),
-    "sliding_distance_m": ("m", False, "linear"),
-    "load_turn_rate_deg_per_s": ("deg/s", False, "log"),
-    "bore_angle_deg": ("deg", True, "linear"),
+# name -> (unit, periodic)
+VARIABLES: dict[str, tuple[str, bool]] = {
+    "cycle_phase_deg": ("deg", True),
+    "pressure_MPa": ("MPa", False),
+    "sliding_speed_m_per_s": ("m/s", False),
+    "sliding_distance_m": ("m", False),
+    "load_turn_rate_deg_per_s": ("deg/s", False),
+    "bore_angle_deg": ("deg", True),
 }
 
 
 @dataclass(frozen=True)
 class ShapeVariable:
-    """One variable's basis: `size` cubic B-splines over [lo, hi] in its unit (periodic:
-    [0, 360) deg); `z0` the offset of a log coordinate (log10(1 + z/z0))."""
+    """One variable's basis: `size` cubic B-splines. Periodic variables: uniform on the
+    circle [0, 360) deg. The others: uniform in the coordinate t = F(z) ∈ [0, 1], F the
+    wear-weighted distribution of z met in the data (`knots`: z at t = 0, 1/Q, ..., 1,
+    increasing; F piecewise linear between them), z clamped to [knots[0], knots[-1]]: the
+    basis is fine where the wear happens and coarse where little does, and g is flat beyond
+    the data, never extrapolated."""
 
     name: str
     size: int
-    lo: float = 0.0
-    hi: float = 360.0
-    z0: float = 1.0
+    knots: tuple = ()
 
     @property
     def unit(self) -> str:
@@ -62,14 +65,26 @@ class ShapeVariable:
     def periodic(self) -> bool:
         return VARIABLES[self.name][1]
 
+    @property
+    def lo(self) -> float:
+        return 0.0 if self.periodic else float(self.knots[0])
+
+    @property
+    def hi(self) -> float:
+        return 360.0 if self.periodic else float(self.knots[-1])
+
     def keys(self) -> tuple[str, ...]:
         """The effect-parameter keys of the coefficients (dimensionless)."""
         return tuple(f"shape_{self.name}_{k:02d}" for k in range(self.size))
 
     def coordinate(self, z, xp=jnp):
-        if VARIABLES[self.name][2] == "log":
-            return xp.log10(1.0 + xp.maximum(z, 0.0) / self.z0)
-        return z
+        """t = F(z) ∈ [0, 1] (non-periodic variables)."""
+        zq = xp.asarray(self.knots)
+        return xp.interp(z, zq, xp.linspace(0.0, 1.0, len(self.knots)))
+
+    def at_coordinate(self, t) -> np.ndarray:
+        """z at t (numpy): the inverse of `coordinate`."""
+        return np.interp(t, np.linspace(0.0, 1.0, len(self.knots)), np.asarray(self.knots))
 
     def basis(self, z, xp=jnp):
         """B-spline values (..., size) at z (...) in the variable's unit."""
@@ -78,15 +93,14 @@ class ShapeVariable:
             centres = xp.arange(self.size) * h
             d = xp.mod(z[..., None] - centres + 180.0, 360.0) - 180.0
             return _cubic_bspline(d / h, xp)
-        lo, hi = self.coordinate(self.lo, np), self.coordinate(self.hi, np)
-        t = xp.clip(self.coordinate(z, xp), lo, hi)
-        h = (hi - lo) / (self.size - 3)
-        centres = lo + (xp.arange(self.size) - 1.0) * h
+        t = self.coordinate(z, xp)
+        h = 1.0 / (self.size - 3)
+        centres = (xp.arange(self.size) - 1.0) * h
         return _cubic_bspline((t[..., None] - centres) / h, xp)
 
     def roughness(self) -> np.ndarray:
         """Second-difference penalty matrix D'D (size, size): zero on constants (and, for
-        the clamped basis, on straight lines in the coordinate)."""
+        the clamped basis, on straight lines in t)."""
         n = self.size
         if self.periodic:
             D = np.zeros((n, n))

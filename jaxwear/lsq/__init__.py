@@ -13,6 +13,7 @@ directions flagged.
 from ._covariance import Covariance as Covariance
 from ._covariance import covariance as covariance
 from ._point import Point as Point
+from ._solve import SE_TOL as SE_TOL
 from ._solve import NoiseUndetermined as NoiseUndetermined
 from ._solve import Outcome as Outcome
 from ._solve import solve as solve

@@ -44,6 +44,7 @@ _DESCENT = optx.DampedNewtonDescent(linear_solver=lx.QR())
 # threshold; optimistix's default 0.99 kept λ fixed along the boom's curved valley)
 _SEARCH = optx.ClassicalTrustRegion(low_constant=0.1, high_cutoff=0.75)
 GAUSS_NEWTON_WITHIN_SE = 1.0
+SE_TOL = 0.01  # the stop of a reported fit: the next step under 1 % of a standard error
 NO_GAIN = 1e-4  # an accepted step lowering ½χ² by less than this changed nothing the data see
 _BAD = 1e20  # residual of an unusable trial: the trust region rejects it and shrinks
 
@@ -176,7 +177,7 @@ def _gauss_newton(u, free, lo, hi, rw, Jw, cov: Covariance):
 
 def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None = None,
           free=None, lower=None, upper=None, noise_um: float | None = None,
-          max_evaluations: int = 30, se_tol: float = 0.01, max_rejections: int = 6,
+          max_evaluations: int = 30, se_tol: float = SE_TOL, max_rejections: int = 6,
           label: str = "fit", log: Callable[[str], None] | None = None,
           project: Callable[[np.ndarray], np.ndarray] | None = None) -> Outcome:
     """Least squares of the data rows (weighted by 1/σ) and the prior rows.
