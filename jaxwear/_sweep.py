@@ -44,6 +44,8 @@ class SweepResult:
     - `error_estimate_um`: the wear integration's error estimate at each point (adaptive:
       the controlled global estimate; eq 23: Euler's), `steps` its accepted steps, and
       `tolerance_um` the adaptive tolerance (None for eq 23).
+    - `resolution`: the nodes and steps per revolution used; for a study that leaves them
+      open, chosen at the grid's corners (`_resolution.for_forward`) with its check.
     """
 
     axes: dict
@@ -56,6 +58,7 @@ class SweepResult:
     error_estimate_um: np.ndarray | None = None
     steps: np.ndarray | None = None
     tolerance_um: float | None = None
+    resolution: dict | None = None  # nodes and steps used, and their check (DESIGN §6)
 
     @property
     def shape(self) -> tuple:
@@ -156,7 +159,8 @@ def _base(base, cfg, revolutions, hours, M, experiment):
 
 def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
           revolutions=None, hours=None, M: float | None = None, chunk: int = 16,
-          experiment: int = 0, method: str = "auto", progress: bool = False) -> SweepResult:
+          experiment: int = 0, method: str = "auto", progress: bool = False,
+          choose_resolution: bool = True) -> SweepResult:
     """Wear over the outer product of parameter values, batched in compiled chunks.
 
     **Arguments:**
@@ -171,10 +175,35 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
       points one after the other inside one compiled call) or `"auto"`: `"map"` on CPU,
       where it is ~6x faster, `"vmap"` on GPU/TPU.
     - `progress`: report chunks on stderr.
+    - `choose_resolution`: for a `Study` that leaves `nodes`/`steps_per_rev` open, pick
+      them by the error at the grid's corners (default); False runs at the study's values.
 
     **Returns:** a `SweepResult`. Each point equals `simulate` at that point: same schedule
     (the bucketed one `simulate` builds), same wear loop.
     """
+    from ._study import Study
+
+    resolution = None
+    if choose_resolution and isinstance(base, Study) and cfg is None:
+        # a study that leaves nodes and steps open: the coarsest level whose peak depths at
+        # the grid's corners (every axis at its two ends) agree with the next finer level's
+        # within 0.1 % (DESIGN §6), then the whole grid at that level
+        from ._resolution import for_forward, given
+
+        if base.auto_resolution and grid:
+            corners = {k: sorted({float(np.min(v)), float(np.max(v))})
+                       for k, v in grid.items()}
+
+            def peaks(st):
+                return sweep(st, grid=corners, revolutions=revolutions, hours=hours, M=M,
+                             chunk=chunk, experiment=experiment, method=method,
+                             choose_resolution=False).peak_depth_um.ravel()
+
+            base, resolution = for_forward(base, peaks, log=(
+                (lambda m: print(f"  sweep: {m}", file=sys.stderr, flush=True))
+                if progress else None))
+        else:
+            resolution = given(base)
     p, cfg, revolutions, hours, M, tol = _base(base, cfg, revolutions, hours, M, experiment)
     method = _method(method)
     grid = _check_grid(p, cfg, dict(grid or {}))
@@ -238,7 +267,7 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         depth_um=depth_um.reshape(shape + (nodes,)),
         error_estimate_um=(err * 1e6).reshape(shape), steps=steps.reshape(shape),
         tolerance_um=float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive
-        else None)
+        else None, resolution=resolution)
 
 
 def _heatmap(path, title, label, res: SweepResult, z):

@@ -127,3 +127,33 @@ def test_adaptive_sweep_reruns_points_that_need_more_steps():
         np.testing.assert_allclose(res.depth_um[i], np.asarray(one.depth) * 1e6, rtol=1e-9,
                                    atol=1e-9)
         assert res.steps[i] == int(one.steps)
+
+
+def test_sweep_of_a_study_without_numerics_chooses_its_resolution(tmp_path):
+    """A study that leaves nodes and steps open: the sweep picks the coarsest level whose
+    peaks at the grid's corners agree with the next finer level's within 0.1 % of the largest
+    (DESIGN §6)
+    and says so; the claim is checked here against that finer level run independently."""
+    from jaxwear._resolution import LEVELS, PEAK_RTOL
+
+    (tmp_path / "s.toml").write_text(
+        '[model]\npreset = "rig"\n\n[model.parameters]\nK_d_per_Pa = 2e-13\n\n'
+        '[[experiment]]\nname = "a"\nrevolutions = 2000\nclearance_mm = 0.05\n')
+    study = jw.load_study(tmp_path / "s.toml")
+    assert study.auto_resolution
+    grid = {"speed_rpm": [150.0, 276.0]}
+    res = sweep(study, grid=grid)
+    r = res.resolution
+    assert r["auto"] and (r["nodes"], r["steps_per_rev"]) in LEVELS
+    assert res.depth_um.shape[-1] == r["nodes"]
+    finer = r["checked_against"]
+    assert finer is not None and r["within_tolerance"]
+    from jaxwear._resolution import at_level
+
+    ref = sweep(at_level(study, (finer["nodes"], finer["steps_per_rev"])), grid=grid,
+                choose_resolution=False)
+    # the tolerance is of the largest peak (as for simulate's experiments)
+    diff = np.max(np.abs(res.peak_depth_um - ref.peak_depth_um))
+    assert 0 < diff <= PEAK_RTOL * np.max(ref.peak_depth_um)
+    assert r["error_estimate_um"] == pytest.approx(
+        np.max(np.abs(res.peak_depth_um - ref.peak_depth_um)), rel=1e-9)

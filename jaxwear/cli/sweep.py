@@ -122,5 +122,14 @@ class Sweep(Verb):
         if not v.all():
             print(f"{int((~v).sum())} points wore through the layer (or the contact or the "
                   f"integration did not converge): NaN in sweep.csv, marked in the plots")
+        r = res.resolution
+        if r is not None:
+            if r.get("auto"):
+                err = r.get("error_estimate_um")
+                print(f"resolution: {r['nodes']} nodes x {r['steps_per_rev']} steps, chosen at "
+                      f"the grid's corners" + (f" (peak within {err:.3g} µm of the next finer "
+                                               f"level)" if err is not None else ""))
+            else:
+                print(f"resolution: {r['nodes']} nodes x {r['steps_per_rev']} steps (as given)")
         print(f"wrote {out.root / 'sweep.csv'}, sweep_peak_depth.png, sweep_worn_volume.png")
         return res

@@ -325,9 +325,11 @@ def _integration_text(integ: dict) -> str:
 def _shape_section(title: str, res) -> list[str]:
     """The shape analysis: its sentence, a table of the variables and the figure of the
     variable that explains most (`_shape`)."""
+    from ._shape import p_text
     from ._shape_plot import shape_figure
 
-    rows = [(v.name, f"{v.explained_fraction:.0%}", _num(v.dof, ".1f"), _num(v.p_value, ".1e"),
+    rows = [(v.name, f"{v.explained_fraction:.0%}", _num(v.dof, ".1f"),
+             p_text(v.p_value).removeprefix("p "),
              "yes" if v.significant else "no",
              f"{_num(v.peak_at, '.4g')} [{_num(v.lower, '.4g')}, {_num(v.upper, '.4g')}] "
              f"{v.unit}") for v in res.variables]

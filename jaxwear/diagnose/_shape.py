@@ -543,6 +543,12 @@ def threshold(v: VariableShape, rising: bool = True) -> float:
     return float(v.z[k_best])
 
 
+def p_text(p: float) -> str:
+    """"p 3.1e-03", or "p ≤ 5.0e-05" where no simulated draw reached the statistic (the
+    p-value (1 + 0)/(1 + draws) is then a bound)."""
+    return f"p ≤ {p:.1e}" if p <= 1.5 / (1.0 + DRAWS) else f"p {p:.1e}"
+
+
 def describe(best, results, load, after, alternatives=()) -> str:
     on_top = "" if after == "base" else f" on top of {after}"
     if best is None:
@@ -562,7 +568,7 @@ def describe(best, results, load, after, alternatives=()) -> str:
     else:
         where = f"at {LABELS[v.name]} {lo:.3g}-{hi:.3g} {unit}"
     s = (f"The missing wear{on_top} follows {best} (explains {v.explained_fraction:.0%} of "
-         f"the misfit, p {v.p_value:.1e}): it concentrates {where}")
+         f"the misfit, {p_text(v.p_value)}): it concentrates {where}")
     if v.name == "cycle_phase_deg" and load:
         fast = float(load["phase_deg"][int(np.argmax(load["turn_rate_deg_per_s"]))])
         d = abs((fast - v.peak_at + 180.0) % 360.0 - 180.0)

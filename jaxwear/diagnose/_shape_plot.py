@@ -12,6 +12,8 @@ def shape_figure(result, name: str):
     its peak; beneath the phase, the joint load and its turn rate over the cycle; beneath
     every variable, where on the bore of the most-worn experiment the extra wear lands
     (linearised, at its last measurement)."""
+    from ._shape import p_text
+
     pl = plt()
     v = result.variable(name)
     phase = name == "cycle_phase_deg" and result.phase_load
@@ -30,7 +32,7 @@ def shape_figure(result, name: str):
     ax.set_ylabel("g = ln(rate factor)")
     sig = "significant" if v.significant else "not significant"
     ax.set_title(f"{name}: explains {v.explained_fraction:.0%} of the misfit, "
-                 f"dof {v.dof:.1f}, p {v.p_value:.1e} ({sig})", fontsize=9)
+                 f"dof {v.dof:.1f}, {p_text(v.p_value)} ({sig})", fontsize=9)
     if name == "load_turn_rate_deg_per_s" and float(v.z[0]) > 0:
         ax.set_xscale("log")  # spans decades
     ax.legend(fontsize=7)
