@@ -196,6 +196,29 @@ def test_cli_shape_on_null_data_writes_the_contract_and_finds_nothing(tmp_path):
     assert "The shape of the missing wear" in html
 
 
+@pytest.mark.slow
+def test_cli_shape_on_the_boom_history(tmp_path):
+    """The oscillating boom (calibration/boom: five depths over 25 h, running-in switched
+    on, a small grid): the same contract, the phase being the swing's; five points decide
+    nothing, and the shares say so (net of what each correction takes from noise)."""
+    import shutil
+
+    shutil.copy(ROOT / "calibration" / "boom" / "boom.csv", tmp_path / "boom.csv")
+    text = (ROOT / "calibration" / "boom" / "study.toml").read_text()
+    text = text.replace('preset = "boom"', 'preset = "boom"\neffects = ["running_in"]', 1)
+    text = text.replace("nodes = 90", "nodes = 48").replace("steps_per_rev = 72",
+                                                            "steps_per_rev = 36")
+    (tmp_path / "study.toml").write_text(text)
+    rc = main(["diagnose", str(tmp_path / "study.toml"), "--shape", "--out",
+               str(tmp_path / "o"), "--json", str(tmp_path / "d.json")])
+    assert rc == 0
+    shp = json.loads((tmp_path / "d.json").read_text())["shape"]
+    assert shp["best"] is None and len(shp["variables"]) == len(VARIABLES)
+    for v in shp["variables"]:
+        assert not v["significant"] and v["explained_fraction"] < 0.5, v
+        assert (tmp_path / "o" / f"shape_{v['name']}.png").exists()
+
+
 class _PressureJump(jw.Effect):
     """Outside the library: the rate jumps by a factor 2 above 2 MPa."""
 

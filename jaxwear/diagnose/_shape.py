@@ -357,7 +357,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         J_snap = None if ev.J_snaps is None else ev.J_snaps[deepest, -1][:, cols]
         extra = (J_snap @ c) if J_snap is not None else np.zeros(0)
         results.append(VariableShape(
-            var.name, var.unit, _explained(T, excess, rss0), dof,
+            var.name, var.unit, _explained(T, dof, excess, rss0), dof,
             p, False, peak, lo, hi, float(lam), T, zg, g, g_lo, g_hi, c, extra,
             (float(zg[0]), float(zg[-1]))))
         _log(verbose, f"    {var.name}: explains {results[-1].explained_fraction:.0%} of the "
@@ -408,13 +408,16 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                        exp_name, tuple(alternatives))
 
 
-def _explained(drop: float, excess: float, rss0: float) -> float:
-    """Share of the misfit a correction explains: of the misfit beyond the noise level
-    (RSS_base − (n − k)σ², in σ² units) where there is some, else of the whole residual sum
-    (a fit at noise level has no misfit to share out: "100 %" of nothing would mislead)."""
+def _explained(drop: float, dof: float, excess: float, rss0: float) -> float:
+    """Share of the misfit a correction explains, net of what it would take from noise
+    alone (a correction with `dof` effective parameters removes ~dof σ² of pure noise):
+    (ΔRSS − dof)⁺ over the misfit beyond the noise level (RSS_base − (n − k)σ², σ² units)
+    where there is some, else over the whole residual sum. So a fit at noise level, or a
+    history of five points, does not read "100 % explained"."""
+    net = max(drop - dof, 0.0)
     if excess > 0.0:
-        return float(np.clip(drop / max(excess, drop, 1e-300), 0.0, 1.0))
-    return float(np.clip(drop / max(rss0, 1e-300), 0.0, 1.0))
+        return float(np.clip(net / max(excess, net, 1e-300), 0.0, 1.0))
+    return float(np.clip(net / max(rss0, 1e-300), 0.0, 1.0))
 
 
 def _replace(v, **kw):
