@@ -53,7 +53,6 @@ LAMBDAS = np.logspace(-4, 6, 41)  # λ grid, relative to tr(A'A)/tr(S)
 RANGE_QUANTILES = (0.005, 0.995)  # of the wear-weighted state: the range met in the data
 KNOT_QUANTILES = 32  # pieces of the piecewise-linear quantile coordinate
 NONLINEAR_EVALUATIONS = 8
-CONTENDERS = 0.9  # share of the leader's explained fraction that makes a contender
 
 
 @dataclass(frozen=True)
@@ -368,20 +367,17 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     rmse_before = float(np.sqrt(np.mean(ev.r ** 2)))
     best, rmse_after, status, alternatives = None, None, "none", []
     if sig:
-        # State variables are correlated (on the rig, speed and load turn rate both follow
-        # the crank speed), so shares can tie: among the contenders within `CONTENDERS` of
-        # the leader, `best` has the smallest AIC; those within ln 20 of it are named as
-        # alternatives the data cannot tell apart.
-        contenders = [v for v in sig if v.explained_fraction
-                      >= CONTENDERS * sig[0].explained_fraction][:3]
-        # AIC of the linearised fits with their effective degrees of freedom: between
-        # corrections that leave the same misfit, the simpler (smoother) shape
-        crit = {v.name: rss0 - v.statistic + 2.0 * v.dof for v in contenders}
-        best = min(crit, key=crit.get)
-        refits = {best: _refit_best(smodel, ev, u, free_base, basis, best, results, sigma,
-                                    verbose)}
+        # `best` is the significant variable that explains most (DESIGN §7). State
+        # variables are correlated (on the rig, speed and load turn rate both follow the
+        # crank speed), so shares can nearly tie: significant variables whose AIC (the
+        # linearised fit's RSS + 2 effective dof) is within ln 20 of the best's, or lower,
+        # are named as alternatives the data cannot tell apart.
+        best = sig[0].name
+        crit = {v.name: rss0 - v.statistic + 2.0 * v.dof for v in sig}
         alternatives = [k for k in sorted(crit, key=crit.get)
                         if k != best and crit[k] - crit[best] < 2.0 * math.log(20.0)]
+        refits = {best: _refit_best(smodel, ev, u, free_base, basis, best, results, sigma,
+                                    verbose)}
         rmse_after, status, u_best = refits[best]
         # where the best variable's correction puts its wear, through the loop (the
         # others' are linearised): the deepest experiment at its last measurement
@@ -588,6 +584,6 @@ def describe(best, results, load, after, alternatives=()) -> str:
             s += f", where the joint load turns fastest ({fast:.0f}°)"
     s += "."
     if alternatives:
-        s += (f" The data cannot tell it from {', '.join(alternatives)} (within ln 20 of "
-              f"its AIC: the experiments vary them together).")
+        s += (f" The data cannot tell it from {', '.join(alternatives)} (AIC within ln 20: "
+              f"the experiments vary them together).")
     return s
