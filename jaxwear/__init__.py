@@ -20,7 +20,6 @@ from ._config import ModelConfig as ModelConfig  # noqa: E402
 from ._contact import ContactSolution as ContactSolution  # noqa: E402
 from ._contact import solve_contact as solve_contact  # noqa: E402
 from ._contact import stiffness_per_area as stiffness_per_area  # noqa: E402
-from ._diagnose_cli import write_outputs as write_diagnosis  # noqa: E402
 from ._errors import InputError as InputError  # noqa: E402
 from ._errors import WornThroughError as WornThroughError  # noqa: E402
 from ._io import input_files as input_files  # noqa: E402
@@ -51,6 +50,7 @@ from ._wear import WearResult as WearResult  # noqa: E402
 from ._wear import build_schedule as build_schedule  # noqa: E402
 from ._wear import simulate as simulate  # noqa: E402
 from ._wear import wear_loop as wear_loop  # noqa: E402
+from .cli.diagnose import write_outputs as write_diagnosis  # noqa: E402
 
 # Binds `jaxwear.diagnose` to the function (the package stays importable by name,
 # `from jaxwear.diagnose import Model`).

@@ -32,8 +32,6 @@ import math
 import sys
 from dataclasses import dataclass, field, replace
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import stats
@@ -44,10 +42,10 @@ from ._calibrate import (
     check_noise_determined,
     fit,
     fit_study,
-    parse_fit,
-    with_registration,
+    study_fit_keys,
 )
 from ._errors import InputError
+from ._residual import evaluate, integration_report
 from ._resolution import at_level
 from ._study import Experiment, History, Profile, Study
 
@@ -146,7 +144,7 @@ class PredictResult:
     parameters: dict  # name -> {value, stderr, lower, upper, unit}
     noise_um: float
     noise_given: bool
-    dof: int
+    dof: float  # degrees of freedom of the band's noise scale (inf: σ given, not widened)
     quantile: float
     fit_converged: bool
     fit_message: str
@@ -157,6 +155,7 @@ class PredictResult:
     extra: dict = field(default_factory=dict)
     fit_resolution: dict | None = None  # the fit's spatial resolution and its check
     fit_evaluations: int | None = None  # model evaluations of the fit, checks included
+    noise_source: str = ""  # how the noise level was obtained (`_noise.Noise.describe`)
 
     def to_json(self) -> dict:
         doc = {
@@ -173,8 +172,9 @@ class PredictResult:
                                                      "(parameter uncertainty only)"},
             "parameters": self.parameters,
             "noise_um": _jf(self.noise_um),
-            "noise": "given" if self.noise_given else "estimated from the training residuals",
-            "dof": self.dof,
+            "noise": self.noise_source or ("given" if self.noise_given
+                                           else "estimated from the training residuals"),
+            "dof": _jf(self.dof),
             "quantile": _jf(self.quantile),
             "fit": {"converged": self.fit_converged, "message": self.fit_message,
                     "resolution": self.fit_resolution,
@@ -297,37 +297,13 @@ def forecast_study(study: Study, points: list[np.ndarray]) -> Study:
     return study.with_experiments(exps)
 
 
-@eqx.filter_jit
-def _forecast_jit(problem, u):
-    """Snapshots (E, S, N) [µm] and their exact Jacobian (E, S, N, p) w.r.t. u."""
-    def f(v):
-        snaps, res = problem.snapshots(v)
-        return snaps, (snaps, jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
-
-    J, (snaps, err, steps) = jax.jacfwd(f, has_aux=True)(u)
-    return snaps, J, err, steps
-
-
 def forecast_snapshots(problem, u):
-    """`_forecast_jit` as numpy, and the integration report of the forecast. The adaptive
-    loop's static attempt count is an estimate: where it fell short (error inf: a truncated
-    history), it is doubled and the forecast rerun rather than returned."""
-    import dataclasses
-
-    for _ in range(4):
-        snaps, J, err, steps = (np.asarray(x) for x in _forecast_jit(problem, u))
-        sched = problem.schedule
-        if not (sched.adaptive and not np.isfinite(float(err))):
-            break
-        problem = dataclasses.replace(
-            problem, schedule=sched.more_attempts())
-    sched = problem.schedule
-    tol = float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
-    e = float(err) if sched.adaptive else None
-    integ = {"integrator": "adaptive" if sched.adaptive else "paper",
-             "error_estimate_um": e if e is None or math.isfinite(e) else "inf",
-             "steps": int(steps), "tolerance_um": tol}
-    return snaps, J, integ
+    """Snapshots (E, S, N) [µm], their exact Jacobian (E, S, N, p) w.r.t. u and the
+    integration report of the forecast: one evaluation of the residual model over the
+    forecast points (`_residual.evaluate`, whose attempt count is doubled where a history
+    was truncated rather than returned)."""
+    ev, used = evaluate(problem, u, doublings=4)
+    return ev.snaps, ev.J_snaps, integration_report(used, ev)
 
 
 def forecast_problem(study: Study, result: FitResult, keys, points):
@@ -398,24 +374,6 @@ def t_quantile(level: float, dof: float) -> float:
     """Two-sided central quantile: Student-t with `dof` (normal when dof is inf)."""
     p = 0.5 + level / 2
     return float(stats.norm.ppf(p) if not math.isfinite(dof) else stats.t.ppf(p, dof))
-
-
-def parameter_covariance(result: FitResult, noise_um: float):
-    """Covariance of u at the fit (p, p) with the data rows weighted by 1/noise² and the
-    clearance prior's rows in units of τ; and the mask of unidentified parameters.
-
-    Directions the data and prior do not determine (null space of the information) are left
-    out (pseudo-inverse); they are flagged, and a forecast that depends on them is
-    reported with an infinite band."""
-    prob = result.problem
-    n = prob.n_data
-    Jd = np.asarray(result.jacobian)[:n] / noise_um
-    Jp = np.asarray(jax.jacfwd(lambda v: prob.prior_residuals(v, 1.0))(jnp.asarray(result.u)))
-    H = Jd.T @ Jd + (Jp.T @ Jp if Jp.size else 0.0)
-    w, V = np.linalg.eigh(H)
-    null = w <= 1e-10 * max(float(np.max(w)), 1e-300)
-    inv = np.where(null, 0.0, 1.0 / np.where(null, 1.0, w))
-    return (V * inv) @ V.T, V[:, null]
 
 
 def _band(g, cov, null_dirs, noise, q):
@@ -532,8 +490,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     at, limit_um = _check_args(study, at, train_until, level, limit_um, method, noise_um)
     unit = unit_of_study(study)
     train = training_study(study, train_until)
-    keys = with_registration(study, parse_fit(
-        study, fit_spec or (list(study.fit) if study.fit else "K_d,clearance")))
+    keys = study_fit_keys(study, fit_spec)
     if noise_um is None:
         noise_um = study.noise_um
     problem = build_problem(train, keys)
@@ -570,14 +527,13 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))))
         result = fit(problem, noise_um=noise_um, verbose=verbose, se_tol=FORECAST_SE_TOL)
         result.resolution = resolution
-    n, p = problem.n_data, len(problem.names)
-    dof = n - p
+    p = problem.packing.size
     flags += result.flags  # a fit that did not converge says so there
-    if noise_um is None:
-        noise, q = result.noise_um, t_quantile(level, dof)
-    else:
-        noise, q = float(noise_um), t_quantile(level, math.inf)
-    cov, null_dirs = parameter_covariance(result, noise)
+    # the errors the data support (`_noise`, `lsq.error_scale`): the noise level, or the
+    # training misfit where it is larger, with its degrees of freedom (inf: σ given)
+    noise, dof = result.error_scale_um, result.error_dof
+    q = t_quantile(level, dof)
+    cov, null_dirs = result.covariance.cov, result.covariance.null_directions
     if null_dirs.shape[1]:
         flags.append(f"{null_dirs.shape[1]} parameter direction(s) not determined by the "
                      f"training data and prior: forecasts that depend on them have no band")
@@ -585,7 +541,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
 
     def assemble(points, flags, snaps, J, draws, extra):
         return _assemble(study, train, at, points, limit_um, level, method, unit, train_until,
-                         result, cov, null_dirs, noise, noise_um is not None, dof, q,
+                         result, cov, null_dirs, noise, result.noise_given, dof, q,
                          list(flags), snaps, J, draws, extra, life)
 
     draws = extra = forecast_draws = None  # NUTS: posterior draws' forecasts, sampler's JSON
@@ -660,9 +616,9 @@ def _param_table(result: FitResult, cov, q, null_dirs):
     vals = np.asarray(result.values)
     # a parameter with a component along an undetermined direction has no standard error
     unknown = np.sum(null_dirs ** 2, axis=1) > 1e-6
-    G = prob.value_jacobian(result.u)  # diagonal but for product pairs (EffectParameter.per)
+    G = prob.packing.value_jacobian(result.u)  # diagonal but for product pairs
     out = {}
-    for i, (name, f) in enumerate(zip(result.names, prob.fits)):
+    for i, (name, f) in enumerate(zip(result.names, prob.columns)):
         touches = np.any((np.abs(G[i]) > 0) & unknown)
         se_u = math.inf if unknown[i] else math.sqrt(max(cov[i, i], 0.0))
         if f.log:
@@ -756,9 +712,10 @@ def _assemble(study, train, at, points, limit_um, level, method, unit, train_unt
                          train_until=None if train_until is None else float(train_until),
                          trained_on=trained_on, predictions=preds, life=lives,
                          parameters=_param_table(result, cov, q, null_dirs), noise_um=float(noise),
-                         noise_given=noise_given, dof=int(dof), quantile=float(q),
+                         noise_given=noise_given, dof=float(dof), quantile=float(q),
                          fit_converged=bool(result.converged), fit_message=result.message,
                          fit_resolution=result.resolution,
                          fit_evaluations=int(result.iterations),
+                         noise_source=(result.noise.describe() if result.noise else ""),
                          flags=flags, curves=curves, profiles=profiles, measured=measured,
                          extra=extra)

@@ -48,7 +48,6 @@ import numpy as np
 
 from ._errors import InputError
 from ._predict import fill_past_stop
-from .effects import effect_parameter_specs, product_pairs
 
 LEAPFROG_GUESS = 10  # mean leapfrog steps per NUTS step (measured ~6 on the rig test, dense mass)
 
@@ -67,31 +66,8 @@ def _arviz():
 
 
 def log_prior(problem, u):
-    """Log prior density of u (up to a constant), per the module docstring."""
-    specs = effect_parameter_specs()
-    vals = problem.values(u)
-    lp = 0.0
-    for i, f in enumerate(problem.fits):
-        if f.key == "clearance_mm":
-            tol_mm = problem.tolerance_um / 1e3
-            c0 = problem.nominal_clearance_mm[f.experiment]
-            gauss = jnp.where(jnp.isfinite(tol_mm), -0.5 * ((vals[i] - c0) / tol_mm) ** 2, 0.0)
-            lp = lp + gauss + u[i]  # + log |dc/du| (c = start·e^u)
-        elif f.key in specs:
-            s = specs[f.key]
-            lo, hi = s.lower, s.upper
-            # uniform (or log-uniform) between the bounds: -inf outside
-            inside = (vals[i] >= lo) & (vals[i] <= hi)
-            lp = lp + jnp.where(inside, 0.0, -jnp.inf)
-        elif f.log:
-            lp = lp - 0.5 * (u[i] / math.log(100.0)) ** 2
-        else:
-            lp = lp - 0.5 * (u[i] / 10.0) ** 2
-    # a strength fitted as a product with its `per` parameter (value = linear·e^(-u_j)):
-    # uniform in the value means + log |d value / d u_i| = -u_j in u
-    for i, j in product_pairs([f.key for f in problem.fits]):
-        lp = lp - u[j]
-    return lp
+    """Log prior density of u (up to a constant): the packing's (`Packing.log_prior`)."""
+    return problem.packing.log_prior(u)
 
 
 class Whitening(eqx.Module):
@@ -200,7 +176,7 @@ def sampling_setup(problem, result, noise_um=None, cov=None):
     # values, so first raise it to what the fitted values need (K_d moves by orders), then
     # leave 4x headroom for the posterior's tails (larger K_d: more steps on a stiff layer).
     # Unused attempts cost nothing; a draw that still runs out gets log density -inf.
-    from ._calibrate import _enough_attempts
+    from ._residual import enough_attempts as _enough_attempts
 
     p = len(problem.names)
     problem = _more_attempts(_enough_attempts(problem, np.asarray(result.u)), 4)
@@ -354,7 +330,7 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     mean_steps = float(np.mean(np.asarray(extra["num_steps"])))
     # posterior predictive at evenly thinned draws
     # the forecast problem's u = 0 is the LM fit: map each draw by its parameter values
-    flat_u = np.array([fprob.u_of(v) for v in vals.reshape(-1, p)]).reshape(-1, p)
+    flat_u = np.array([fprob.packing.u_of(v) for v in vals.reshape(-1, p)]).reshape(-1, p)
     flat_s = noise.reshape(-1)
     idx = np.linspace(0, len(flat_u) - 1, n_pred).round().astype(int)
     _log(verbose, f"predict/nuts: sampled in {t_run:.0f} s ({n_div} divergences, "

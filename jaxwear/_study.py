@@ -19,6 +19,7 @@ import numpy as np
 
 from ._config import DutyBlock, ModelConfig
 from ._errors import InputError
+from ._noise import profile_noise
 from ._params import DERIVED_KEYS, PARAMETER_KEYS, PRESETS, Params, preset
 from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
 
@@ -240,26 +241,6 @@ def _header(path: Path) -> list[str]:
     return []
 
 
-def robust_noise(angle: np.ndarray, depth: np.ndarray, revolutions: np.ndarray) -> float:
-    """Noise level of profile rows [depth's unit], robust to the scar and to outliers.
-
-    Within each scan (rows of one revolution count, in angle order) each depth minus the
-    mean of its two neighbours (periodic) cancels a smooth profile and has variance 1.5 σ²
-    for white noise; σ = 1.4826 MAD / √1.5. NaN with fewer than 5 usable points."""
-    e = []
-    revs = np.where(np.isnan(revolutions), -1.0, revolutions)
-    for r in np.unique(revs):
-        m = revs == r
-        order = np.argsort(angle[m])
-        y = depth[m][order]
-        if len(y) >= 3:
-            e.append(y - 0.5 * (np.roll(y, 1) + np.roll(y, -1)))
-    e = np.concatenate(e) if e else np.zeros(0)
-    if len(e) < 5:
-        return math.nan
-    return float(1.4826 * np.median(np.abs(e - np.median(e))) / math.sqrt(1.5))
-
-
 def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
     """A profile file (DESIGN §6, docs/measurements.md), one of:
 
@@ -268,7 +249,7 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
       radius, before and after the test, at the same angles; depth = after - before.
 
     Depths may be negative: a scan is noise around zero outside the wear scar. A depth
-    below -5 noise levels (noise estimated robustly from the rows, `robust_noise`) gets a
+    below -5 noise levels (noise estimated robustly from the rows, `_noise.profile_noise`) gets a
     one-line warning on stderr. The scan's angle plus `angle_offset_deg` is the
     bushing-frame angle."""
     header = _header(path)
@@ -298,7 +279,7 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
     _check_angles_in_degrees(path, a[:, 0])
     if not raw_scans:
         _check_not_tiny(path, depth, used[1])
-    sigma = robust_noise(a[:, 0], depth, revs)
+    sigma = profile_noise(a[:, 0], depth, revs)
     if math.isfinite(sigma) and sigma > 0:
         low = depth < -NOISE_WARN_LEVELS * sigma
         if low.any():

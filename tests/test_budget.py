@@ -87,7 +87,7 @@ def test_upper_bound_of_the_real_duty_cycle_schedule(tmp_path, M, hours):
 
 @pytest.fixture
 def forbid_work(monkeypatch):
-    import jaxwear._calibrate_cli as cal
+    import jaxwear.cli.calibrate as cal
     dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
     import jaxwear._sensitivity as sen
     import jaxwear._simulate_study as sim

@@ -39,33 +39,37 @@ def test_model_is_immutable_and_variants_are_new_models():
     st = _study()
     m = Model(st)
     with pytest.raises(AttributeError):
-        m.noise_weight = 2.0
+        m.keys = ["K_d_per_Pa"]
     assert "__dict__" not in type(m).with_contact.__code__.co_names
-    w = m.with_noise_weight(0.25)
-    assert w is not m and w.noise_weight == 0.25 and m.noise_weight == 1.0
-    assert w.columns == m.columns and w.ext.cfg == m.ext.cfg  # same compiled function
     s = m.with_contact("symmetric")
+    assert s is not m and s.columns == m.columns
     assert s.ext.cfg.contact == "symmetric" and m.ext.cfg.contact == "unsymmetric"
-    assert s.noise_weight == m.noise_weight
 
 
-def test_model_rows_come_from_the_calibration_problem():
+def test_model_is_the_calibration_problem_with_candidate_columns():
+    """Diagnose's model is calibrate's residual model (one packing) with the candidates'
+    columns appended: the same rows, the same base columns, starts and prior rows."""
     st = _study()
     prob = build_problem(st, parse_fit(st, "K_d,clearance"))
-    m = Model(st, prob)
-    rows = prob.measured_rows()
-    np.testing.assert_array_equal(m.measured, rows["depth_um"])
+    m = Model(st)
+    np.testing.assert_array_equal(m.measured, prob.measured)
     assert m.n == prob.n_data == 5 * 36
     # the row order is each experiment's profile in file order, depths in µm
     e0 = st.experiments[0].profile
     np.testing.assert_allclose(m.measured[:36], e0.depth * 1e6)
     np.testing.assert_allclose(m.row_x[:36], np.degrees(e0.angle))
     assert m.exp_names == [e.name for e in st.experiments]
-    np.testing.assert_allclose(prob.nominal_clearances_mm(), [0.05, 0.05, 0.05, 0.10, 0.15])
-    fitted = prob.fitted()
-    assert [f.name for f, _ in fitted] == m.names[:len(fitted)]
-    assert math.isclose(fitted[0][1], 1e-13)  # K_d starts at the study's value
-    # prior rows: (c - c_nom)/τ · weight, zero at the nominal clearances
-    r_prior, _ = m.with_noise_weight(0.3)._prior_rows(np.zeros(len(m.names)))
-    np.testing.assert_allclose(r_prior, 0.0, atol=1e-12)
+    k = prob.packing.size
+    assert m.packing.columns[:k] == prob.packing.columns
+    np.testing.assert_allclose(np.asarray(m.packing.start)[:k], np.asarray(prob.packing.start))
+    assert math.isclose(float(prob.packing.start[0]), 1e-13)  # K_d starts at the study's
+    centres = [c.prior_centre for c in prob.columns if c.has_prior]
+    np.testing.assert_allclose(centres, [0.05, 0.05, 0.05, 0.10, 0.15])
+    assert all(c.group for c in m.packing.columns[k:])  # candidates only after the base
+    # prior rows (c - c_nom)/τ in SD units: zero at the nominal clearances, 1 at +τ
+    u = np.zeros(m.packing.size)
+    np.testing.assert_allclose(m.packing.prior_rows(u)[0], 0.0, atol=1e-12)
+    i = m.index["clearance_mm/" + st.experiments[0].name]
+    u[i] = math.log((0.05 + st.clearance_tolerance_um * 1e-3) / 0.05)
+    assert m.packing.prior_rows(u)[0][0] == pytest.approx(1.0, rel=1e-12)
     assert jw.diagnose.__module__ == "jaxwear.diagnose._verdict"

@@ -49,7 +49,7 @@ def _no_work(*a, **k):
 
 @pytest.fixture
 def forbid_work(monkeypatch):
-    import jaxwear._calibrate_cli as cal
+    import jaxwear.cli.calibrate as cal
     dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
     import jaxwear._sensitivity as sen
     import jaxwear._simulate_study as sim

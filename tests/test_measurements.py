@@ -82,7 +82,8 @@ def test_diagnose_honours_the_registration():
 def test_angle_offset_jacobian_matches_finite_differences():
     """d(residual)/d(offset) of the differentiable periodic interpolation, against a
     central difference of the residuals themselves."""
-    from jaxwear._calibrate import build_problem, evaluate, parse_fit
+    from jaxwear._calibrate import build_problem, parse_fit
+    from jaxwear._residual import evaluate
 
     res = synthesize([], "paper", noise_um=NOISE, seed=5, numerics=SMALL, angle_offset_deg=1.3)
     st = replace(res.study, angle_tolerance_deg=5.0)
@@ -90,13 +91,15 @@ def test_angle_offset_jacobian_matches_finite_differences():
     i = pb.names.index(f"angle_offset_deg/{st.experiments[0].name}")
     u = np.zeros(len(pb.names))
     u[i] = 0.37  # degrees; off the nodes, so the interpolation is locally linear
-    ev = evaluate(pb, u)
+    ev = evaluate(pb, u)[0]
     h = 1e-4
     up, um = u.copy(), u.copy()
     up[i] += h
     um[i] -= h
-    fd = (evaluate(pb, up).residuals - evaluate(pb, um).residuals) / (2 * h)
-    np.testing.assert_allclose(ev.jacobian[:, i], fd, rtol=1e-5, atol=1e-7)
+    fd = np.concatenate([evaluate(pb, up)[0].r - evaluate(pb, um)[0].r,
+                         evaluate(pb, up)[0].r_prior - evaluate(pb, um)[0].r_prior]) / (2 * h)
+    J = np.vstack([ev.J, ev.J_prior])
+    np.testing.assert_allclose(J[:, i], fd, rtol=1e-5, atol=1e-7)
     rows = np.asarray(pb.data.exp) == 0
     assert np.any(np.abs(fd[: pb.n_data][rows]) > 0.1)  # the scar's flanks move with it
     assert np.all(fd[: pb.n_data][~rows] == 0)  # other experiments do not

@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._predict import _forecast_jit, parameter_covariance, t_quantile
+from jaxwear._predict import forecast_snapshots, t_quantile
+from jaxwear._residual import forward
 from jaxwear._study import load_study
 from jaxwear.cli import main
 
@@ -140,8 +141,8 @@ def test_propagated_variance_matches_finite_differences(study_path):
     pts = [forecast_points(study, e, list(AT), n_dense=4) for e in study.experiments]
     fprob = forecast_problem(study, res, keys, pts)
     p = len(res.names)
-    snaps, J = (np.asarray(x) for x in _forecast_jit(fprob, jnp.zeros(p))[:2])
-    cov, null = parameter_covariance(res, res.noise_um)
+    snaps, J, _ = forecast_snapshots(fprob, np.zeros(p))
+    cov, null = res.covariance.cov, res.covariance.null_directions
     assert null.shape[1] == 0
     for ei in range(len(EXPERIMENTS)):
         s = int(np.searchsorted(pts[ei], 4000.0))
@@ -154,8 +155,8 @@ def test_propagated_variance_matches_finite_differences(study_path):
             h = 1e-4
             up, dn = np.zeros(p), np.zeros(p)
             up[i], dn[i] = h, -h
-            fu = np.asarray(_forecast_jit(fprob, jnp.asarray(up))[0])[ei, s, k]
-            fd = np.asarray(_forecast_jit(fprob, jnp.asarray(dn))[0])[ei, s, k]
+            fu = forward(fprob, up)[1][ei, s, k]
+            fd = forward(fprob, dn)[1][ei, s, k]
             g_fd[i] = (fu - fd) / (2 * h)
         np.testing.assert_allclose(g_ad, g_fd, rtol=1e-4, atol=1e-6 * np.max(np.abs(g_fd)))
         assert g_ad @ cov @ g_ad == pytest.approx(g_fd @ cov @ g_fd, rel=1e-4)
@@ -284,7 +285,7 @@ def test_nuts_log_density_is_the_gaussian_posterior(study_path):
     import jax
 
     from jaxwear._calibrate import build_problem, fit, parse_fit
-    from jaxwear._predict import parameter_covariance, training_study
+    from jaxwear._predict import training_study
     from jaxwear._predict_nuts import initial_position, log_density, whitening
 
     train = training_study(load_study(study_path), 2000.0)
@@ -309,7 +310,7 @@ def test_nuts_log_density_is_the_gaussian_posterior(study_path):
     # The sampled coordinates: u = û + (σ/σ̂) L v is a change of variables, so the density
     # in (v, ln σ) is the density in (u, ln σ) times |du/dv| = (σ/σ̂)^p |L| (the constant
     # |L| dropped): differences between two positions must agree with that Jacobian.
-    cov, _ = parameter_covariance(result, result.noise_um)
+    cov = result.covariance.cov
     white = whitening(result, cov)
     assert float(white.L[0, 0]) == pytest.approx(math.sqrt(cov[0, 0]))
     logv = jax.jit(log_density(problem, white=white))

@@ -24,8 +24,8 @@ def main(argv=None):
     ap.add_argument("--out", default="out/boom-diagnose")
     args = ap.parse_args(argv)
 
-    from jaxwear._diagnose_cli import write_outputs
     from jaxwear._study import load_study
+    from jaxwear.cli.diagnose import write_outputs
     from jaxwear.diagnose import diagnose
 
     study = load_study(HERE / "study.toml")

@@ -92,6 +92,6 @@ class Verb:
 
 def fit_columns(study, keys) -> int:
     """Jacobian columns of fitting `keys` (one clearance per experiment, ...)."""
-    from .._calibrate import fit_parameters
+    from .._packing import study_columns
 
-    return len(fit_parameters(study, keys))
+    return len(study_columns(study, keys, [study.params(e) for e in study.experiments]))

@@ -22,9 +22,8 @@ from .._calibrate import (
     FitResult,
     build_problem,
     fit_study,
-    parse_fit,
+    study_fit_keys,
     unit_of,
-    with_registration,
 )
 from .._errors import InputError
 from .._resolution import at_level
@@ -203,7 +202,7 @@ class Calibrate(Verb):
     def resolve(self, study, opts):
         # the parameters really fitted (`--fit` when given): their names are checked now and
         # their Jacobian columns enter the memory estimate
-        opts["keys"] = with_registration(study, parse_fit(study, fit_spec(opts["args"], study)))
+        opts["keys"] = study_fit_keys(study, fit_spec(opts["args"], study))
 
     def outputs(self, study, opts):
         return calibrate_outputs(study)

@@ -95,13 +95,13 @@ class Diagnose(Verb):
         return list(DIAGNOSE_OUTPUTS + shape_outputs())
 
     def tangents(self, study, opts):
-        from .._calibrate import parse_fit, with_registration
+        from .._packing import study_fit_keys
         from ..effects import effect_parameter_specs
 
         # the base fit's columns, and every candidate's strengths: one extended model
         # carries them all (effects switched by masks)
         try:
-            keys = with_registration(study, parse_fit(study, list(study.fit) or None))
+            keys = study_fit_keys(study)
         except InputError as e:  # the names come from the study here, not from --fit
             raise InputError(f"{study.path}: fit.parameters: "
                              f"{str(e).removeprefix('--fit: ')}") from None

@@ -240,10 +240,9 @@ class Predict(Verb):
         return {"kw": opts, "nuts": nuts, "method": args.method, "fit": args.fit}
 
     def resolve(self, study, opts):
-        from .._calibrate import parse_fit, with_registration
+        from .._packing import study_fit_keys
 
-        spec = opts["fit"] or (list(study.fit) if study.fit else "K_d,clearance")
-        opts["keys"] = with_registration(study, parse_fit(study, spec))
+        opts["keys"] = study_fit_keys(study, opts["fit"])
 
     def outputs(self, study, opts):
         return predict_outputs(study, opts["method"])

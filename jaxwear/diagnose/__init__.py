@@ -57,9 +57,9 @@ from ._evidence import (
     rmse_per_experiment,
     where_it_fails,
 )
-from ._extended import Column, Eval, Extended, candidate_names
-from ._fit import Fit, finish, fit_masked
-from ._model import Model
+from ._extended import Column, candidate_names
+from ._fit import Fit, fit_masked
+from ._model import Eval, Model, objective
 from ._result import METHOD_NOTE, Candidate, Diagnosis
 from ._screen import SHAPE_GRID, Screen, screen
 from ._shape import ShapeResult, VariableShape, shape_analysis, threshold
@@ -83,10 +83,11 @@ from ._verdict import diagnose
 
 __all__ = [
     "ALPHA", "AMBIGUOUS_LOG_BF", "METHOD_NOTE", "SHAPE_GRID", "STRONG_LOG_BF", "Candidate",
-    "Column", "Diagnosis", "Eval", "Extended", "Fit", "Model", "Screen", "Tests",
+    "Column", "Diagnosis", "Eval", "Fit", "Model", "Screen", "Tests",
     "candidate_names", "chi2_sf", "derived", "diagnose", "evidence", "evidence_from", "f_sf",
-    "finish", "fit_masked", "lag1_autocorrelation", "line_residuals", "loo",
+    "fit_masked", "lag1_autocorrelation", "line_residuals", "loo",
     "measurement_series", "neighbour_differences", "neighbour_pairs", "noise_level", "norm_sf",
-    "rmse_per_experiment", "run_tests", "screen", "summarize_verdict", "where_it_fails",
+    "objective", "rmse_per_experiment", "run_tests", "screen", "summarize_verdict",
+    "where_it_fails",
     "ShapeResult", "VariableShape", "shape_analysis", "shape_figure", "threshold",
 ]

@@ -6,8 +6,9 @@ import math
 
 import numpy as np
 
-from ._fit import Fit, _objective, _system
-from ._model import Model
+from .. import lsq
+from ._fit import Fit, whitened_system
+from ._model import Model, objective
 
 EXPLAINED_FOR_SECOND_STAGE = 0.5  # a first effect must remove this much misfit to look on
 AMBIGUOUS_LOG_BF = math.log(20.0)  # evidence gap below which two candidates are a tie
@@ -24,28 +25,29 @@ def evidence_from(n: int, q_base: float, q_fit: float, dk: int) -> float:
     return 0.5 * (n * math.log(q_base / q_fit) - dk * math.log(n))
 
 
-def evidence(model: Model, fit: Fit, base: Fit, noise_um: float = 0.0) -> float:
-    """ln Bayes factor of `fit` against `base` (see `evidence_from`)."""
-    return evidence_from(model.n, _objective(base.ev), _objective(fit.ev), fit.k - base.k)
+def evidence(model: Model, fit: Fit, base: Fit, noise_um: float) -> float:
+    """ln Bayes factor of `fit` against `base` (see `evidence_from`); `noise_um` weighs the
+    prior rows into the objective (`objective`)."""
+    return evidence_from(model.n, objective(base.ev, noise_um), objective(fit.ev, noise_um),
+                         fit.k - base.k)
 
 
-def loo(model: Model, fit: Fit) -> dict:
+def loo(model: Model, fit: Fit, noise_um: float) -> dict:
     """Leave-one-experiment-out prediction RMSE [µm] per experiment: the fit without the
-    experiment's rows (one Gauss-Newton step from the full fit; the experiment's own
-    clearance then returns to its prior, the nominal value), predicting those rows."""
-    J, r = _system(fit.ev, fit.mask)
-    n = model.n
+    experiment's rows (one Gauss-Newton step from the full fit, on the whitened system as
+    the core sees it: the experiment's own clearance then returns to its prior, the
+    nominal value), predicting those rows."""
+    rw, Jw = whitened_system(fit.ev, fit.mask, noise_um)
     out = {}
     for ei, name in enumerate(model.exp_names):
         rows = np.flatnonzero(model.row_exp == ei)
         if len(rows) == 0:
             continue
-        keep = np.ones(len(r), bool)
+        keep = np.ones(len(rw), bool)
         keep[rows] = False
-        step = np.linalg.lstsq(J[keep], -r[keep], rcond=None)[0]
-        pred = r[rows] + J[rows] @ step
+        step = lsq.gauss_newton(rw[keep], Jw[keep])[0]
+        pred = noise_um * (rw[rows] + Jw[rows] @ step)
         out[name] = float(np.sqrt(np.mean(pred ** 2)))
-    del n
     return out if len(out) > 1 else {}  # one experiment: nothing to leave out
 
 

@@ -5,34 +5,49 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from .. import lsq
-from ..effects import project_products
-from ._extended import Eval
-from ._model import Model
+from .._calibrate import value_errors
+from ._model import Eval, Model
 
 
 @dataclass(frozen=True)
 class Fit:
-    """A fit of the extended model with the columns in `mask` free (the rest fixed)."""
+    """A fit of the extended model with the columns in `mask` free (the rest fixed).
+
+    `status`: the core's (converged, stalled, budget, unusable, undetermined), or
+    "unstable" (the wear loop's derivatives were unstable at the fit); `converged` is
+    `status == "converged"`. `cov`: the core's covariance of the free u at the error scale
+    the data support; `values`, `stderr`: all columns (stderr inf where the data do not
+    determine the parameter, nan for held columns)."""
 
     label: str  # "base", a candidate name, or "a+b"
     groups: tuple  # candidates switched on
     mask: np.ndarray
     ev: Eval
-    converged: bool
     evaluations: int
     message: str
-    cov_u: np.ndarray | None = None  # (free, free), noise-scaled
+    cov: lsq.Covariance | None = None
     values: np.ndarray | None = None
-    stderr: np.ndarray | None = None  # inf where the data do not determine the parameter
+    stderr: np.ndarray | None = None
     contact: str | None = None
-    unstable: bool = False  # the wear loop's derivatives were unstable at the fit
-    status: str = "converged"  # the core's: converged, stalled, budget, unusable
+    status: str = "converged"
     undetermined: tuple = ()  # names of parameters the data leave undetermined
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    @property
+    def unstable(self) -> bool:
+        return self.status == "unstable"
+
+    @property
+    def cov_u(self) -> np.ndarray | None:
+        return None if self.cov is None else self.cov.cov
 
     @property
     def rss(self) -> float:
@@ -66,14 +81,10 @@ class Fit:
 REFIT_SE_TOL = 0.1
 
 
-def _objective(ev: Eval) -> float:
-    return float(ev.r @ ev.r + ev.r_prior @ ev.r_prior)
-
-
-def _system(ev: Eval, mask):
-    J = np.vstack([ev.J[:, mask], ev.J_prior[:, mask]])
-    r = np.concatenate([ev.r, ev.r_prior])
-    return J, r
+def whitened_system(ev: Eval, mask, noise_um: float):
+    """(rw, Jw) of the free columns: data rows / σ, prior rows in SD units (as the core
+    sees them)."""
+    return lsq.whitened(ev.point(), noise_um, np.asarray(mask, bool))
 
 
 def _log(verbose, msg):
@@ -81,75 +92,44 @@ def _log(verbose, msg):
         print(msg, file=sys.stderr, flush=True)
 
 
-def _point(ev: Eval, noise_um: float, adaptive: bool) -> lsq.Point:
-    """The core's view of an evaluation. The core weights data rows by 1/σ and takes prior
-    rows as they are; diagnose's objective is Q = Σr² + Σr_prior² (prior rows in µm), so
-    the prior rows are divided by σ too: the core then minimises Q/σ², the same fit. The
-    integrator's error sets the core's floor only where its steps adapt (as calibrate's)."""
-    return lsq.Point(u=ev.u, r=ev.r, predicted=ev.pred, J=ev.J, r_prior=ev.r_prior / noise_um,
-                     J_prior=ev.J_prior / noise_um, usable=ev.usable,
-                     error_um=(float(ev.error_um) if adaptive and math.isfinite(ev.error_um)
-                               else 0.0),
-                     extra=ev)
-
-
-def fit_masked(model: Model, mask, u0, *, noise_um: float, label="base", groups=(),
-               ev0: Eval | None = None, max_evaluations: int = 20, verbose=False) -> Fit:
+def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = math.inf,
+               label="base", groups=(), ev0: Eval | None = None, max_evaluations: int = 20,
+               verbose=False) -> Fit:
     """The free columns `mask` fitted by `lsq.solve` (bounds by projection), from u0, with
-    the data's noise level `noise_um` [µm] (diagnose's estimate from neighbour differences,
-    held fixed: the candidates are compared at one noise level); a start where the model
-    wears through first lowers K_d (`lsq.robust_start`, step 1)."""
+    the data's noise level `noise_um` [µm] and its degrees of freedom (held fixed: the
+    candidates are compared at one noise level); a start where the model wears through
+    first lowers K_d (`lsq.robust_start`, step 1)."""
     mask = np.asarray(mask, bool)
     lo, hi = model.bounds_u()
     u = np.clip(np.array(u0, np.float64), lo, hi)
-
     sigma = max(float(noise_um), 1e-9)
 
     def evaluate(v):
-        return _point(model.evaluate(v), sigma, model.ext.schedule.adaptive)
+        return model.evaluate(v).point()
 
     log = (lambda m: _log(True, m)) if verbose else None
     if ev0 is not None and ev0.usable:
-        pt0, evals = _point(ev0, sigma, model.ext.schedule.adaptive), 0
+        pt0, evals = ev0.point(), 0
     else:
         kd = model.index.get("K_d_per_Pa")
         u, pt0, evals, why = lsq.robust_start(evaluate, u, kd if kd is not None and mask[kd]
                                               else None, measured=model.measured,
                                               log=log, rescales=0)
         if why:
-            return Fit(label, tuple(groups), mask, pt0.extra, False, evals, why,
-                       status="unusable")
-    cols = model.columns
+            return Fit(label, tuple(groups), mask, pt0.extra, evals, why, status="unusable")
     out = lsq.solve(evaluate, u, point0=pt0, free=mask, lower=lo, upper=hi,
-                    noise_um=sigma, max_evaluations=max_evaluations, se_tol=REFIT_SE_TOL,
-                    project=lambda v: project_products([c.key for c in cols],
-                                                      np.asarray(model.ext.start),
-                                                      [c.scale for c in cols], v),
-                    label=f"  {label}", log=log)
-    names = [model.names[i] for i, bad in zip(np.flatnonzero(mask), out.cov.undetermined)
-             if bad]
-    return Fit(label, tuple(groups), mask, out.point.extra, out.converged,
-               evals + out.evaluations, out.message, status=out.status,
-               undetermined=tuple(names))
+                    noise_um=sigma, noise_dof=noise_dof, max_evaluations=max_evaluations,
+                    se_tol=REFIT_SE_TOL, project=model.packing.project, label=f"  {label}",
+                    log=log)
+    return fit_of(model, mask, out, label, groups, evals + out.evaluations)
 
 
-def finish(model: Model, fit: Fit, noise_um: float) -> Fit:
-    """Standard errors of the free parameters: the core's covariance with the residuals in
-    units of max(noise, rms misfit), so an inadequate model does not get falsely small
-    errors; parameters the data leave undetermined get an infinite standard error."""
-    J, _ = _system(fit.ev, fit.mask)
-    n, k = model.n, fit.k
-    s = math.sqrt(max(noise_um ** 2, float(fit.ev.r @ fit.ev.r) / max(n - k, 1)))
-    Jw = J.copy()
-    Jw[:n] /= s
-    Jw[n:] /= max(model.noise_weight, 1e-12)  # prior rows are (c - c_nom)/τ · weight
-    c = lsq.covariance(Jw)
-    vals = model.values(fit.ev.u)
-    idx = np.flatnonzero(fit.mask)
-    # delta method through the parameterisation (diagonal but for product pairs)
-    G = model.value_jacobian(fit.ev.u)[np.ix_(idx, idx)]
-    bad = np.any((np.abs(G) > 0) & c.undetermined[None, :], axis=1)
-    se = np.full(len(vals), np.nan)
-    se[idx] = np.where(bad, np.inf, np.sqrt(np.clip(np.diag(G @ c.cov @ G.T), 0, None)))
-    names = tuple(model.names[i] for i, b in zip(idx, bad) if b)
-    return replace(fit, cov_u=c.cov, values=vals, stderr=se, undetermined=names)
+def fit_of(model: Model, mask, out: lsq.Outcome, label, groups, evaluations) -> Fit:
+    """A `Fit` from the core's outcome: values and standard errors through the packing
+    (`_calibrate.value_errors`, the same delta method as calibrate's)."""
+    u = out.u
+    se, _, und = value_errors(model.packing, u, out.errors, free=mask)
+    names = tuple(n for n, b in zip(model.names, und) if b)
+    return Fit(label, tuple(groups), np.asarray(mask, bool), out.point.extra, evaluations,
+               out.message, cov=out.errors, values=model.values(u), stderr=se,
+               status=out.status, undetermined=names)

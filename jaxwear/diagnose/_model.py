@@ -1,37 +1,36 @@
-"""`Model`: a study's data with the extended model (evaluation, bounds, row coordinates)."""
+"""`Model`: a study's residual model with every candidate as a column group (evaluation,
+bounds, row coordinates), for the diagnosis.
+
+It wraps the one residual model of every fit (`_residual.ResidualModel`): the base model is
+the model `calibrate` fits, to the same data, with the same packing (`_packing`), priors in
+units of their standard deviation and bounds; the candidates are columns of their own
+group, switched by masks, so one compiled function serves the base fit, every candidate and
+every pair.
+"""
 
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import replace
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from .._params import key_to_si
+from .._noise import series
+from .._packing import parse_fit
+from .._residual import Evaluation, build_model, evaluate, forward
 from .._study import Study
-from ..effects import STRUCTURAL_CANDIDATES, effect_parameter_specs, product_pairs
-from ._extended import (
-    Column,
-    Eval,
-    Extended,
-    _candidate_parameters,
-    _evaluate_ext,
-    _predict_ext,
-    candidate_names,
-)
+from ._extended import candidate_names
+
+Eval = Evaluation  # diagnose's name for an evaluation of the model
 
 
 class Model:
     """A study's data with the extended model: evaluation, fits and statistics on the host.
 
-    Built from the calibration's `Problem` (data rows, clearance prior, start values,
-    schedules), so its base model is the model `calibrate` fits, to the same data. One
-    difference: the prior rows are weighted with the noise level estimated from the data
-    (`calibrate` uses its first pass's RMSE).
+    - `study`; `keys`: the study keys the base model fits (the study's `[fit]`, else K_d and
+      the clearances; registration offsets are not: `diagnose` fits them with the base
+      model first and holds them, `_calibrate.registered`); `start`: start values by name.
+    - `candidates`: the candidate groups (default: every one the study can be missing);
+      `contact`: another contact model; `shape`: the shape correction's basis.
     """
 
     # process-wide counters of compiled-model evaluations (progress, benchmarks)
@@ -39,99 +38,40 @@ class Model:
     evaluation_s = 0.0  # wall time spent in them [s], compilations included
     first_evaluation_s = 0.0  # the last evaluation that compiled (the first of its shape)
 
-    def __init__(self, study: Study, problem=None, *, candidates=None, contact=None,
-                 noise_weight: float = 1.0, shape=None):
-        from .._calibrate import build_problem, parse_fit
-
+    def __init__(self, study: Study, *, keys=None, start: dict | None = None,
+                 candidates=None, contact=None, shape=None):
         self.study = study
-        if problem is None:
-            # the study's [fit] parameters, as calibrate fits them (registration offsets
-            # are not: `diagnose` fits them with the base model first and holds them,
-            # `_calibrate.registered`)
-            problem = build_problem(study, parse_fit(
-                study, list(study.fit) if study.fit else "K_d,clearance"))
-        self.problem = problem
-        cfg = study.config
-        self.candidates = candidate_names(cfg) if candidates is None else list(candidates)
-        parametric = [c for c in self.candidates if c not in STRUCTURAL_CANDIDATES]
-        cfg_ext = cfg.replace(effects=tuple(cfg.effects) + tuple(parametric))
-        if "double_layer" in self.candidates:
-            cfg_ext = STRUCTURAL_CANDIDATES["double_layer"].configure(cfg_ext)
-        if contact is not None:
-            cfg_ext = cfg_ext.replace(contact=contact)
-        if shape is not None:
-            cfg_ext = cfg_ext.replace(shape=shape)
+        self.keys = list(keys) if keys is not None else parse_fit(
+            study, list(study.fit) if study.fit else "K_d,clearance")
+        self.start = dict(start or {})
+        self.candidates = (candidate_names(study.config) if candidates is None
+                           else list(candidates))
         self.contact = contact
         self.shape = shape
-        self.base_cfg = cfg
-        columns, names, start = [], [], []
-        specs = effect_parameter_specs()
-        for f, s in problem.fitted():
-            if f.key in specs:  # a strength of an effect the study switches on
-                lower, upper = specs[f.key].lower, specs[f.key].upper
-            else:
-                lower, upper = (0.0, math.inf) if f.log else (-math.inf, math.inf)
-            columns.append(Column(f.key, f.experiment, f.log, f.scale, key_to_si(f.key), "",
-                                  lower, upper))
-            names.append(f.name)
-            start.append(float(s))
-        p0, schedule, exp_names = problem.experiments()
-        for cand in self.candidates:
-            if cand == "unsymmetric":
-                continue
-            for key, spec in _candidate_parameters(cand).items():
-                columns.append(Column(key, None, spec.log, spec.scale, spec.to_si, cand,
-                                      spec.lower, spec.upper, strength=not spec.log))
-                names.append(key)
-                if spec.log:
-                    v = float(np.asarray(p0.effect_params[key])[0]) / spec.to_si
-                    start.append(v if v > 0 else spec.default)
-                else:
-                    start.append(spec.off)
-        if shape is not None:
-            # the coefficients of exp(g(z)) (`effects.shape`), 0 = the model as written
-            n_exp = len(exp_names)
-            p0 = eqx.tree_at(lambda p: p.effect_params, p0, {
-                **p0.effect_params, **{k: jnp.zeros(n_exp) for k in shape.keys()}})
-            for key in shape.keys():
-                columns.append(Column(key, None, False, 1.0, 1.0, "shape", -math.inf,
-                                      math.inf))
-                names.append(key)
-                start.append(0.0)
-        self.columns = tuple(columns)
-        self.names = names
-        self.index = {n: i for i, n in enumerate(names)}
-        # Candidate strengths at `off` in the batched parameters as well (a study may set
-        # a value for an effect it does not switch on); the structural strength maps to the
-        # backing thickness, which is zero in the single-layer base model.
-        u0 = np.zeros(len(columns))
-        self.ext = Extended(cfg=cfg_ext, columns=self.columns, params=p0,
-                            schedule=schedule, start=jnp.asarray(start, jnp.float64))
-        self.ext = eqx.tree_at(lambda e: e.params, self.ext, self.ext.batched_params(u0))
-        d = problem.measured_rows()
-        self.row_exp = d["exp"]
-        self.row_snap = d["snap"]
-        self._i0 = d["i0"]
-        self._i1 = d["i1"]
-        self._w = d["w"]
-        self._is_max = d["is_max"]
-        self.measured = d["depth_um"]
+        self.base_cfg = study.config
+        self.ext = build_model(study, self.keys, self.start, candidates=self.candidates,
+                               contact=contact, shape=shape)
+        self.columns = self.ext.columns
+        self.names = list(self.ext.names)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        d = self.ext.data
+        self.row_exp = np.asarray(d.exp)
+        self.row_snap = np.asarray(d.snap)
+        self._is_max = np.asarray(d.is_max)
+        self.measured = self.ext.measured
         self.n = len(self.measured)
-        self.exp_names = list(exp_names)
+        self.exp_names = list(self.ext.exp_names)
         self.tolerance_um = float(study.clearance_tolerance_um)
-        self.nominal_mm = problem.nominal_clearances_mm()
-        self.prior_cols = [i for i, c in enumerate(columns)
-                           if c.key == "clearance_mm" and c.group == ""]
-        if not math.isfinite(self.tolerance_um):
-            self.prior_cols = []
-        self.base_mask = np.array([c.group == "" for c in columns])
-        self.noise_weight = float(noise_weight)  # µm: prior rows are (c - c_nom)/τ times this
-        self._rows_x, self._rows_t = _row_coordinates(study, d, self.row_exp,
-                                                       self.row_snap)
+        self.base_mask = np.array([c.group == "" for c in self.columns])
+        self._rows_x = np.asarray(d.x, float)
+        points = [e.snapshot_points for e in study.experiments]
+        self._rows_t = np.array([points[e][s] for e, s in zip(self.row_exp, self.row_snap)],
+                                float)
+        self.series = series(self.row_exp, self.row_snap, self._is_max, self._rows_x)
         self._frozen = True
 
     def __setattr__(self, name, value):
-        # immutable once built: variants are new models (`with_contact`, `with_noise_weight`)
+        # immutable once built: variants are new models (`with_contact`)
         if getattr(self, "_frozen", False):
             raise AttributeError(f"Model is immutable; cannot set {name!r}")
         object.__setattr__(self, name, value)
@@ -141,150 +81,85 @@ class Model:
         """True for maximum-depth (history) rows, False for profile rows."""
         return self._is_max
 
+    @property
+    def packing(self):
+        return self.ext.packing
+
     def group_mask(self, groups) -> np.ndarray:
         """Free columns: the base parameters and those of the named candidates."""
-        groups = set(groups)
-        return np.array([c.group == "" or c.group in groups for c in self.columns])
+        return self.packing.mask(groups)
 
-    def _variant(self, contact, noise_weight) -> Model:
-        return Model(self.study, self.problem, candidates=self.candidates, contact=contact,
-                     noise_weight=noise_weight, shape=self.shape)
+    def variant(self, *, candidates=None, contact="same", shape="same") -> Model:
+        """The same study, base parameters and starts with other candidates, contact model
+        or shape basis (each one more compiled function)."""
+        return Model(self.study, keys=self.keys, start=self.start,
+                     candidates=self.candidates if candidates is None else candidates,
+                     contact=self.contact if contact == "same" else contact,
+                     shape=self.shape if shape == "same" else shape)
 
     def with_contact(self, contact: str | None) -> Model:
-        """The same model with another contact choice (None: the study's; one more compiled
-        function per contact model)."""
-        return self._variant(contact, self.noise_weight)
-
-    def with_noise_weight(self, noise_um: float) -> Model:
-        """The same model with the clearance prior rows weighted by `noise_um` [µm] (the
-        same compiled function: the weight is applied on the host)."""
-        return self._variant(self.contact, noise_um)
+        """The same model with another contact choice (None: the study's)."""
+        return self.variant(contact=contact)
 
     def values(self, u) -> np.ndarray:
-        return np.asarray(self.ext.values(jnp.asarray(u, jnp.float64)))
+        return self.packing.values_np(u)
 
     def u_of(self, name: str, value: float, u=None) -> float:
         """u of one column for `value`, the other columns at u (default 0: their starts);
-        a product strength needs its partner's u (see `Extended.values`)."""
+        a product strength needs its partner's u (see `Packing.values`)."""
         i = self.index[name]
-        c, s = self.columns[i], float(self.ext.start[i])
-        if c.log:
-            return math.log(value / s)
-        for a, b in product_pairs([col.key for col in self.columns]):
-            if a == i:
-                value = value * math.exp(0.0 if u is None else float(u[b]))
-        return (value - s) / c.scale
+        full = np.zeros(len(self.names)) if u is None else np.array(u, np.float64)
+        vals = self.packing.values_np(full)
+        vals[i] = value
+        return float(self.packing.u_of(vals)[i])
 
     def value_jacobian(self, u) -> np.ndarray:
         """d values / d u (P, P) at u."""
-        return np.asarray(jax.jacfwd(self.ext.values)(jnp.asarray(u, jnp.float64)))
+        return self.packing.value_jacobian(u)
 
     def bounds_u(self):
-        lo, hi = [], []
-        for c, s in zip(self.columns, np.asarray(self.ext.start)):
-            if c.log:
-                lo.append(math.log(c.lower / s) if c.lower > 0 else -math.inf)
-                hi.append(math.log(c.upper / s) if math.isfinite(c.upper) else math.inf)
-            else:
-                lo.append((c.lower - s) / c.scale)
-                hi.append((c.upper - s) / c.scale)
-        return np.array(lo), np.array(hi)
+        return self.packing.bounds_u()
 
-    def evaluate(self, u) -> Eval:
+    def evaluate(self, u) -> Evaluation:
         """The model at u: rows, prior rows, Jacobian (one compiled call)."""
         Model.evaluations += 1
         t0 = time.perf_counter()
         n_compiled = _compiled_count()
-        u = np.asarray(u, np.float64)
-        snaps, J, mres, worn, sliding, err, steps = _evaluate_ext(self.ext, jnp.asarray(u))
-        # The adaptive loop's static attempt count is an estimate that grows with K_d and
-        # the candidates' strengths: where it fell short (error inf), double it (one more
-        # compilation, kept for the rest of the run) rather than use a truncated history.
-        for _ in range(3):
-            if not (self.ext.schedule.adaptive and not np.isfinite(float(err))):
-                break
-            sched = self.ext.schedule
-            object.__setattr__(self, "ext", eqx.tree_at(
-                lambda e: e.schedule, self.ext,
-                sched.more_attempts()))
-            snaps, J, mres, worn, sliding, err, steps = _evaluate_ext(self.ext,
-                                                                      jnp.asarray(u))
-        snaps, J = np.asarray(snaps), np.asarray(J)
+        ev, used = evaluate(self.ext, u)
+        if used.schedule.attempts > self.ext.schedule.attempts:
+            # the attempt count an evaluation needed is kept for the rest of the run
+            object.__setattr__(self, "ext", used)
         dt = time.perf_counter() - t0
         Model.evaluation_s += dt
         if _compiled_count() > n_compiled:
             Model.first_evaluation_s = dt
-        prof = snaps[self.row_exp, self.row_snap]  # (rows, N)
-        Jp = J[self.row_exp, self.row_snap]  # (rows, N, P)
-        rows = np.arange(self.n)
-        w = self._w
-        pred = prof[rows, self._i0] * (1 - w) + prof[rows, self._i1] * w
-        Jr = Jp[rows, self._i0] * (1 - w)[:, None] + Jp[rows, self._i1] * w[:, None]
-        if self._is_max.any():
-            # maximum depth: the derivative is the one of the deepest node (a subgradient)
-            jmax = np.argmax(prof, axis=1)
-            m = self._is_max
-            pred = np.where(m, prof[rows, jmax], pred)
-            Jr[m] = Jp[rows[m], jmax[m]]
-        r_prior, J_prior = self._prior_rows(u)
-        return Eval(u=u, pred=pred, r=pred - self.measured, J=Jr, r_prior=r_prior,
-                    J_prior=J_prior, snaps=snaps, max_residual=float(mres), worn=float(worn),
-                    sliding_m=np.asarray(sliding), error_um=float(err), steps=int(steps),
-                    J_snaps=J)
+        return ev
 
     def predict(self, u) -> np.ndarray:
         """Model depth at every row [µm] at u, forward only (no Jacobian: a check of a
         linearised answer costs one plain evaluation); NaN rows where the model wore
         through or its integration ran out of attempts."""
-        return self._rows(self.snapshots(u))
+        return self._forward(u)[0]
 
     def snapshots(self, u) -> np.ndarray:
         """Model snapshots (E, S, N) [µm] at u, forward only; NaN where the model wore
         through or its integration ran out of attempts."""
+        return self._forward(u)[1]
+
+    def _forward(self, u):
         Model.evaluations += 1
         t0 = time.perf_counter()
-        snaps, worn, err = (np.asarray(x) for x in _predict_ext(self.ext, jnp.asarray(
-            np.asarray(u, np.float64))))
+        rows, snaps, _, used = forward(self.ext, u)
+        if used.schedule.attempts > self.ext.schedule.attempts:
+            object.__setattr__(self, "ext", used)
         Model.evaluation_s += time.perf_counter() - t0
-        if float(worn) >= 0 or not np.isfinite(float(err)):
-            return np.full(snaps.shape, np.nan)
-        return snaps
+        return rows, snaps
 
-    def _rows(self, snaps) -> np.ndarray:
-        prof = snaps[self.row_exp, self.row_snap]
-        rows = np.arange(self.n)
-        pred = prof[rows, self._i0] * (1 - self._w) + prof[rows, self._i1] * self._w
-        if self._is_max.any():
-            pred = np.where(self._is_max, prof.max(axis=1), pred)
-        return pred
-
-    def integration(self, ev: Eval) -> dict:
+    def integration(self, ev: Evaluation) -> dict:
         """The integration report of an evaluation (same keys as `calibrate`'s)."""
-        sched = self.ext.schedule
-        tol = float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
-        err = ev.error_um if sched.adaptive else None
-        return {"integrator": "adaptive" if sched.adaptive else "paper",
-                "error_estimate_um": err if err is None or math.isfinite(err) else "inf",
-                "steps": int(ev.steps), "tolerance_um": tol}
+        from .._residual import integration_report
 
-    def _prior_rows(self, u):
-        """Clearance prior rows (c - c_nom)/τ · noise_weight [µm] and their Jacobian."""
-        vals = self.values(u)
-        r_prior, J_prior = [], []
-        for i in self.prior_cols:
-            c = self.columns[i]
-            k = self.noise_weight * 1e3 / self.tolerance_um
-            r_prior.append(k * (vals[i] - self.nominal_mm[c.experiment]))
-            row = np.zeros(len(u))
-            row[i] = k * (vals[i] if c.log else c.scale)
-            J_prior.append(row)
-        return np.array(r_prior).reshape(-1), np.array(J_prior).reshape(-1, len(u))
-
-    def reweigh(self, ev: Eval) -> Eval:
-        """`ev` (from a model with another prior weight) with this model's prior rows:
-        the compiled model does not depend on the weight, so no evaluation is needed."""
-        r_prior, J_prior = self._prior_rows(ev.u)
-        return replace(ev, r_prior=r_prior, J_prior=J_prior)
+        return integration_report(self.ext, ev)
 
     # Row coordinates for the residual analysis
     @property
@@ -301,15 +176,18 @@ class Model:
 def _compiled_count() -> int:
     """How many versions of the evaluation are compiled (for the timing counters; -1 where
     this jax/equinox does not say)."""
+    from .._residual import _evaluate_jit
+
     try:
-        return int(_evaluate_ext._cached._cache_size())
+        return int(_evaluate_jit._cached._cache_size())
     except AttributeError:
         return -1
 
 
-def _row_coordinates(study: Study, data: dict, row_exp, row_snap):
-    """Angle [deg] (profiles) or hours (histories) of each row, and its measurement time
-    (revolutions or hours: the snapshot the row is compared with)."""
-    points = [e.snapshot_points for e in study.experiments]
-    t = np.array([points[e][s] for e, s in zip(row_exp, row_snap)], float)
-    return np.asarray(data["x"], float), t
+def objective(ev: Evaluation, noise_um: float) -> float:
+    """Q = Σ r² + σ² Σ r_prior² [µm²]: the weighted least-squares objective (the core's χ²
+    times σ²), which the BIC evidence compares between fits."""
+    return float(ev.r @ ev.r + noise_um ** 2 * (ev.r_prior @ ev.r_prior))
+
+
+__all__ = ["Eval", "Model", "objective"]

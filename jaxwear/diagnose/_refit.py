@@ -10,12 +10,11 @@ import numpy as np
 
 from .._errors import InputError
 from ._evidence import STRONG_LOG_BF, evidence
-from ._extended import Eval
-from ._fit import Fit, _log, _objective, finish, fit_masked
-from ._model import Model
+from ._fit import Fit, _log, fit_masked
+from ._model import Eval, Model, objective
 from ._result import Candidate
 from ._screen import Screen, screen
-from ._stats import Tests, neighbour_differences, noise_level, run_tests
+from ._stats import Tests, run_tests
 
 # A refit's budget of evaluations (each a full run of every experiment with its Jacobian:
 # seconds at the default numerics); it stops earlier when done (`jaxwear.lsq.solve`), and
@@ -39,7 +38,7 @@ def _start_for(model: Model, fit: Fit, scr: Screen | None) -> np.ndarray:
     return u
 
 
-def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose) -> Fit:
+def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) -> Fit:
     contact = "unsymmetric" if "unsymmetric" in groups else None
     mdl = by_contact(contact)
     mask = mdl.group_mask([g for g in groups if g != "unsymmetric"])
@@ -58,19 +57,20 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose) -> Fit:
             u0[kd] += math.log(a)
             ev0 = mdl.evaluate(u0)
     same = contact == from_fit.contact
-    if not ev0.usable or (same and _objective(ev0) > _objective(from_fit.ev)):
+    if not ev0.usable or (same and objective(ev0, noise) > objective(from_fit.ev, noise)):
         u0 = from_fit.ev.u.copy()
         ev0 = from_fit.ev if same else mdl.evaluate(u0)
-    f = fit_masked(mdl, mask, u0, noise_um=noise, label=label, groups=tuple(groups),
-                   ev0=ev0, max_evaluations=REFIT_MAX_EVALUATIONS, verbose=verbose)
+    f = fit_masked(mdl, mask, u0, noise_um=noise, noise_dof=nu, label=label,
+                   groups=tuple(groups), ev0=ev0, max_evaluations=REFIT_MAX_EVALUATIONS,
+                   verbose=verbose)
     f = replace(f, contact=contact)
     if not _derivatives_ok(mdl, f.ev):
-        f = replace(f, unstable=True, converged=False, message=f.message + (
+        f = replace(f, status="unstable", message=f.message + (
             "; the wear loop's derivatives are unstable here (lower "
             + ("revolutions_per_update" if mdl.study.integrator == "paper"
                else "wear_tolerance_um") + "): this fit is not reliable"))
         _log(verbose, f"    {label}: unstable derivatives, not used")
-    return finish(mdl, f, noise)
+    return f
 
 
 def _derivative_ratio(model: Model, ev: Eval) -> float:
@@ -107,18 +107,24 @@ def _check_derivatives(model: Model, fit: Fit):
             f"derivatives; halve revolutions_per_update")
 
 
-def _noise(model: Model, r, known: float | None = None):
-    """Noise level [µm] and its degrees of freedom from the neighbour differences of `r`
-    (residuals, or the data themselves: the smooth profile cancels), or `known`."""
-    if known is not None:
-        if not known > 0:
-            raise InputError(f"noise_um must be > 0, got {known}")
-        return float(known), math.inf
-    e, _ = neighbour_differences(model, r)
-    if len(e) < 2:
-        raise InputError(f"{model.study.path}: too few neighbouring points to estimate the "
-                         f"noise level (need 3 or more points per profile or history)")
-    return noise_level(e)
+def _noise(model: Model, known: float | None = None):
+    """Noise level [µm] and its degrees of freedom by the one rule (`_noise.stated_noise`):
+    given, else the data's own neighbouring points. Where those are too few for the rule's
+    `MIN_DOF` (a depth history of a handful of points), the diagnosis still needs one
+    level to compare its candidates at: the data's estimate with its few degrees of
+    freedom (the F tests pay for them), refused only when there is none."""
+    from .._noise import stated_noise
+
+    if known is not None and not known > 0:
+        raise InputError(f"noise_um must be > 0, got {known}")
+    nz = stated_noise(model.ext.data, known)
+    if nz.sigma_um is not None:
+        return float(nz.sigma_um), float(nz.dof)
+    if nz.data_dof > 0 and nz.data_sigma_um > 0:
+        return float(nz.data_sigma_um), float(nz.data_dof)
+    raise InputError(f"{model.study.path}: too few neighbouring points to estimate the "
+                     f"noise level ({model.n} rows; a scan or history needs 3 or more "
+                     f"points in a row, or give [fit] noise_um)")
 
 
 def _second_stage(model, by_contact, best: Candidate, rest, noise, nu, pairs, max_refits,
@@ -130,10 +136,10 @@ def _second_stage(model, by_contact, best: Candidate, rest, noise, nu, pairs, ma
         tries.append(("unsymmetric", None))
     results = []
     for name, scr in tries:
-        f = _refit(by_contact, best.fit, [best.effect, name], scr, noise, verbose)
+        f = _refit(by_contact, best.fit, [best.effect, name], scr, noise, verbose, nu)
         mdl = by_contact(f.contact)
         t = _tests_for(mdl, f, noise, nu, pairs, screen(mdl, f, noise, nu))
-        results.append((evidence(model, f, best.fit), f, t))
+        results.append((evidence(model, f, best.fit, noise), f, t))
     results = [x for x in results if not x[1].unstable]
     results.sort(key=lambda x: -x[0])
     if results and results[0][0] > STRONG_LOG_BF and not results[0][2].systematic:

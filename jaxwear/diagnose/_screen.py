@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ._fit import Fit, _log, _system
+from ._fit import Fit, _log, whitened_system
 from ._model import Model
 from ._stats import f_sf
 
@@ -55,7 +55,9 @@ def screen(model: Model, fit: Fit, noise_um: float, nu: float = math.inf, *,
     ν degrees of freedom.
     """
     groups = [g for g in model.candidates if g not in fit.groups and g != "unsymmetric"]
-    J, r = _system(fit.ev, fit.mask)
+    # the whitened system (data rows / σ, prior rows in SD units): the score is then the
+    # χ² a linearised refit would remove
+    r, J = whitened_system(fit.ev, fit.mask, noise_um)
     n_prior = len(fit.ev.r_prior)
     q_sys = max(fit.rss - (model.n - fit.k) * noise_um ** 2, 1e-300)
     lo, hi = model.bounds_u()
@@ -70,20 +72,20 @@ def screen(model: Model, fit: Fit, noise_um: float, nu: float = math.inf, *,
             u = fit.ev.u.copy()
             u[h_idx] += math.log(mult)
             ev = fit.ev if mult == 1.0 else model.evaluate(u)
-            Z = np.vstack([ev.J[:, s_idx], np.zeros((n_prior, len(s_idx)))])
+            Z = np.vstack([ev.J[:, s_idx] / noise_um, np.zeros((n_prior, len(s_idx)))])
             Zp = _project_out(J, Z)
             ZZ = Zp.T @ Zp
             if not np.all(np.isfinite(ZZ)) or np.max(np.abs(ZZ)) < 1e-300:
                 continue
             coef = np.linalg.lstsq(ZZ, -(Zp.T @ r), rcond=None)[0]  # GN step in u
-            d_rss = float(-(Zp.T @ r) @ coef)
+            d_chi2 = float(-(Zp.T @ r) @ coef)
             step = u[s_idx] + coef
             # one-sided where the strength sits at a bound (a ≥ 0, μ ≥ 0, C ≥ 0, q ≥ 0):
             # a step out of bounds means the effect cannot explain this misfit
             feasible = bool(np.all(step >= lo[s_idx] - 1e-12)
                             and np.all(step <= hi[s_idx] + 1e-12))
-            d_rss = d_rss if feasible else 0.0
-            score = d_rss / noise_um ** 2
+            score = d_chi2 if feasible else 0.0
+            d_rss = score * noise_um ** 2
             if best is None or score > best.score:
                 # refit start: the step, capped at 3 typical sizes (the linearisation is
                 # only a guide far from the base model)

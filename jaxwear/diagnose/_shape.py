@@ -308,9 +308,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     basis = make_basis(knots, size)
     # the fit's own model (its candidates only: every column costs a tangent) with the
     # correction switched on
-    smodel = Model(model.study, model.problem,
-                   candidates=[g for g in fit.groups if g in model.candidates],
-                   contact=model.contact, noise_weight=model.noise_weight, shape=basis)
+    smodel = model.variant(candidates=[g for g in fit.groups if g in model.candidates],
+                           shape=basis)
     u = np.zeros(len(smodel.names))
     for i, name in enumerate(model.names):
         if name in smodel.index:
@@ -322,8 +321,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     free_base = [smodel.index[model.names[i]] for i in np.flatnonzero(fit.mask)]
     n = smodel.n
     # whitened system: data rows /σ, prior rows in SD units (as the refits see them)
-    Jd, Jp = ev.J / sigma, ev.J_prior / max(smodel.noise_weight, 1e-12)
-    rho_full = -np.concatenate([ev.r / sigma, ev.r_prior / max(smodel.noise_weight, 1e-12)])
+    Jd, Jp = ev.J / sigma, ev.J_prior
+    rho_full = -np.concatenate([ev.r / sigma, ev.r_prior])
     Xb = np.vstack([Jd[:, free_base], Jp[:, free_base]])
     Qb = np.linalg.qr(Xb)[0] if Xb.shape[1] else np.zeros((len(rho_full), 0))
     proj = lambda X: X - Qb @ (Qb.T @ X)  # noqa: E731
@@ -437,8 +436,8 @@ def _refit_best(smodel: Model, ev, u, free_base, basis: ShapeBasis, best: str, r
     free[free_base] = True
     free[cols] = True
     J = ev.J.copy()
-    prior_base = ev.J_prior / max(smodel.noise_weight, 1e-12)
-    r_prior0 = ev.r_prior / max(smodel.noise_weight, 1e-12)
+    prior_base = ev.J_prior
+    r_prior0 = ev.r_prior
 
     def prior(v):
         c = v[cols]

@@ -8,78 +8,30 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .. import _noise
+from .._noise import line_residuals as line_residuals
+from .._noise import noise_level as noise_level
+
 if TYPE_CHECKING:
     from ._model import Model
 
 
 def measurement_series(model: Model) -> list:
-    """The data as ordered series: (row indices, coordinate, largest neighbour spacing).
-
-    A profile (one experiment at one revolution count) is ordered by angle, and points
-    further apart than 2.5 times its median spacing are not neighbours (the ends of a
-    scar, unmeasured arcs); a depth history (one experiment) is ordered by time.
-    """
-    out = []
-    for e in range(len(model.exp_names)):
-        hist = np.flatnonzero((model.row_exp == e) & model.is_max)
-        if len(hist):
-            order = np.argsort(model.row_time[hist])
-            out.append((hist[order], model.row_time[hist][order], math.inf))
-        prof = (model.row_exp == e) & ~model.is_max
-        for t in sorted(set(model.row_time[prof].tolist())):
-            rows = np.flatnonzero(prof & (model.row_time == t))
-            order = np.argsort(model.row_x[rows])
-            x = model.row_x[rows][order]
-            gap = 2.5 * float(np.median(np.diff(x))) if len(x) > 1 else math.inf
-            out.append((rows[order], x, gap))
-    return out
-
-
-def line_residuals(x, y, gap=math.inf):
-    """Each interior point of one series minus the straight line through its two
-    neighbours, normalised: for white noise of level σ, e_i = y_i - (w y_{i-1} +
-    (1-w) y_{i+1}) has variance σ² (1 + w² + (1-w)²), and a smooth curve (a wear profile,
-    or a smooth misfit) nearly cancels. Triples with a spacing > `gap` are skipped.
-
-    Returns (e_i / sqrt(1 + w² + (1-w)²), index of the middle point).
-    """
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    if len(x) < 3:
-        return np.zeros(0), np.zeros(0, int)
-    a, b = np.diff(x)[:-1], np.diff(x)[1:]
-    ok = (a > 0) & (b > 0) & (a <= gap) & (b <= gap)
-    w = np.where(ok, b / np.where(ok, a + b, 1.0), 0.5)
-    e = y[1:-1] - (w * y[:-2] + (1 - w) * y[2:])
-    e = e / np.sqrt(1 + w * w + (1 - w) ** 2)
-    mid = np.arange(1, len(x) - 1)
-    return e[ok], mid[ok]
+    """The data as ordered series (`_noise.series`): (row indices, coordinate, largest
+    neighbour spacing)."""
+    return model.series
 
 
 def neighbour_differences(model: Model, values=None):
-    """`line_residuals` of every measurement series of `values` (default: the data).
-    Returns (normalised differences, row index of each middle point)."""
-    y = model.measured if values is None else np.asarray(values)
-    es, mids = [np.zeros(0)], [np.zeros(0, int)]
-    for rows, x, gap in measurement_series(model):
-        e, mid = line_residuals(x, y[rows], gap)
-        es.append(e)
-        mids.append(rows[mid])
-    return np.concatenate(es), np.concatenate(mids)
+    """`_noise.line_residuals` of every measurement series of `values` (default: the
+    data). Returns (normalised differences, row index of each middle point)."""
+    return _noise.neighbour_differences(model.series,
+                                        model.measured if values is None else values)
 
 
-# For equally spaced white noise the normalised second differences have lag-1 and lag-2
-# correlations -2/3 and 1/6, so the mean of their squares has the variance of
-# n / (1 + 2 (4/9 + 1/36)) = n / 1.944 independent squares.
-_D2_DOF_FACTOR = 1.0 + 2.0 * (4.0 / 9.0 + 1.0 / 36.0)
-
-
-def noise_level(e) -> tuple[float, float]:
-    """Noise level σ = rms of normalised neighbour differences, and its degrees of freedom
-    (for an equally spaced series, see `_D2_DOF_FACTOR`)."""
-    e = np.asarray(e, float)
-    if len(e) == 0:
-        return math.nan, 0.0
-    return float(np.sqrt(np.mean(e ** 2))), len(e) / _D2_DOF_FACTOR
+def neighbour_pairs(model: Model):
+    """Index pairs (i, j) of neighbouring rows of one series."""
+    return _noise.neighbour_pairs(model.series)
 
 
 # Tail probabilities from scipy.stats (imported on first use: it adds over a second to
@@ -153,16 +105,6 @@ class Tests:
                 "z_autocorrelation": self.z_autocorr, "p_autocorrelation": self.p_autocorr,
                 "p_score_min": self.p_score, "score_effect": self.score_effect,
                 "p_combined": self.p_min, "systematic": self.systematic, "alpha": ALPHA}
-
-
-def neighbour_pairs(model: Model):
-    """Index pairs (i, j) of neighbouring rows of one series (`measurement_series`)."""
-    pairs = [np.zeros((0, 2), int)]
-    for rows, x, gap in measurement_series(model):
-        dx = np.diff(x)
-        ok = (dx > 0) & (dx <= gap)
-        pairs.append(np.stack([rows[:-1][ok], rows[1:][ok]], axis=1))
-    return np.concatenate(pairs)
 
 
 def lag1_autocorrelation(r, pairs) -> tuple[float, float]:

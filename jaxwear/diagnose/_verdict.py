@@ -18,8 +18,8 @@ from ._evidence import (
     evidence_from,
     loo,
 )
-from ._fit import _log, _objective, finish, fit_masked
-from ._model import Model
+from ._fit import _log, fit_masked
+from ._model import Model, objective
 from ._refit import _check_derivatives, _noise, _refit, _second_stage, _tests_for
 from ._result import Candidate, Diagnosis
 from ._screen import screen
@@ -45,18 +45,19 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         noise_um = study.noise_um
     t0 = time.perf_counter()
     resolution = None
+    start = None
     if study.auto_resolution or study.angle_tolerance_deg > 0:
         # the base model's fit by calibrate's path: the resolution it needs, checked at its
         # answer (DESIGN §6), and the scans' registration where the study fits it; the
-        # candidates are then compared at that level and that registration (held)
-        from .._calibrate import fit_study, parse_fit, registered, with_registration
+        # candidates are then compared at that level and that registration (held), and the
+        # base fit starts from that answer (the same residual model and noise rule: it
+        # only re-evaluates there with the candidates' columns)
+        from .._calibrate import fit_study, registered, study_fit_keys
         from .._resolution import at_level
 
         _log(verbose, f"diagnose {study.path}: the base fit by calibrate's path (resolution"
                       f"{', registration' if study.angle_tolerance_deg > 0 else ''})")
-        keys = with_registration(study, parse_fit(study, list(study.fit) if study.fit else
-                                                  "K_d,clearance"))
-        r = fit_study(study, keys, noise_um=noise_um, verbose=verbose)
+        r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose)
         if study.auto_resolution:
             resolution = r.resolution
             study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
@@ -65,11 +66,14 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             _log(verbose, "  registration held at the fitted offsets: " + ", ".join(
                 f"{n.split('/', 1)[1]} {v:+.2f}°" for n, v in zip(r.names, r.values)
                 if n.startswith("angle_offset_deg/")))
+        start = {n: float(v) for n, v in zip(r.names, r.values)
+                 if not n.startswith("angle_offset_deg/")}
     evals0 = Model.evaluations
     _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
-    model = Model(study)
+    model = Model(study, start=start)
     if model.n < 3:
-        raise InputError(f"{study.path}: diagnose needs at least 3 measured points")
+        raise InputError(f"{study.path}: diagnose needs at least 3 measured points, "
+                         f"got {model.n}")
     _log(verbose, f"  {model.n} data rows; candidates: {', '.join(model.candidates) or 'none'}"
                   " (the first evaluation compiles the extended model)")
     models = {None: model}
@@ -80,34 +84,21 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             models[contact] = model.with_contact(contact)
         return models[contact]
 
-    # 1. the base model, as the study states it; the prior weighted with the noise level,
-    # first as the data's own neighbour differences give it (the smooth profile cancels;
-    # the model's residuals give the final value below, refitted only where they differ)
-    noise, nu = _noise(model, model.measured, noise_um)
-    if model.prior_cols:
-        model = model.with_noise_weight(noise)
-        models = {None: model}
+    # 1. the base model, as the study states it, at the noise level of the one rule
+    # (`_noise`: given, else the data's own neighbouring points)
+    noise, nu = _noise(model, noise_um)
     u0 = np.zeros(len(model.names))
     ev0 = model.evaluate(u0)
     kd = model.index.get("K_d_per_Pa")
-    if kd is not None and ev0.usable:
+    if start is None and kd is not None and ev0.usable:
         d = ev0.pred
         a = float(d @ model.measured) / max(float(d @ d), 1e-300)
         if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
             u0[kd] += math.log(a)  # depth is nearly proportional to K_d
             ev0 = None
     _log(verbose, f"  base fit ({int(model.base_mask.sum())} parameters)")
-    base = fit_masked(model, model.base_mask, u0, noise_um=noise, label="base", ev0=ev0,
-                      verbose=verbose)
-    noise_data, noise = noise, _noise(model, base.ev.r, noise_um)[0]
-    if model.prior_cols and abs(noise / noise_data - 1) > 0.1:
-        model = model.with_noise_weight(noise)
-        models = {None: model}
-        base = fit_masked(model, model.base_mask, base.ev.u, noise_um=noise, label="base",
-                          ev0=model.reweigh(base.ev),
-                          verbose=verbose)
-    noise, nu = _noise(model, base.ev.r, noise_um)
-    base = finish(model, base, noise)
+    base = fit_masked(model, model.base_mask, u0, noise_um=noise, noise_dof=nu, label="base",
+                      ev0=ev0, verbose=verbose)
     _check_derivatives(model, base)
     pairs = neighbour_pairs(model)
     _log(verbose, f"  base RMSE {base.rmse:.4f} µm, noise {noise:.4f} µm (ν = {nu:.4g})")
@@ -118,7 +109,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     _log(verbose, f"  base: chi-square ratio {base_tests.ratio:.3f} (p {base_tests.p_chi2:.1e})"
                   f", lag-1 autocorrelation {base_tests.rho:.3f} "
                   f"(p {base_tests.p_autocorr:.1e}), best score p {base_tests.p_score:.1e}")
-    q_base = _objective(base.ev)
+    q_base = objective(base.ev, noise)
     cands = {}
     for s_ in scores:
         q_lin = max(q_base - s_.delta_rss, 1e-12 * q_base)
@@ -146,13 +137,13 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                 _log(verbose, f"  {name}: not refitted (score {scr.score:.1f} < "
                               f"{COMPARABLE:g} x {settled:.1f} of a fit at noise level)")
                 continue
-            f = _refit(by_contact, base, [name], scr, noise, verbose)
+            f = _refit(by_contact, base, [name], scr, noise, verbose, nu)
             c = cands.get(name) or Candidate(name, None, None, 0.0, math.nan)
-            c = replace(c, fit=f, rmse_um=f.rmse, evidence=evidence(model, f, base))
+            c = replace(c, fit=f, rmse_um=f.rmse, evidence=evidence(model, f, base, noise))
             cands[name] = c
             if (not f.unstable and c.evidence > STRONG_LOG_BF
                     and not _tests_for(by_contact(f.contact), f, noise, nu, pairs).systematic):
-                gain = (q_base - _objective(f.ev)) / noise ** 2
+                gain = (q_base - objective(f.ev, noise)) / noise ** 2
                 settled = gain if settled is None else max(settled, gain)
         refitted = sorted([c for c in cands.values() if c.refit and not c.fit.unstable],
                           key=lambda c: -c.evidence)
@@ -174,7 +165,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                 if not c.tests.systematic
                                 and best.evidence - c.evidence < AMBIGUOUS_LOG_BF]
             else:
-                explained = (q_base - _objective(best.fit.ev)) / max(
+                explained = (q_base - objective(best.fit.ev, noise)) / max(
                     q_base - (model.n - base.k) * noise ** 2, 1e-300)
                 status, partial, final, final_tests = "unexplained", [best.effect], \
                     best.fit, best.tests
@@ -186,7 +177,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                         status, effects, partial = "effect_found", list(pair_fit.groups), []
                         final, final_tests = pair_fit, pair_tests
                         cands[pair_fit.label] = Candidate(
-                            pair_fit.label, None, pair_fit, evidence(model, pair_fit, base),
+                            pair_fit.label, None, pair_fit,
+                            evidence(model, pair_fit, base, noise),
                             pair_fit.rmse, pair_tests)
         elif systematic:
             status = "unexplained"
@@ -200,8 +192,9 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     diag = Diagnosis(study=study, model=model, noise_um=noise, noise_dof=nu, base=base,
                      base_tests=base_tests, screens=scores, candidates=ordered, status=status,
                      effects=effects, partial=partial, alternatives=alternatives, final=final,
-                     final_tests=final_tests, loo_before=loo(model, base),
-                     loo_after=loo(by_contact(final.contact), final), resolution=resolution)
+                     final_tests=final_tests, loo_before=loo(model, base, noise),
+                     loo_after=loo(by_contact(final.contact), final, noise),
+                     resolution=resolution)
     summary = summarize_verdict(diag)
     if shape or status == "unexplained":
         from ._shape import shape_analysis

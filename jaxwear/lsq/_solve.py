@@ -35,7 +35,7 @@ import numpy as np
 import optimistix as optx
 from scipy.stats import chi2
 
-from ._covariance import Covariance, covariance
+from ._covariance import Covariance, covariance, gauss_newton
 from ._point import Point
 
 _DESCENT = optx.DampedNewtonDescent(linear_solver=lx.QR())
@@ -80,12 +80,20 @@ class Outcome:
     """The end of a fit.
 
     - `u` (P,), `point`: the answer and its evaluation.
-    - `status`: "converged", "stalled" (trials keep failing), "budget" (evaluations spent),
-      "unusable" (the model cannot be evaluated at the start); `converged` is
-      `status == "converged"`; `message` says why, with the numbers.
+    - `status`: "converged"; "stalled" (trials keep failing); "budget" (evaluations
+      spent); "unusable" (the model cannot be evaluated at the start); "undetermined"
+      (the data and priors determine none of the fitted parameters: a lost, all-zero
+      Jacobian). `converged` is `status == "converged"`, nothing else; `message` says why,
+      with the numbers.
     - `evaluations`: model evaluations this solve made (the start's not counted when given).
-    - `noise_um`: σ the data rows were weighted with at the end; `noise_given`.
-    - `free` (P,) bool; `cov`: `Covariance` of the free u at the answer (whitened by σ).
+    - `noise_um`: σ the data rows were weighted with at the end; `noise_given`: σ was
+      stated (given, or measured from the data's neighbouring points), not re-estimated
+      from the residuals; `noise_dof`: σ's degrees of freedom (inf: given).
+    - `free` (P,) bool; `cov`: `Covariance` of the free u at the answer with the data rows
+      weighted by σ (the fit's own curvature).
+    - `errors`: the same at the error scale the data support (`error_scale`: σ, or the
+      residual misfit where it exceeds σ), with `error_scale_um` and `error_dof`: what
+      standard errors and bands are reported from.
     - `step_se`: largest |Gauss-Newton step| / standard error at the answer.
     - `predicted_decrease`, `floor`: the next step's predicted decrease of ½χ² and what the
       model's numerical error can cause (same unit).
@@ -104,6 +112,10 @@ class Outcome:
     step_se: float
     predicted_decrease: float
     floor: float
+    errors: Covariance | None = None
+    error_scale_um: float = math.nan
+    error_dof: float = math.inf
+    noise_dof: float = math.inf
     history: list = field(default_factory=list)
 
     @property
@@ -111,10 +123,12 @@ class Outcome:
         return self.status == "converged"
 
 
-def noise_estimate(pt: Point, n_free: int) -> float:
-    """σ̂ = √(Σr² / (n − k)) [µm] of the data rows (floored to stay positive)."""
+def noise_estimate(pt: Point, k_eff: float) -> float:
+    """σ̂ = √(Σr² / (n − k_eff)) [µm] of the data rows, k_eff the effective number of
+    parameters the data determine (`Covariance.k_eff`: a parameter its prior fixes costs
+    the data no degree of freedom); floored to stay positive."""
     n = pt.r.size
-    return max(float(np.sqrt(np.sum(pt.r ** 2) / max(n - n_free, 1))), 1e-9)
+    return max(float(np.sqrt(np.sum(pt.r ** 2) / max(n - k_eff, 1.0))), 1e-9)
 
 
 def whitened(pt: Point, noise_um: float, free):
@@ -128,7 +142,7 @@ def _column_scale(Jw, D_old):
     """Column norms of the whitened Jacobian, never below the previous scale; a zero column
     (no information yet) gets the largest norm."""
     D = np.sqrt(np.sum(Jw ** 2, axis=0))
-    top = max(float(np.max(D)), 1e-300)
+    top = max(float(np.max(D, initial=0.0)), 1e-300)
     D = np.where(D > 1e-8 * top, D, top if D_old is None else 0.0)
     if D_old is not None:
         D = np.maximum(D, D_old)
@@ -141,44 +155,68 @@ def _held(u, free, lo, hi, g):
     return ((uf <= lo[free] + 1e-12) & (g > 0)) | ((uf >= hi[free] - 1e-12) & (g < 0))
 
 
-def _gauss_newton(u, free, lo, hi, rw, Jw, cov: Covariance):
+def gauss_newton_step(u, free, lo, hi, rw, Jw, n_data: int):
     """The full Gauss-Newton step over the free columns, projected on the bounds (a column
     the step would push past its bound goes to the bound and is held while the others are
-    solved again); (step (k,), largest |step|/se, predicted decrease of ½χ²)."""
+    solved again), from the SVD of the scaled whitened Jacobian (`_covariance.gauss_newton`,
+    the same factorisation as the covariance). Returns (step (k,), covariance of the free
+    columns, predicted decrease of ½χ²)."""
     g = Jw.T @ rw
-    A = Jw.T @ Jw
     uf, lof, hif = u[free], lo[free], hi[free]
+    step, cov = gauss_newton(rw, Jw, n_data)
     held = _held(u, free, lo, hi, g)
-    step = np.zeros(len(uf))
-    for _ in range(len(uf)):
-        k = ~held
-        if k.any():
-            rhs = -(g[k] + A[np.ix_(k, held)] @ step[held])
-            step[k] = np.linalg.lstsq(A[np.ix_(k, k)], rhs, rcond=1e-13)[0]
-        out = k & ((uf + step < lof) | (uf + step > hif))
-        if not out.any():
-            break
-        step[out] = np.clip(uf + step, lof, hif)[out] - uf[out]
-        held |= out
-    pred = -(float(g @ step) + 0.5 * float(step @ (A @ step)))
+    if held.any() or np.any((uf + step < lof) | (uf + step > hif)):
+        step = np.zeros(len(uf))
+        for _ in range(len(uf)):
+            k = ~held
+            if k.any():
+                rhs = rw + Jw[:, held] @ step[held]
+                step[k] = gauss_newton(rhs, Jw[:, k], n_data)[0]
+            out = k & ((uf + step < lof) | (uf + step > hif))
+            if not out.any():
+                break
+            step[out] = np.clip(uf + step, lof, hif)[out] - uf[out]
+            held |= out
+    pred = -(float(g @ step) + 0.5 * float(np.sum((Jw @ step) ** 2)))
     if pred < 0:
         # the clipped step is no descent (the bounds cut across a curved valley): judge by
         # the step over the columns free to move, unclipped
         held = _held(u, free, lo, hi, g)
         step = np.zeros(len(uf))
-        k = ~held
-        if k.any():
-            step[k] = np.linalg.lstsq(A[np.ix_(k, k)], -g[k], rcond=1e-13)[0]
-        pred = -(float(g @ step) + 0.5 * float(step @ (A @ step)))
+        if (~held).any():
+            step[~held] = gauss_newton(rw, Jw[:, ~held], n_data)[0]
+        pred = -(float(g @ step) + 0.5 * float(np.sum((Jw @ step) ** 2)))
+    return step, cov, pred
+
+
+def _ratio(step, cov: Covariance) -> float:
+    """Largest |step| / standard error over the determined parameters."""
     det = ~cov.undetermined
-    ratio = float(np.max(np.abs(step[det]) / cov.se[det], initial=0.0))
-    return step, ratio, pred
+    return float(np.max(np.abs(step[det]) / cov.se[det], initial=0.0))
+
+
+def error_scale(rss: float, n: int, k_eff: float, sigma: float, sigma_dof: float,
+                estimated: bool) -> tuple[float, float]:
+    """The noise rule for the errors the data support: (s [µm], its degrees of freedom).
+
+    σ estimated from the residuals (`estimated`): s = σ̂ with n − k_eff dof. σ given or
+    measured from the data's own neighbouring points: s = max(σ, √(RSS/(n − k_eff))), so a
+    model that misfits beyond the noise gets standard errors widened by its misfit (with
+    n − k_eff dof), never narrower than the noise allows."""
+    dof = max(n - k_eff, 1.0)
+    if estimated:
+        return sigma, dof
+    s_res = math.sqrt(max(rss, 0.0) / dof)
+    if s_res > sigma and n - k_eff >= 1.0:
+        return s_res, dof
+    return sigma, sigma_dof
 
 
 def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None = None,
           free=None, lower=None, upper=None, noise_um: float | None = None,
-          max_evaluations: int = 30, se_tol: float = SE_TOL, max_rejections: int = 6,
-          label: str = "fit", log: Callable[[str], None] | None = None,
+          noise_dof: float = math.inf, max_evaluations: int = 30, se_tol: float = SE_TOL,
+          max_rejections: int = 6, label: str = "fit",
+          log: Callable[[str], None] | None = None,
           project: Callable[[np.ndarray], np.ndarray] | None = None) -> Outcome:
     """Least squares of the data rows (weighted by 1/σ) and the prior rows.
 
@@ -188,8 +226,10 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     - `free` (P,) bool: the columns fitted (others held at u0); default all.
     - `lower`, `upper` (P,): bounds on u (projection: a nested strength may sit at its
       "off" bound, where a transform would put the nested model at infinity).
-    - `noise_um`: σ if known; else re-estimated from the residuals after every accepted
-      step (one pass: the prior rows are re-weighted on the host, no new evaluation).
+    - `noise_um`, `noise_dof`: σ if stated (given by the user: dof inf; or measured from
+      the data's own neighbouring points, with its dof); None: re-estimated from the
+      residuals after every accepted step (one pass: the prior rows need no re-weighting,
+      they are in units of their standard deviation).
     - `max_evaluations`: the budget; `se_tol`: the stop (fraction of a standard error).
     - `label`, `log`: progress, one line per evaluation.
     - `project`: u ↦ u inside constraints the box cannot state (a bound on a value that
@@ -222,14 +262,22 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     if noise_um is None and n <= k:
         raise NoiseUndetermined(f"{n} data rows do not determine the noise level with {k} "
                                 f"fitted parameters")
-    sigma = float(noise_um) if noise_um is not None else noise_estimate(pt, k)
+    estimated = noise_um is None
+    sigma = float(noise_um) if not estimated else noise_estimate(pt, k)
 
     def outcome(status, message, cov=None, ratio=math.nan, pred=math.nan, floor=math.nan):
+        rw, Jw = whitened(pt, sigma, free)
         if cov is None:
-            cov = covariance(whitened(pt, sigma, free)[1])
+            cov = covariance(Jw, n)
+        s, dof = error_scale(float(pt.r @ pt.r), n, cov.k_eff, sigma,
+                             noise_dof if not estimated else n - cov.k_eff, estimated)
+        errors = cov if s == sigma else covariance(whitened(pt, s, free)[1], n)
         return Outcome(u=u, point=pt, status=status, message=message, evaluations=evals,
-                       noise_um=sigma, noise_given=noise_um is not None, free=free, cov=cov,
-                       step_se=ratio, predicted_decrease=pred, floor=floor, history=history)
+                       noise_um=sigma, noise_given=not estimated, free=free, cov=cov,
+                       step_se=ratio, predicted_decrease=pred, floor=floor, errors=errors,
+                       error_scale_um=s, error_dof=dof,
+                       noise_dof=noise_dof if not estimated else max(n - cov.k_eff, 1.0),
+                       history=history)
 
     if not pt.usable:
         return outcome("unusable", "the model is not usable at the start (worn through or "
@@ -246,34 +294,37 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     # λ = 0.01 of the (unit) diagonal at first: near-Gauss-Newton steps, since the robust
     # start has brought the scale in
     step_size = jnp.asarray(1e2)
-    dof = max(n - k, 1)
-    low = [math.sqrt(dof / chi2.ppf(0.995, dof))]  # σ's lower 99 % bound / σ̂
     rejections = 0  # trials in a row that were rejected or gained nothing (< NO_GAIN)
     gauss_newton_failed, ratio_at_failure = False, math.inf
     say(f"    {label}: start, rms {pt.rms_um:.4f} µm, σ {sigma:.3g} µm"
-        f"{' (given)' if noise_um is not None else ''}")
+        f"{'' if estimated else ' (stated)'}")
     while True:
         rw, Jw = whitened(pt, sigma, free)
-        cov = covariance(Jw)
-        _, ratio, pred = _gauss_newton(u, free, lo, hi, rw, Jw, cov)
-        if noise_um is None:
-            # σ̂ from the current residuals overstates the noise while the misfit is still
-            # falling, and the standard errors with it (they scale with σ); with few degrees
-            # of freedom it is itself uncertain (one dof: σ could be a third of σ̂). Judge
-            # the step with the smaller of σ at the answer the Gauss-Newton step predicts
-            # and σ̂'s lower 99 % confidence bound, or a large early misfit reads as "within
-            # a standard error" (the boom: 5 rows, 4 parameters).
-            rss_next = max(float(np.sum(pt.r ** 2)) - 2.0 * sigma ** 2 * max(pred, 0.0),
-                           1e-6 * float(np.sum(pt.r ** 2)))
-            sigma_stop = min(math.sqrt(rss_next / max(n - k, 1)), sigma * low[0])
-            ratio *= sigma / max(sigma_stop, 1e-12)
+        gn, cov, pred = gauss_newton_step(u, free, lo, hi, rw, Jw, n)
+        if not cov.any_determined:
+            return outcome("undetermined", "the data and priors determine none of the "
+                           "fitted parameters (the Jacobian is zero or not finite): no step "
+                           "can be judged", cov, math.inf, pred, 0.0)
+        # the stop judges the step against the standard errors the data will support at
+        # the answer the step predicts: σ, widened by a misfit that remains (`error_scale`);
+        # with σ from the residuals, σ̂ overstates the noise while the misfit still falls,
+        # and with few dof it is itself uncertain (one dof: σ could be a third of σ̂), so
+        # its lower 99 % bound is used, or a large early misfit reads as "within a
+        # standard error" (the boom: 5 rows, 4 parameters).
+        dof = max(n - cov.k_eff, 1.0)
+        low = math.sqrt(dof / chi2.ppf(0.995, dof))
+        rss_next = max(float(pt.r @ pt.r) - 2.0 * sigma ** 2 * max(pred, 0.0),
+                       1e-6 * float(pt.r @ pt.r))
+        s_next = math.sqrt(rss_next / dof) * low
+        s_stop = min(s_next, sigma * low) if estimated else max(sigma, s_next)
+        ratio = _ratio(gn, cov) * sigma / max(s_stop, 1e-12)
         # ½χ² moves by Σ|r_i|ε/σ² when every residual shifts by the model's error ε
         floor = float(np.sum(np.abs(rw[:n]))) * pt.error_um / sigma
         if ratio <= se_tol:
             return outcome("converged", f"converged: the next Gauss-Newton step moves every "
-                           f"parameter by < {se_tol:g} standard errors ({ratio:.2g}); "
-                           f"predicted decrease of ½χ² {pred:.2g} (numerical floor "
-                           f"{floor:.2g})", cov, ratio, pred, floor)
+                           f"determined parameter by < {se_tol:g} standard errors "
+                           f"({ratio:.2g}); predicted decrease of ½χ² {pred:.2g} (numerical "
+                           f"floor {floor:.2g})", cov, ratio, pred, floor)
         if pred <= floor and ratio <= 0.1:
             return outcome("converged", f"converged within the model's numerical error: the "
                            f"next step predicts a decrease of ½χ² {pred:.2g} below the floor "
@@ -293,18 +344,22 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             return outcome("budget", f"not converged within {max_evaluations} model "
                            f"evaluations: the next Gauss-Newton step is {ratio:.2g} standard "
                            f"errors", cov, ratio, pred, floor)
-        y = D * u[free]
-        Jy = Jw / D
         # Within a standard error of the minimum the quadratic model is as good as the data
-        # can tell: try the undamped (Gauss-Newton) step, as the trust region would after a
-        # few very good steps, rather than creep in with λ; on a rejection λ takes over.
+        # can tell: take the Gauss-Newton step itself (the same factorisation as the stop
+        # and the covariance), as the trust region would after a few very good steps,
+        # rather than creep in with λ; on a rejection λ takes over.
         near = ratio <= GAUSS_NEWTON_WITHIN_SE and rejections == 0 and not gauss_newton_failed
-        # columns held at a bound drop out of the proposal (zero column: no step)
-        Jy = np.where(_held(u, free, lo, hi, Jw.T @ rw)[None, :], 0.0, Jy)
-        diff = np.asarray(_propose(jnp.asarray(y), jnp.asarray(rw), jnp.asarray(Jy),
-                                   jnp.asarray(1e12) if near else step_size))
         trial = u.copy()
-        trial[free] = np.clip((y + diff) / D, lo[free], hi[free])
+        y = D * u[free]
+        if near:
+            trial[free] = np.clip(u[free] + gn, lo[free], hi[free])
+        else:
+            Jy = Jw / D
+            # columns held at a bound drop out of the proposal (zero column: no step)
+            Jy = np.where(_held(u, free, lo, hi, Jw.T @ rw)[None, :], 0.0, Jy)
+            diff = np.asarray(_propose(jnp.asarray(y), jnp.asarray(rw), jnp.asarray(Jy),
+                                       step_size))
+            trial[free] = np.clip((y + diff) / D, lo[free], hi[free])
         if project is not None:
             trial = np.where(free, project(trial), u)
         pt_t = evaluate(trial)
@@ -324,14 +379,15 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             if gauss_newton_failed and ratio < 0.5 * ratio_at_failure:
                 gauss_newton_failed = False  # closer now: the quadratic model may hold
             rejections = rejections + 1 if gain < NO_GAIN else 0
-            if noise_um is None:
-                sigma = noise_estimate(pt, k)
+            if estimated:
+                sigma = noise_estimate(pt, cov.k_eff)
         else:
             rejections += 1
             if near:
                 gauss_newton_failed, ratio_at_failure = True, ratio
+        why = "" if pt_t.usable else " (not usable: worn through, not finite or cut off)"
         say(f"    {label} {evals:2d}: rms {pt_t.rms_um:.4f} µm, "
-            f"{'accepted' if accept else 'rejected'}, step was {ratio:.2g} SE by "
+            f"{'accepted' if accept else 'rejected'}{why}, step was {ratio:.2g} SE by "
             f"Gauss-Newton, λ {1 / float(step_size):.1e} ({time.perf_counter() - t0:.1f} s)")
 
 
@@ -347,6 +403,6 @@ def step_in_standard_errors(pt: Point, noise_um: float, lower=None, upper=None,
     if not pt.usable:
         return math.inf, math.inf
     rw, Jw = whitened(pt, noise_um, free)
-    _, ratio, pred = _gauss_newton(np.asarray(pt.u, np.float64), free, lo, hi, rw, Jw,
-                                   covariance(Jw))
-    return ratio, pred
+    step, cov, pred = gauss_newton_step(np.asarray(pt.u, np.float64), free, lo, hi, rw, Jw,
+                                        pt.r.size)
+    return _ratio(step, cov), pred
