@@ -332,8 +332,10 @@ def candidate_columns(name: str, p0) -> list[tuple[Column, float]]:
 
 def shape_columns(keys) -> list[tuple[Column, float]]:
     """The coefficients of the shape correction (`effects.shape`): 0 is the model as
-    written."""
-    return [(Column(k, k, None, False, 1.0, 1.0, -math.inf, math.inf, group="shape"), 0.0)
+    written; a deposit's coefficients are ≥ 0 (extra wear is never negative)."""
+    return [(Column(k, k, None, False, 1.0, 1.0,
+                    0.0 if k.startswith("deposit_") else -math.inf, math.inf, group="shape",
+                    strength=k.startswith("deposit_")), 0.0)
             for k in keys]
 
 

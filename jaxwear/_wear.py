@@ -25,7 +25,7 @@ from ._load import LoadHistory, load_history
 from ._params import Params
 from ._schedule import Schedule, bucket, crank_segments, duty_segments, make_schedule
 from .effects import RateContext, get_effect
-from .effects.shape import shape_log_factor
+from .effects.shape import shape_terms
 
 
 class WearResult(eqx.Module):
@@ -63,12 +63,11 @@ def node_area(p: Params, nodes: int) -> Scalar:
     return p.bore_radius * (2 * jnp.pi / nodes) * p.width
 
 
-def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
-                    start=None):
-    """Wear of one cycle on the frozen profile `h`, with its contact solution.
-
-    Returns (Δh per cycle [m] (nodes,), Σ_i (Σ_j p_ij A_j) dS_i [N·m], contact solution).
-    """
+def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
+                start=None):
+    """Wear of each step of one cycle on the frozen profile `h` [m] (steps, nodes), with the
+    contact solution: K_d p_ij dS_i (eq 21), then every effect's hook, then the shape
+    correction (`effects.shape`) where the configuration carries one."""
     effects = [get_effect(n) for n in cfg.effects]
     load, angle = hist.load[regime], hist.angle[regime]
     slide, dt, sense = hist.slide[regime], hist.dt[regime], hist.sense[regime]
@@ -83,15 +82,28 @@ def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, s
                         friction=friction, iterations=cfg.newton_iterations, start=start)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
     if effects:
-        ctx = RateContext(sol.pressure, slide, dt, sliding, angle)
+        ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load)
         for eff in effects:
             rate = eff.local_rate(p, rate, ctx)
     if cfg.shape is not None:
-        rate = rate * jnp.exp(shape_log_factor(cfg.shape, p, sol.pressure, slide, dt,
-                                               sliding, angle))
-    dh = jnp.sum(rate, axis=0)
+        g, deposit = shape_terms(cfg.shape, p, sol.pressure, slide, dt, sliding, angle, load)
+        rate = rate * jnp.exp(g)
+        if deposit is not None:
+            rate = rate + deposit
+    return rate, sol
+
+
+def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
+                    start=None):
+    """Wear of one cycle on the frozen profile `h`, with its contact solution.
+
+    Returns (Δh per cycle [m] (nodes,), Σ_i (Σ_j p_ij A_j) dS_i [N·m], contact solution).
+    """
+    rate, sol = cycle_rates(p, cfg, hist, regime, h, sliding, start)
+    slide = hist.slide[regime]
+    area = node_area(p, cfg.nodes)
     work = jnp.sum(jnp.sum(sol.pressure, axis=1) * area * slide)
-    return dh, work, sol
+    return jnp.sum(rate, axis=0), work, sol
 
 
 def _warm_start(cfg: ModelConfig, hist: LoadHistory, starts, h_seen, regime, h):

@@ -17,13 +17,19 @@ DIAGNOSE_OUTPUTS = ("diagnosis.json", "residuals.csv", "report.html")
 
 
 def shape_outputs() -> tuple[str, ...]:
-    """The shape analysis's figures (written when it runs: `--shape`, or an unexplained
-    verdict): `shape_<variable>.png`, and `shape_after_effect_<variable>.png` on top of
-    an effect found."""
-    from ..effects.shape import VARIABLES
+    """The shape analysis's outputs (written when it runs: `--shape`, or an unexplained
+    verdict): `shape_<variable>.png` per variable and form (`shape_deposit_<variable>.png`),
+    `shape_when_where.png`, the effect file `missing_wear.py`, and the same with
+    `shape_after_effect_` / `missing_wear_after_effect.py` on top of an effect found."""
+    from ..diagnose._shape_plot import file_stem
+    from ..effects.shape import DEPOSIT_VARIABLES, VARIABLES
 
-    return tuple(f"shape_{n}.png" for n in VARIABLES) + tuple(
-        f"shape_after_effect_{n}.png" for n in VARIABLES)
+    labels = list(VARIABLES) + [f"deposit:{n}" for n in DEPOSIT_VARIABLES]
+    out = []
+    for prefix in ("shape", "shape_after_effect"):
+        out += [prefix + file_stem(lab).removeprefix("shape") + ".png" for lab in labels]
+        out.append(f"{prefix}_when_where.png")
+    return tuple(out) + ("missing_wear.py", "missing_wear_after_effect.py")
 
 
 def open_diagnose_outputs(study, out_dir, json_file=None):
@@ -64,19 +70,31 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     out = out_dir if isinstance(out_dir, OutputDir) else open_diagnose_outputs(
         diag.study, out_dir, json_file)
     doc = diag.to_json()
+    for prefix, key, res in (("shape", "shape", diag.shape),
+                             ("shape_after_effect", "shape_after_effect",
+                              diag.shape_after_effect)):
+        if res is None:
+            continue
+        from .._report import plt
+        from ..diagnose._effect_file import effect_file_source
+        from ..diagnose._shape_plot import file_stem, shape_figure, when_where_figure
+
+        for v in res.variables:
+            fig = shape_figure(res, v.label)
+            out.savefig(fig, prefix + file_stem(v.label).removeprefix("shape") + ".png")
+            plt().close(fig)
+        if res.when_where is not None:
+            fig = when_where_figure(res)
+            out.savefig(fig, f"{prefix}_when_where.png")
+            plt().close(fig)
+        if res.best is not None and res.correction:
+            name = "missing_wear.py" if key == "shape" else "missing_wear_after_effect.py"
+            out.write_text(name, effect_file_source(res, str(diag.study.path)))
+            doc[key]["effect_file"] = name
     out.write_json("diagnosis.json", doc)
     header, rows = residual_table(diag)
     out.write_csv("residuals.csv", header, rows)
     out.write_text("report.html", report_html(diag, doc))
-    for prefix, res in (("shape", diag.shape), ("shape_after_effect", diag.shape_after_effect)):
-        if res is not None:
-            from .._report import plt
-            from ..diagnose._shape_plot import shape_figure
-
-            for v in res.variables:
-                fig = shape_figure(res, v.name)
-                out.savefig(fig, f"{prefix}_{v.name}.png")
-                plt().close(fig)
     out.write_json_file(doc)
     return doc
 

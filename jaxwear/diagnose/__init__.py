@@ -30,8 +30,11 @@ The steps, each a function below:
 5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the DESIGN §7 JSON
    (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
 6. **The shape of the missing wear** (`_shape`; always with `shape=True`, else when the
-   verdict is `unexplained`): a smooth correction exp(g(z)) of the local wear rate along
-   each state variable, its share of the misfit, a p-value and where g peaks.
+   verdict is `unexplained`): a smooth correction along each state variable in two forms
+   (a factor exp(g(z)) of the local rate, or a deposit e(z) ≥ 0 where the pin presses),
+   alone and jointly, against a null that counts noise, correlated noise and the model's
+   own numerical error; the best refitted through the loop, when in the cycle and where
+   on the bore it is made (`_shape_map`), and an effect file (`_effect_file`).
 
 Why one extended model: compiling the wear loop costs far more than evaluating it, so the
 base model, every candidate and every pair of candidates are evaluated by the same
@@ -62,8 +65,9 @@ from ._fit import Fit, fit_masked
 from ._model import Eval, Model, objective
 from ._result import METHOD_NOTE, Candidate, Diagnosis
 from ._screen import SHAPE_GRID, Screen, screen
-from ._shape import ShapeResult, VariableShape, shape_analysis, threshold
-from ._shape_plot import shape_figure
+from ._shape import ShapeResult, VariableShape, shape_analysis
+from ._shape_plot import shape_figure, when_where_figure
+from ._shape_text import threshold
 from ._stats import (
     ALPHA,
     Tests,
@@ -90,4 +94,5 @@ __all__ = [
     "objective", "rmse_per_experiment", "run_tests", "screen", "summarize_verdict",
     "where_it_fails",
     "ShapeResult", "VariableShape", "shape_analysis", "shape_figure", "threshold",
+    "when_where_figure",
 ]

@@ -323,26 +323,36 @@ def _integration_text(integ: dict) -> str:
 
 
 def _shape_section(title: str, res) -> list[str]:
-    """The shape analysis: its sentence, a table of the variables and the figure of the
-    variable that explains most (`_shape`)."""
-    from ._shape import p_text
-    from ._shape_plot import shape_figure
+    """The shape analysis: its sentence, a table of the variables in both forms, the figure
+    of the best (or the largest share) and the map of when and where (`_shape`)."""
+    from ._shape_plot import shape_figure, when_where_figure
+    from ._shape_text import p_text
 
-    rows = [(v.name, f"{v.explained_fraction:.0%}", _num(v.dof, ".1f"),
-             p_text(v.p_value).removeprefix("p "),
+    rows = [(v.name, v.form, f"{v.explained_fraction:.0%}", f"{v.unique_fraction:.0%}",
+             _num(v.dof, ".1f"), p_text(v.p_value).removeprefix("p "),
              "yes" if v.significant else "no",
+             "carries" if v.carries else (f"stand-in for {v.stand_in_for}"
+                                          if v.stand_in_for else ""),
              f"{_num(v.peak_at, '.4g')} [{_num(v.lower, '.4g')}, {_num(v.upper, '.4g')}] "
-             f"{v.unit}") for v in res.variables]
+             f"{v.unit}") for v in sorted(res.variables, key=lambda v: v.aic)]
     out = [f"<h2>{html.escape(title)}</h2>", f"<p>{html.escape(res.sentence)}</p>",
-           _table(rows, ["state variable", "misfit explained", "dof", "p", "significant",
+           _table(rows, ["state variable", "form", "misfit explained (alone)",
+                         "unique (jointly)", "dof", "p", "significant", "jointly",
                          "peak [90 % band]"]),
-           "<p>Each row: a smooth correction exp(g(z)) of the local wear rate along one state "
-           "variable, fitted to the misfit through the wear loop with a roughness penalty "
-           "chosen by generalised cross-validation; p from simulations of the null with the "
-           f"penalty choice included, significant below α/{len(res.variables)} "
-           f"(α = {res.alpha:g}, Bonferroni).</p>"]
-    show = res.best or max(res.variables, key=lambda v: v.explained_fraction).name
+           "<p>Each row: a smooth correction along one state variable, as a factor exp(g(z)) "
+           "of the local wear rate or as a deposit e(z) ≥ 0 where the pin presses, fitted "
+           "to the misfit through the wear loop with a roughness penalty chosen by "
+           "generalised cross-validation, the fit's own parameters and the model's "
+           "numerical error projected off; p from simulations of the null with the penalty "
+           f"choice included, significant below α/{len(res.variables)} (α = {res.alpha:g}, "
+           "Bonferroni). Unique: what the variable adds to all the others of its form fitted "
+           "together; rows sorted by AIC.</p>"]
+    show = (f"deposit:{res.best}" if res.form == "deposit" else res.best) if res.best else \
+        max(res.variables, key=lambda v: v.explained_fraction).label
     out.append(_img(_png(shape_figure(res, show)),
-                    f"g({show}): the extra wear the data ask for"
+                    f"{show}: the extra wear the data ask for"
                     + ("" if res.best else " (not significant: the largest share shown)")))
+    if res.when_where is not None:
+        out.append(_img(_png(when_where_figure(res)),
+                        "when in the cycle the missing wear is made and where it lands"))
     return out

@@ -1,37 +1,43 @@
-"""The shape of the missing wear: a smooth correction exp(g(z)) of the local wear rate along
-each state variable z, learned from the misfit through the wear loop (DESIGN §7, `--shape`).
+"""The shape of the missing wear: a smooth correction of the local wear along the state
+variables, learned from the misfit through the wear loop (DESIGN §7, `--shape`).
 
-For a fit (the base model, or the model with the effect diagnose found), every variable of
-`effects.shape.VARIABLES` gets g_v(z) = Σ_k c_vk B_k(z) on `SIZE` cubic B-splines. All
-coefficients zero is that fit's model exactly, so one forward-mode Jacobian of the model with
-every variable's coefficients switched on (one compiled function, one evaluation) linearises
-them all. Per variable, on the host:
+Two forms (`effects.shape`): a **factor** exp(g(z)) of the local Archard rate, and a
+**deposit** e(z) ≥ 0 per step where the pin presses (extra wear not tied to sliding), each
+g_v or e_v on `SIZE` cubic B-splines along one state variable z. All coefficients zero is
+the fit's model exactly, so one forward-mode Jacobian of the model with every variable's
+coefficients in both forms switched on (one compiled function, one evaluation) linearises
+them all. On the host, in the whitened system the fits see:
 
-1. **The fit.** The fit's own free parameters (K_d, clearances, the effect's strengths) are
-   refitted with it (Frisch-Waugh: the coefficient columns are projected off theirs), so g
-   holds only what no parameter of the model can take up; its constant is K_d's, so g has
-   coefficients summing to zero (a level shift is a change of K_d). The roughness penalty
-   λ Σ (second difference of c)² (`ShapeVariable.roughness`) is chosen by generalised
-   cross-validation over a grid of λ. dof = trace of the smoother (effective parameters).
-2. **The decision.** T = (RSS_base − RSS_g)/σ² at the chosen λ; its distribution when the
-   variable explains nothing is simulated (`DRAWS` draws: residuals N(0, σ²) projected as
-   the base fit projects them, σ̂ with its ν degrees of freedom, and λ chosen by GCV in each
-   draw, so that the choice of λ is paid for), p = (1 + #{T* ≥ T}) / (1 + DRAWS). The six
-   variables are Bonferroni-combined at α = `ALPHA`, the family-wise level of the candidate
-   scores: significant when p < α / 6.
-3. **The shape.** ĝ with its Bayesian (Wahba) band, covariance σ²(A'A + λS)⁻¹; `peak_at`, where
-   ĝ is largest, and its 90 % band from 4000 posterior draws of the argmax.
-4. **Through the loop.** The best variable's correction is refitted by the least-squares core
-   with the penalty as prior rows (`lsq.solve`, the Jacobian of step 1 held: a chord method,
-   each residual a forward run of the wear loop); the RMSE after it is the real model's.
-
-Cost: one Jacobian evaluation with 6 × `SIZE` more columns, plus a few forward runs.
+1. **What is not physics.** The fit's own free parameters (K_d, clearances, the effect's
+   strengths) and the model's own numerical error are nuisance columns projected off the
+   misfit (Frisch-Waugh): the numerical error is the difference of the rows at twice the
+   nodes and steps (and half the fixed update, or a quarter of the tolerance) at the fit's
+   answer, one forward run, so a discretisation misfit at any numerics a user sets is not
+   read as missing wear. Noise correlated along a scan (a profilometer's stylus, surface
+   roughness) is prewhitened (AR(1), its coefficient read from the lag-1 correlation of
+   the data's second differences, where smooth misfit cancels).
+2. **Alone.** Per variable and form, a penalised fit (roughness λ Σ (second difference)²,
+   λ by generalised cross-validation); T = ΔRSS/σ² with its null simulated (`DRAWS`
+   draws, λ re-chosen in each, σ̂ with its ν dof); significant when p < α / (variables ×
+   forms). Its share of the misfit, net of the noise it would take up, is not clipped.
+3. **Together.** Per form, one additive fit over all its variables (one GCV λ): the share
+   each variable adds to the others' fit (unique) says which carry the misfit together;
+   a variable significant alone whose unique share is not is a stand-in for the carrier
+   its fitted correction resembles most (speed and load turn rate both follow crank speed
+   on the paper's rig).
+4. **The answer.** `best` is the significant variable that explains most (DESIGN §7; ties
+   within ln 20 of AIC are named as alternatives), `form` its form. The correction of that
+   form over the variables that carry the misfit is refitted through the wear loop with
+   its true Jacobian by the least-squares core (penalty and, for a factor, zero sum as
+   prior rows; a deposit ≥ 0 by bounds); its RMSE is the real model's.
+5. **When and where** (`_shape_map`): that correction's extra wear over the cycle and over
+   the bore, with bands, the load's reversals and peak marked, and a sentence.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import equinox as eqx
 import jax
@@ -41,27 +47,41 @@ import numpy as np
 from .. import lsq
 from .._load import load_history
 from .._wear import cycle_increment
-from ..effects.shape import VARIABLES, ShapeBasis, ShapeVariable, state_variables
+from ..effects.shape import (
+    DEPOSIT_VARIABLES,
+    FORMS,
+    VARIABLES,
+    ShapeBasis,
+    ShapeVariable,
+    state_variables,
+)
+from . import _shape_linear as lin
 from ._fit import Fit, _log
 from ._model import Model
-from ._stats import ALPHA
+from ._stats import ALPHA, neighbour_differences
 
-SIZE = 12  # B-splines per variable
-DRAWS = 20000  # null simulations per variable (p resolves 5e-5 < ALPHA / 6)
-LEVEL = 0.9  # band of g and of its peak
-LAMBDAS = np.logspace(-4, 6, 41)  # λ grid, relative to tr(A'A)/tr(S)
+SIZE = 10  # B-splines per variable
+DRAWS = 20000  # null simulations per variable (p resolves 5e-5 < ALPHA / 14)
+JOINT_DRAWS = 2000  # null simulations of a form's joint fit (larger matrices)
+LEVEL = 0.9  # band of the correction and of its peak
 RANGE_QUANTILES = (0.005, 0.995)  # of the wear-weighted state: the range met in the data
 KNOT_QUANTILES = 32  # pieces of the piecewise-linear quantile coordinate
-NONLINEAR_EVALUATIONS = 8
+REFIT_EVALUATIONS = 10
+MAX_CARRIERS = 3  # variables of the refitted correction at most
+JACOBIAN_GRID = (60, 60)  # nodes, steps per cycle of the correction's Jacobian at most
 
 
 @dataclass(frozen=True)
 class VariableShape:
-    """The shape along one variable (JSON: `to_json`)."""
+    """The correction along one variable in one form (JSON: `to_json`). `z`, `g` (factor:
+    ln of the rate factor; deposit: e in nm·rad of depth per step) and the band on a grid
+    over the range met in the data."""
 
     name: str
     unit: str
+    form: str
     explained_fraction: float
+    unique_fraction: float
     dof: float
     p_value: float
     significant: bool
@@ -70,23 +90,33 @@ class VariableShape:
     upper: float
     lam: float
     statistic: float  # T = ΔRSS/σ²
-    z: np.ndarray = field(repr=False)  # grid over the range met in the data
-    g: np.ndarray = field(repr=False)  # ĝ on the grid
+    aic: float
+    z: np.ndarray = field(repr=False)
+    g: np.ndarray = field(repr=False)
     g_lower: np.ndarray = field(repr=False)
     g_upper: np.ndarray = field(repr=False)
-    coef: np.ndarray = field(repr=False)  # c (SIZE,)
+    coef: np.ndarray = field(repr=False)
     extra_wear_um: np.ndarray = field(repr=False)  # linearised Δdepth over the bore (N,)
     range: tuple = (0.0, 0.0)
-    refit_rmse_um: float | None = None  # RMSE with this correction, through the loop
+    carries: bool = False  # its unique share is significant in the form's joint fit
+    stand_in_for: str | None = None
+    refit_rmse_um: float | None = None
+
+    @property
+    def label(self) -> str:
+        return self.name if self.form == "factor" else f"deposit:{self.name}"
 
     def to_json(self) -> dict:
-        return {"name": self.name, "unit": self.unit,
-                "explained_fraction": _num(self.explained_fraction), "dof": _num(self.dof),
+        return {"name": self.name, "unit": self.unit, "form": self.form,
+                "explained_fraction": _num(self.explained_fraction),
+                "unique_fraction": _num(self.unique_fraction), "dof": _num(self.dof),
                 "p_value": _num(self.p_value), "significant": bool(self.significant),
                 "peak_at": _num(self.peak_at), "lower": _num(self.lower),
                 "upper": _num(self.upper), "range": [_num(self.range[0]), _num(self.range[1])],
                 "penalty": _num(self.lam), "statistic": _num(self.statistic),
-                "trend": _num(trend(self)), "refit_rmse_um": _num(self.refit_rmse_um)}
+                "aic": _num(self.aic), "trend": _num(trend(self)),
+                "carries_the_misfit": bool(self.carries), "stand_in_for": self.stand_in_for,
+                "refit_rmse_um": _num(self.refit_rmse_um)}
 
 
 @dataclass(frozen=True)
@@ -95,31 +125,53 @@ class ShapeResult:
 
     after: str
     best: str | None
-    variables: tuple
+    form: str | None
+    variables: tuple  # VariableShape of both forms
     alpha: float
     noise_um: float
     rmse_before_um: float
-    rmse_after_um: float | None  # with the best variable's correction, through the loop
+    rmse_after_um: float | None  # with the refitted correction, through the loop
     evaluations: int
-    status: str  # the nonlinear refit's (lsq) status, or "none"
+    status: str  # the refit's (lsq) status, or "none"
     sentence: str
     phase_load: dict = field(default_factory=dict, repr=False)  # for the phase plot
     bore_deg: np.ndarray = field(default=None, repr=False)
     experiment: str = ""  # whose bore the extra wear is drawn on
-    alternatives: tuple = ()  # variables the data cannot tell from `best` (within ln 20)
+    alternatives: tuple = ()  # variable labels the data cannot tell from `best`
+    forms: dict = field(default_factory=dict)  # form -> joint fit summary
+    carriers: tuple = ()  # the variables of the refitted correction
+    correction: dict = field(default_factory=dict, repr=False)  # for the effect file
+    when_where: object = None  # _shape_map.WhenWhere
+    numerical: dict = field(default_factory=dict)
+    effect_file: str | None = None
+
+    def form_variables(self, form: str | None = None) -> tuple:
+        form = form or self.form or "factor"
+        return tuple(v for v in self.variables if v.form == form)
 
     def to_json(self) -> dict:
-        return {"after": self.after, "best": self.best,
+        return {"after": self.after, "best": self.best, "form": self.form,
+                "rmse_after_um": _num(self.rmse_after_um), "effect_file": self.effect_file,
+                "variables": [v.to_json() for v in self.form_variables()],
+                "other_form": {"form": _other(self.form or "factor"),
+                               "variables": [v.to_json() for v in self.form_variables(
+                                   _other(self.form or "factor"))]},
                 "alternatives": list(self.alternatives),
-                "variables": [v.to_json() for v in self.variables],
+                "carriers": list(self.carriers),
+                "forms": self.forms,
+                "when_where": None if self.when_where is None else self.when_where.to_json(),
                 "alpha": self.alpha, "noise_um": _num(self.noise_um),
                 "rmse_before_um": _num(self.rmse_before_um),
-                "rmse_after_um": _num(self.rmse_after_um),
                 "model_evaluations": self.evaluations, "refit_status": self.status,
-                "summary": self.sentence}
+                "numerical_error": self.numerical, "summary": self.sentence}
 
-    def variable(self, name: str) -> VariableShape:
-        return next(v for v in self.variables if v.name == name)
+    def variable(self, name: str, form: str | None = None) -> VariableShape:
+        form = form or self.form or "factor"
+        return next(v for v in self.variables if v.name == name and v.form == form)
+
+
+def _other(form: str) -> str:
+    return "deposit" if form == "factor" else "factor"
 
 
 def _num(x):
@@ -136,7 +188,8 @@ def _cycle_states(p, cfg, hist, regime, h, sliding):
     """Every state variable of one cycle and its wear rate (steps, nodes) [m per step]."""
     _, _, sol = cycle_increment(p, cfg, hist, regime, h, sliding)
     slide, dt = hist.slide[regime], hist.dt[regime]
-    z = state_variables(sol.pressure, slide, dt, sliding, hist.angle[regime])
+    z = state_variables(sol.pressure, slide, dt, sliding, hist.angle[regime],
+                        hist.load[regime])
     rate = p.wear_coefficient * sol.pressure * slide[:, None]
     return {k: jnp.broadcast_to(v, sol.pressure.shape) for k, v in z.items()}, rate
 
@@ -155,15 +208,15 @@ def state_knots(model: Model, fit: Fit):
     1/Q, ..., 1 (`KNOT_QUANTILES` + 1 values, the ends at `RANGE_QUANTILES`), from the
     states of one cycle at the start and at the end of each experiment at the fit (the
     sliding distance: uniform over each experiment's total, weighted by its wear). Also the
-    joint load over the cycle of the experiment that wears most (for the phase plot)."""
+    joint load over the cycle of the experiment that wears most (for the plots)."""
     ext = model.ext
-    cfg = ext.cfg
+    cfg = ext.cfg.replace(shape=None)
     P = ext.batched_params(jnp.asarray(fit.ev.u))
     samples = {k: ([], []) for k in VARIABLES}
     snaps = fit.ev.snaps  # (E, S, N) µm
     deepest = int(np.argmax(snaps[:, -1].max(axis=1)))
     load = {}
-    distance = ([], [])  # S over each experiment, weighted by its wear
+    distance = ([], [])
     for e in range(snaps.shape[0]):
         p = jax.tree_util.tree_map(lambda x: x[e], P)
         hist = load_history(p, cfg)
@@ -172,9 +225,11 @@ def state_knots(model: Model, fit: Fit):
             for h, s in ((np.zeros(snaps.shape[2]), 0.0), (snaps[e, -1] * 1e-6, total)):
                 z, rate = _cycle_states(p, cfg, hist, r, jnp.asarray(h), jnp.asarray(s))
                 w = np.asarray(rate).ravel()
+                # the load's own states count by the load they carry too, so that a
+                # reversal (little Archard wear) is still inside the range
                 for k in samples:
                     samples[k][0].append(np.asarray(z[k]).ravel())
-                    samples[k][1].append(w)
+                    samples[k][1].append(w + 1e-3 * max(float(w.max()), 1e-300))
         distance[0].append(np.linspace(0.0, total, 64))
         distance[1].append(np.full(64, max(float(snaps[e, -1].max()), 1e-12)))
         if e == deepest:
@@ -183,6 +238,7 @@ def state_knots(model: Model, fit: Fit):
             n = hist.load.shape[1]
             load = {"phase_deg": np.arange(n) * 360.0 / n,
                     "load_N": np.asarray(hist.load[0]),
+                    "angle_deg": np.degrees(np.asarray(hist.angle[0])),
                     "turn_rate_deg_per_s": np.asarray(z0["load_turn_rate_deg_per_s"][:, 0])}
     samples["sliding_distance_m"] = distance
     knots = {}
@@ -199,92 +255,31 @@ def state_knots(model: Model, fit: Fit):
     return knots, load, model.exp_names[deepest], deepest
 
 
-def make_basis(knots: dict, size: int = SIZE) -> ShapeBasis:
-    return ShapeBasis(tuple(ShapeVariable(name, size) if periodic else
-                            ShapeVariable(name, size, knots[name])
-                            for name, (_, periodic) in VARIABLES.items()))
+def make_basis(knots: dict, size: int = SIZE, forms=FORMS, names=None) -> ShapeBasis:
+    """Every variable (or `names`) in each of `forms` (the deposit only along the variables
+    of events in the cycle, `DEPOSIT_VARIABLES`)."""
+    out = []
+    for form in forms:
+        for name, (_, periodic, _) in VARIABLES.items():
+            if names is not None and name not in names:
+                continue
+            if form == "deposit" and name not in DEPOSIT_VARIABLES:
+                continue
+            out.append(ShapeVariable(name, size, () if periodic else knots[name], form))
+    return ShapeBasis(tuple(out))
 
 
 def trend(v) -> float:
-    """Slope of ĝ against the wear-weighted quantile t ∈ [0, 1] of z (least squares over
-    the plotting grid, which is uniform in t): > 0 where the extra wear rises with z."""
+    """Slope of the correction against the wear-weighted quantile t ∈ [0, 1] of z (least
+    squares over the plotting grid, which is uniform in t): > 0 where the extra wear rises
+    with z."""
     t = np.linspace(0.0, 1.0, len(v.g))
     return float(np.polyfit(t, v.g, 1)[0])
 
 
-# -- the linear algebra of one variable ------------------------------------------------------
-
-def _sum_zero(n: int) -> np.ndarray:
-    """Orthonormal basis Z (n, n-1) of the coefficients that sum to zero."""
-    q, _ = np.linalg.qr(np.eye(n) - 1.0 / n)
-    return q[:, :n - 1]
-
-
-class _Smoother:
-    """min_a ||y - A a||² + λ a'Sa for the (whitened, base-projected) columns A, in the
-    coordinates of A's left singular vectors: everything data-dependent is y = U'ρ (m,)
-    and ||ρ||² (see the module docstring)."""
-
-    def __init__(self, A: np.ndarray, S: np.ndarray, lambdas: np.ndarray):
-        U, s, Vt = np.linalg.svd(A, full_matrices=False)
-        keep = s > 1e-10 * max(s[0], 1e-300)
-        self.U, self.s, self.Vt = U[:, keep], s[keep], Vt[keep]
-        AtA = (self.Vt.T * self.s ** 2) @ self.Vt
-        scale = np.trace(AtA) / max(np.trace(S), 1e-300)
-        self.lambdas = lambdas * scale
-        ridge = 1e-12 * np.trace(AtA) * np.eye(len(S))
-        self.inv = [np.linalg.inv(AtA + lam * S + ridge) for lam in self.lambdas]
-        B = self.Vt.T * self.s  # A'U = V Σ
-        # ŷ = M_λ y with M_λ = Σ V' (A'A + λS)⁻¹ V Σ
-        self.M = np.stack([B.T @ inv @ B for inv in self.inv])  # (L, m, m)
-        self.trace = np.einsum("lii->l", self.M)
-        self.AtU = B
-
-    def rss_drop(self, Y):
-        """RSS_0 - RSS_λ (..., L) for y's (..., m): 2 y·ŷ - ||ŷ||²."""
-        Yh = np.einsum("lij,...j->...li", self.M, Y)
-        return 2 * np.einsum("...i,...li->...l", Y, Yh) - np.einsum("...li,...li->...l",
-                                                                    Yh, Yh)
-
-    def choose(self, drop, rss0, n_res):
-        """GCV: argmin over λ of n RSS_λ / (n - tr)² (rss0, n_res: the base fit's)."""
-        rss = rss0[..., None] - drop
-        gcv = rss / np.maximum(n_res - self.trace, 1e-9) ** 2
-        return np.argmin(gcv, axis=-1)
-
-
-def _variable_fit(A, S, rho, n_res, nu, rng, draws):
-    """(λ index, a, cov, T, p, dof) for one variable: A (rows, m) whitened, base-projected
-    columns; rho (rows,) whitened, base-projected misfit to explain (measured - model)."""
-    sm = _Smoother(A, S, LAMBDAS)
-    y = sm.U.T @ rho
-    rss0 = float(rho @ rho)
-    drop = sm.rss_drop(y)
-    i = int(sm.choose(drop, np.asarray(rss0), n_res))
-    T = float(drop[i])
-    # the null: y* ~ N(0, I), the rest of the base residual χ²_{n_res - m}, σ̂²/σ² ~ χ²_ν/ν
-    m = len(y)
-    Y = rng.standard_normal((draws, m))
-    rest = rng.chisquare(max(n_res - m, 1), draws)
-    s2 = rng.chisquare(nu, draws) / nu if math.isfinite(nu) and nu > 0 else np.ones(draws)
-    Y = Y / np.sqrt(s2)[:, None]
-    rss0_star = np.einsum("ij,ij->i", Y, Y) + rest / s2
-    d_star = sm.rss_drop(Y)
-    j = sm.choose(d_star, rss0_star, n_res)
-    T_star = d_star[np.arange(draws), j]
-    p = (1.0 + float(np.sum(T_star >= T))) / (1.0 + draws)
-    a = sm.inv[i] @ (sm.AtU @ y)
-    return i, a, sm.inv[i], T, p, float(sm.trace[i]), sm.lambdas[i]
-
-
-def _peak(z, G, periodic):
-    """argmax of each row of G (draws, grid) on z, as values."""
-    return z[np.argmax(G, axis=-1)]
-
-
 def _band_of_peak(z, g_hat, G, periodic, level):
     peak = float(z[int(np.argmax(g_hat))])
-    draws = _peak(z, G, periodic)
+    draws = z[np.argmax(G, axis=-1)]
     q = ((1 - level) / 2, (1 + level) / 2)
     if periodic:
         d = np.mod(draws - peak + 180.0, 360.0) - 180.0
@@ -294,295 +289,338 @@ def _band_of_peak(z, g_hat, G, periodic, level):
     return peak, float(lo), float(hi)
 
 
+# -- the model's own numerical error ----------------------------------------------------------
+
+def numerical_error_rows(model: Model, fit: Fit, verbose=False):
+    """The rows' numerical error at the fit's answer (µm): the same model at twice the nodes
+    and steps per cycle (and half the fixed update M, or a quarter of the adaptive
+    tolerance) minus the model, one forward run; None where it cannot be run. The error of
+    the finer level is left in (for second-order convergence ~ a quarter)."""
+    from dataclasses import replace as dreplace
+
+    st = model.study
+    cfg = st.config
+    finer = dreplace(st, config=cfg.replace(nodes=2 * cfg.nodes,
+                                            steps_per_rev=2 * cfg.steps_per_rev),
+                     revolutions_per_update=max(st.revolutions_per_update / 2, 1.0),
+                     wear_tolerance_um=st.wear_tolerance_um / 4)
+    _log(verbose, f"    the model's numerical error: one run at {2 * cfg.nodes} x "
+                  f"{2 * cfg.steps_per_rev}")
+    fm = Model(finer, keys=model.keys, start=model.start,
+               candidates=[g for g in fit.groups if g in model.candidates],
+               contact=model.contact)
+    u = np.zeros(len(fm.names))
+    for i, name in enumerate(model.names):
+        if name in fm.index:
+            u[fm.index[name]] = fit.ev.u[i]
+    rows = fm.predict(u)
+    if not np.all(np.isfinite(rows)):
+        return None
+    return rows - fit.ev.pred
+
+
 # -- the analysis ---------------------------------------------------------------------------
 
 def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after: str = "base",
                    seed: int = 0, draws: int = DRAWS, size: int = SIZE,
-                   verbose: bool = False) -> ShapeResult:
-    """The shape of the misfit left by `fit` (of `model`) along every state variable (module
-    docstring). `noise_um` σ [µm] with `nu` degrees of freedom (diagnose's noise level)."""
+                   verbose: bool = False, numerical: bool = True) -> ShapeResult:
+    """The shape of the misfit left by `fit` (of `model`) along every state variable, in
+    both forms (module docstring). `noise_um` σ [µm] with `nu` degrees of freedom
+    (diagnose's noise level). `numerical`: count the model's numerical error (one forward
+    run at finer numerics)."""
+    from ._shape_map import when_where
+    from ._shape_text import describe
+
     evals0 = Model.evaluations
-    _log(verbose, f"  shape of the missing wear after {after}: "
-                  f"{len(VARIABLES)} variables x {size} B-splines")
     knots, load, exp_name, deepest = state_knots(model, fit)
     basis = make_basis(knots, size)
-    # the fit's own model (its candidates only: every column costs a tangent) with the
-    # correction switched on
-    smodel = model.variant(candidates=[g for g in fit.groups if g in model.candidates],
-                           shape=basis)
-    u = np.zeros(len(smodel.names))
-    for i, name in enumerate(model.names):
-        if name in smodel.index:
-            u[smodel.index[name]] = fit.ev.u[i]
-    _log(verbose, "    one Jacobian with every variable's coefficients (compiles the model "
-                  "with the correction)")
-    ev = smodel.evaluate(u)
+    _log(verbose, f"  shape of the missing wear after {after}: {len(basis.variables)} "
+                  f"variable-forms x {size} B-splines (one Jacobian; compiles the model with "
+                  f"the correction)")
+    groups = [g for g in fit.groups if g in model.candidates]
+    smodel = model.variant(candidates=groups, shape=basis)
+    # The correction's columns by one Jacobian of a model at no more than `JACOBIAN_GRID`
+    # (their cost grows with nodes x steps x columns): they are the design of the test, not
+    # its data, so a coarser discretisation of them costs power only, never false alarms
+    # (the misfit tested is the fit's own); the answer is refitted at the fit's numerics.
+    jmodel = _coarse(smodel, groups, basis)
+    u = _map_u(model, fit.ev.u, smodel)
+    ev_j = jmodel.evaluate(_map_u(model, fit.ev.u, jmodel))
+    ev = fit.ev
     sigma = max(float(noise_um), 1e-12)
     free_base = [smodel.index[model.names[i]] for i in np.flatnonzero(fit.mask)]
     n = smodel.n
-    # whitened system: data rows /σ, prior rows in SD units (as the refits see them)
-    Jd, Jp = ev.J / sigma, ev.J_prior
+    # whitened system: data rows /σ, prior rows in SD units; the fit's own columns from
+    # the fit, the correction's from the Jacobian model
+    J = np.zeros((n, len(smodel.names)))
+    for i, name in enumerate(model.names):
+        J[:, smodel.index[name]] = ev.J[:, i]
+    for name in basis.keys():
+        J[:, smodel.index[name]] = ev_j.J[:, jmodel.index[name]]
+    Jp = np.zeros((len(ev.r_prior), len(smodel.names)))
+    for i, name in enumerate(model.names):
+        Jp[:, smodel.index[name]] = ev.J_prior[:, i]
+    Jw = np.vstack([J / sigma, Jp])
     rho_full = -np.concatenate([ev.r / sigma, ev.r_prior])
-    Xb = np.vstack([Jd[:, free_base], Jp[:, free_base]])
+    # correlated noise along the scans: prewhiten (AR(1) read from second differences)
+    e, mids = neighbour_differences(model, model.measured)
+    phi, z_phi = lin.ar1_coefficient(e, mids)
+    Jw = lin.prewhiten(Jw, model.series, phi, n)
+    rho_full = lin.prewhiten(rho_full[:, None], model.series, phi, n)[:, 0]
+    nuisance = [Jw[:, free_base]]
+    num_info = {"counted": False, "ar1_coefficient": phi, "ar1_z": z_phi}
+    if numerical:
+        d = numerical_error_rows(model, fit, verbose)
+        if d is not None:
+            dw = lin.prewhiten(np.concatenate([d / sigma, np.zeros(len(ev.r_prior))])[:, None],
+                               model.series, phi, n)
+            nuisance.append(dw)
+            num_info.update(counted=True, rms_um=float(np.sqrt(np.mean(d ** 2))),
+                            max_um=float(np.max(np.abs(d))))
+    Xb = np.hstack(nuisance)
     Qb = np.linalg.qr(Xb)[0] if Xb.shape[1] else np.zeros((len(rho_full), 0))
     proj = lambda X: X - Qb @ (Qb.T @ X)  # noqa: E731
     rho = proj(rho_full[:, None])[:, 0]
-    n_res = n - len(free_base)
-    rss0 = float(rho_full @ rho_full)
+    n_res = n - Qb.shape[1]
+    rss0 = float(rho @ rho)
     excess = rss0 - n_res  # the misfit beyond the noise, in σ² units
     rng = np.random.default_rng(seed)
-    Z = _sum_zero(size)
+    Zs = lin.sum_zero(size)
+    blocks = {}
     results = []
     for var in basis.variables:
         cols = [smodel.index[k] for k in var.keys()]
-        Xa = np.vstack([Jd[:, cols], Jp[:, cols]]) @ Z
-        A = proj(Xa)
+        Z = Zs if var.form == "factor" else np.eye(size)
+        A = proj(Jw[:, cols] @ Z)
         S = Z.T @ var.roughness() @ Z
-        i, a, inv, T, p, dof, lam = _variable_fit(A, S, rho, n_res, nu, rng, draws)
-        c = Z @ a
-        # the plotting grid: uniform in angle, or in the wear-weighted quantile t
-        zg = (np.linspace(0.0, 360.0, 181)[:-1] if var.periodic else
-              var.at_coordinate(np.linspace(0.0, 1.0, 181)))
-        Bg = np.asarray(var.basis(jnp.asarray(zg)))
-        g = Bg @ c
-        w, V = np.linalg.eigh(0.5 * (inv + inv.T))  # draws of a, then c = Z a
-        L = V * np.sqrt(np.clip(w, 0.0, None))
-        C = (a + rng.standard_normal((4000, len(a))) @ L.T) @ Z.T
-        G = C @ Bg.T
-        q = ((1 - LEVEL) / 2, (1 + LEVEL) / 2)
-        g_lo, g_hi = np.quantile(G, q, axis=0)
-        peak, lo, hi = _band_of_peak(zg, g, G, var.periodic, LEVEL)
-        J_snap = None if ev.J_snaps is None else ev.J_snaps[deepest, -1][:, cols]
-        extra = (J_snap @ c) if J_snap is not None else np.zeros(0)
-        results.append(VariableShape(
-            var.name, var.unit, _explained(T, dof, excess, rss0), dof,
-            p, False, peak, lo, hi, float(lam), T, zg, g, g_lo, g_hi, c, extra,
-            (float(zg[0]), float(zg[-1]))))
-        _log(verbose, f"    {var.name}: explains {results[-1].explained_fraction:.0%} of the "
-                      f"misfit, dof {dof:.1f}, p {p:.1e}, peak at {peak:.4g} {var.unit}")
+        blocks[var.label] = (A, S, Z, cols, var)
+        pf = lin.penalised_fit(A, S, rho, n_res, nu, rng, draws)
+        c = Z @ pf.a
+        if var.form == "deposit":
+            c = lin.nonnegative_fit(A, S, rho, pf.lam)
+        jcols = [jmodel.index[k] for k in var.keys()]
+        results.append(_variable_result(var, pf, c, Z, excess, rss0, rng, ev_j, deepest,
+                                        jcols))
+        v = results[-1]
+        _log(verbose, f"    {v.label}: explains {v.explained_fraction:.0%} of the misfit, dof "
+                      f"{v.dof:.1f}, p {v.p_value:.1e}, peak at {v.peak_at:.4g} {v.unit}")
     alpha_each = ALPHA / len(results)
-    results = [_replace(v, significant=v.p_value < alpha_each) for v in results]
-    sig = sorted([v for v in results if v.significant], key=lambda v: -v.explained_fraction)
+    results = [replace(v, significant=v.p_value < alpha_each) for v in results]
+    forms = {}
+    for form in FORMS:
+        results, forms[form] = _joint(form, results, blocks, rho, rss0, excess, n_res, nu, rng,
+                                      alpha_each, verbose)
     rmse_before = float(np.sqrt(np.mean(ev.r ** 2)))
-    best, rmse_after, status, alternatives = None, None, "none", []
+    sig = [v for v in results if v.significant]
+    best = form = None
+    rmse_after, status, alternatives, carriers, correction, ww = None, "none", [], (), {}, None
     if sig:
-        # `best` is the significant variable that explains most (DESIGN §7). State
-        # variables are correlated (on the rig, speed and load turn rate both follow the
-        # crank speed), so shares can nearly tie: significant variables whose AIC (the
-        # linearised fit's RSS + 2 effective dof) is within ln 20 of the best's, or lower,
-        # are named as alternatives the data cannot tell apart.
-        best = sig[0].name
-        crit = {v.name: rss0 - v.statistic + 2.0 * v.dof for v in sig}
-        alternatives = [k for k in sorted(crit, key=crit.get)
-                        if k != best and crit[k] - crit[best] < 2.0 * math.log(20.0)]
-        refits = {best: _refit_best(smodel, ev, u, free_base, basis, best, results, sigma,
-                                    verbose)}
-        rmse_after, status, u_best = refits[best]
-        # where the best variable's correction puts its wear, through the loop (the
-        # others' are linearised): the deepest experiment at its last measurement
-        extra = smodel.snapshots(u_best)[deepest, -1] - ev.snaps[deepest, -1]
-        var = basis.variables[[v.name for v in basis.variables].index(best)]
-        cols = [smodel.index[k] for k in var.keys()]
-        new = []
-        for v in results:
-            if v.name in refits:
-                v = _replace(v, refit_rmse_um=refits[v.name][0])
-            if v.name == best:
-                c = u_best[cols]
-                g = np.asarray(var.basis(jnp.asarray(v.z))) @ c
-                # the band of the linearised fit, carried to the refitted ĝ
-                v = _replace(v, coef=c, g=g, g_lower=v.g_lower + g - v.g,
-                             g_upper=v.g_upper + g - v.g, extra_wear_um=extra,
-                             peak_at=float(v.z[int(np.argmax(g))]))
-            new.append(v)
-        results = new
-    sentence = describe(best, results, load, after, alternatives)
-    return ShapeResult(after, best, tuple(results), ALPHA, sigma, rmse_before, rmse_after,
+        top = max(sig, key=lambda v: (v.explained_fraction, -v.aic))
+        best, form = top.name, top.form
+        alternatives = [v.label for v in sorted(sig, key=lambda v: v.aic)
+                        if v is not top and v.aic - top.aic < 2.0 * math.log(20.0)]
+        carriers = _carriers(results, top)
+        rmse_after, status, corr_model, u_fit, cov = _refit(
+            smodel, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma, Jw,
+            rho_full, verbose)
+        correction = _correction(corr_model, u_fit, carriers, form)
+        results = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
+                   and v.form == form else v for v in results]
+        ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL)
+    sentence = describe(best, form, results, load, after, alternatives, carriers, ww)
+    return ShapeResult(after, best, form, tuple(results), ALPHA, sigma, rmse_before, rmse_after,
                        Model.evaluations - evals0, status, sentence, load,
-                       np.arange(smodel.ext.cfg.nodes) * 360.0 / smodel.ext.cfg.nodes,
-                       exp_name, tuple(alternatives))
+                       np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
+                       exp_name, tuple(alternatives), forms, tuple(carriers), correction, ww,
+                       num_info)
 
 
-def _explained(drop: float, dof: float, excess: float, rss0: float) -> float:
-    """Share of the misfit a correction explains, net of what it would take from noise
-    alone (a correction with `dof` effective parameters removes ~dof σ² of pure noise):
-    (ΔRSS − dof)⁺ over the misfit beyond the noise level (RSS_base − (n − k)σ², σ² units)
-    where there is some, else over the whole residual sum. So a fit at noise level, or a
-    history of five points, does not read "100 % explained"."""
-    net = max(drop - dof, 0.0)
-    if excess > 0.0:
-        return float(np.clip(net / max(excess, net, 1e-300), 0.0, 1.0))
-    return float(np.clip(net / max(rss0, 1e-300), 0.0, 1.0))
+def _coarse(smodel: Model, groups, basis) -> Model:
+    """`smodel` at no more than `JACOBIAN_GRID` nodes x steps per cycle (itself if it is
+    no finer)."""
+    from dataclasses import replace as dreplace
+
+    st = smodel.study
+    cfg = st.config
+    nodes, steps = min(cfg.nodes, JACOBIAN_GRID[0]), min(cfg.steps_per_rev, JACOBIAN_GRID[1])
+    if (nodes, steps) == (cfg.nodes, cfg.steps_per_rev):
+        return smodel
+    coarse = dreplace(st, config=cfg.replace(nodes=nodes, steps_per_rev=steps))
+    return Model(coarse, keys=smodel.keys, start=smodel.start, candidates=groups,
+                 contact=smodel.contact, shape=basis)
 
 
-def _replace(v, **kw):
-    from dataclasses import replace
+def _map_u(model: Model, u_model, other: Model) -> np.ndarray:
+    """u of `other` holding `model`'s values at u_model (its extra columns at 0)."""
+    u = np.zeros(len(other.names))
+    for i, name in enumerate(model.names):
+        if name in other.index:
+            u[other.index[name]] = u_model[i]
+    return u
 
-    return replace(v, **kw)
+
+def _variable_result(var, pf, c, Z, excess, rss0, rng, ev, deepest, cols) -> VariableShape:
+    zg = (np.linspace(0.0, 360.0, 181)[:-1] if var.periodic else
+          var.at_coordinate(np.linspace(0.0, 1.0, 181)))
+    Bg = np.asarray(var.basis(jnp.asarray(zg)))
+    g = Bg @ c
+    w, V = np.linalg.eigh(0.5 * (pf.cov + pf.cov.T))
+    L = V * np.sqrt(np.clip(w, 0.0, None))
+    C = (pf.a + rng.standard_normal((4000, len(pf.a))) @ L.T) @ Z.T
+    G = C @ Bg.T
+    q = ((1 - LEVEL) / 2, (1 + LEVEL) / 2)
+    g_lo, g_hi = np.quantile(G, q, axis=0)
+    peak, lo, hi = _band_of_peak(zg, g, G, var.periodic, LEVEL)
+    J_snap = None if ev.J_snaps is None else ev.J_snaps[deepest, -1][:, cols]
+    extra = (J_snap @ c) if J_snap is not None else np.zeros(0)
+    return VariableShape(
+        var.name, var.unit, var.form, lin.explained(pf.drop, pf.dof, excess, rss0), math.nan,
+        pf.dof, pf.p, False, peak, lo, hi, pf.lam, pf.drop, rss0 - pf.drop + 2.0 * pf.dof,
+        zg, g, g_lo, g_hi, c, extra, (float(zg[0]), float(zg[-1])))
 
 
-def _refit_best(smodel: Model, ev, u, free_base, basis: ShapeBasis, best: str, results,
-                sigma, verbose):
-    """The best variable's correction refitted with the base parameters by the one
-    least-squares core: residuals through the wear loop (forward runs), the Jacobian of
-    the linearisation held (chord), the roughness penalty and the zero-sum of the
-    coefficients as prior rows (SD units)."""
-    var = next(v for v in basis.variables if v.name == best)
-    res = next(v for v in results if v.name == best)
-    cols = [smodel.index[k] for k in var.keys()]
-    lam = res.lam
-    D = np.linalg.cholesky(var.roughness() + 1e-12 * np.eye(var.size)).T  # D'D = R
-    free = np.zeros(len(u), bool)
-    free[free_base] = True
+def _joint(form, results, blocks, rho, rss0, excess, n_res, nu, rng, alpha_each, verbose):
+    """The form's joint fit: its share, p-value, and each variable's unique share; who
+    carries the misfit and who stands in for whom."""
+    from scipy.stats import chi2
+
+    mine = [v for v in results if v.form == form]
+    fit, unique = lin.joint_fit([blocks[v.label][:2] for v in mine], rho, n_res, nu, rng,
+                                JOINT_DRAWS)
+    fitted = {}
+    for v in mine:
+        A = blocks[v.label][0]
+        Z = blocks[v.label][2]
+        fitted[v.name] = A @ np.linalg.lstsq(Z, v.coef, rcond=None)[0]
+    out = {}
+    for v, d in zip(mine, unique):
+        p_u = float(chi2.sf(max(d, 0.0), max(v.dof, 1.0)))
+        out[v.name] = replace(v, unique_fraction=lin.explained(d, 0.0, excess, rss0),
+                              carries=bool(v.significant and p_u < alpha_each))
+    carriers = [k for k, v in out.items() if v.carries]
+    if not carriers:
+        # none adds significantly to the others: the significant ones stand in for each
+        # other (the experiments vary them together); the one explaining most leads
+        sig = [v for v in out.values() if v.significant]
+        if sig:
+            lead = max(sig, key=lambda v: v.explained_fraction)
+            carriers = [lead.name]
+            out[lead.name] = replace(lead, carries=True)
+    for k, v in out.items():
+        if v.significant and not v.carries and k not in carriers:
+            f = fitted[k]
+            cos = {w: abs(float(f @ fitted[w])) / max(
+                float(np.linalg.norm(f) * np.linalg.norm(fitted[w])), 1e-300)
+                for w in carriers}
+            out[k] = replace(v, stand_in_for=max(cos, key=cos.get))
+    summary = {"explained_fraction": lin.explained(fit.drop, fit.dof, excess, rss0),
+               "dof": fit.dof, "p_value": fit.p, "carriers": carriers,
+               "stand_ins": {k: v.stand_in_for for k, v in out.items() if v.stand_in_for}}
+    _log(verbose, f"    {form}, all variables together: explains "
+                  f"{summary['explained_fraction']:.0%}, p {fit.p:.1e}; carried by "
+                  f"{', '.join(carriers) or 'none'}")
+    return [out.get(v.name, v) if v.form == form else v for v in results], summary
+
+
+def _carriers(results, top) -> tuple:
+    """The variables of the refitted correction: the best, then the others of its form
+    that carry the misfit jointly (at most `MAX_CARRIERS`), by unique share."""
+    others = sorted([v for v in results if v.form == top.form and v.carries
+                     and v.name != top.name], key=lambda v: -v.unique_fraction)
+    return tuple([top.name] + [v.name for v in others][:MAX_CARRIERS - 1])
+
+
+def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
+           Jw, rho_full, verbose):
+    """The correction of `form` along the `carriers`, refitted with the fit's own
+    parameters through the wear loop by the one least-squares core, with its true Jacobian
+    (a model with those columns only), the roughness penalty (at the linearised λ) and, for
+    a factor, the zero sum of each variable's coefficients as prior rows; a deposit ≥ 0 by
+    bounds. Returns (RMSE [µm], status, the model, u at the answer, covariance of u)."""
+    from ..effects.shape import ShapeBasis
+
+    labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
+    vars_ = [blocks[lab][4] for lab in labels]
+    cm = smodel.variant(shape=ShapeBasis(tuple(vars_)))
+    u0 = _map_u(smodel, u, cm)
+    # the joint linearised start over the carriers (their GCV penalty)
+    A, S = lin.block_penalty([blocks[lab][:2] for lab in labels])
+    pf = lin.penalised_fit(A, S, rho, n_res, math.inf, None, 0)
+    lam = pf.lam
+    a = lin.nonnegative_fit(A, S, rho, lam) if form == "deposit" else pf.a
+    k = 0
+    shift = rho_full.copy()
+    for lab in labels:
+        _, _, Z, cols_v, var = blocks[lab]
+        m = Z.shape[1]
+        c = Z @ a[k:k + m]
+        k += m
+        for key, val in zip(var.keys(), c):
+            u0[cm.index[key]] = val
+        shift = shift - Jw[:, cols_v] @ c
+    # the fit's own parameters move with the correction (K_d takes its level): their
+    # least-squares step on what the correction leaves
+    if free_base:
+        Xb = Jw[:, free_base]
+        du = np.linalg.lstsq(Xb, shift, rcond=None)[0]
+        for i, d in zip(free_base, du):
+            u0[cm.index[smodel.names[i]]] += d
+    cols = [cm.index[key] for var in vars_ for key in var.keys()]
+    free = np.zeros(len(cm.names), bool)
+    base_names = [smodel.names[i] for i in free_base]
+    free[[cm.index[nm] for nm in base_names]] = True
     free[cols] = True
-    J = ev.J.copy()
-    prior_base = ev.J_prior
-    r_prior0 = ev.r_prior
-
-    def prior(v):
-        c = v[cols]
-        rows_pen = math.sqrt(lam) * (D @ c)
-        rows_sum = np.array([np.sum(c) / (0.01 * var.size)])
-        # the clearance prior rows move linearly with their columns
-        rp = r_prior0 + prior_base @ (v - u)
-        Jpen = np.zeros((var.size, len(v)))
-        Jpen[:, cols] = math.sqrt(lam) * D
-        Jsum = np.zeros((1, len(v)))
-        Jsum[0, cols] = 1.0 / (0.01 * var.size)
-        return (np.concatenate([rp, rows_pen, rows_sum]),
-                np.vstack([prior_base, Jpen, Jsum]))
-
-    # Broyden's rank-one update of the held Jacobian from each new residual (the secant
-    # along the step just taken): exp(g) is far from linear once g ~ 1, and a held Jacobian
-    # alone (a chord method) stalled there
-    last = {"u": u.copy(), "r": ev.r.copy(), "J": J.copy()}
+    lo, hi = cm.bounds_u()
+    D = [np.linalg.cholesky(v.roughness() + 1e-12 * np.eye(v.size)).T for v in vars_]
 
     def evaluate(v):
-        pred = smodel.predict(v)
-        r = pred - smodel.measured
-        rp, Jpr = prior(v)
-        ok = bool(np.all(np.isfinite(r)))
-        if ok:
-            du = (v - last["u"]) * free
-            nrm = float(du @ du)
-            if nrm > 0:
-                last["J"] = last["J"] + np.outer(r - last["r"] - last["J"] @ du, du) / nrm
-            last.update(u=v.copy(), r=r.copy())
-        return lsq.Point(u=v, r=r, predicted=pred, J=last["J"].copy(), r_prior=rp,
-                         J_prior=Jpr, usable=ok)
+        e = cm.evaluate(v)
+        pt = e.point()
+        rows, J = [], []
+        k = 0
+        for var, Dv in zip(vars_, D):
+            idx = [cm.index[key] for key in var.keys()]
+            c = v[idx]
+            w = math.sqrt(lam)
+            r = w * (Dv @ c)
+            Jr = np.zeros((len(r), len(v)))
+            Jr[:, idx] = w * Dv
+            rows.append(r), J.append(Jr)
+            if var.form == "factor":  # a level shift of g is K_d's, not the correction's
+                r1 = np.array([np.sum(c) / (0.01 * var.size)])
+                J1 = np.zeros((1, len(v)))
+                J1[0, idx] = 1.0 / (0.01 * var.size)
+                rows.append(r1), J.append(J1)
+            k += 1
+        return replace(pt, r_prior=np.concatenate([pt.r_prior, *rows]),
+                       J_prior=np.vstack([pt.J_prior, *J]))
 
-    rp0, Jp0 = prior(u)
-    pt0 = lsq.Point(u=u, r=ev.r, predicted=ev.pred, J=J, r_prior=rp0, J_prior=Jp0,
-                    usable=True)
-    u1 = u.copy()
-    u1[cols] = res.coef
-    # the base parameters move with the correction (the joint linearised answer)
-    Xb = np.vstack([J[:, free_base] / sigma, prior_base[:, free_base]])
-    rho = -np.concatenate([ev.r / sigma, r_prior0])
-    Xa = np.vstack([J[:, cols] / sigma, prior_base[:, cols]])
-    if free_base:
-        u1[free_base] += np.linalg.lstsq(Xb, rho - Xa @ res.coef, rcond=None)[0]
-    pt1 = evaluate(u1)  # the linearised answer, through the loop
-    start, point0 = (u1, pt1) if pt1.usable else (u, pt0)
     log = (lambda m: _log(True, m)) if verbose else None
-    out = lsq.solve(evaluate, start, point0=point0, free=free, noise_um=sigma,
-                    max_evaluations=NONLINEAR_EVALUATIONS - 1, se_tol=0.1,
-                    label=f"    shape {best}", log=log)
+    _log(verbose, f"    refit of the {form} correction along {', '.join(carriers)} through the "
+                  f"loop (true Jacobian)")
+    out = lsq.solve(evaluate, np.clip(u0, lo, hi), free=free, lower=lo, upper=hi,
+                    noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
+                    project=cm.packing.project, label=f"    shape {form}", log=log)
     r = out.point.r
-    return float(np.sqrt(np.mean(r ** 2))), out.status, out.u
+    return float(np.sqrt(np.mean(r ** 2))), out.status, cm, out.u, _full_cov(out, free)
 
 
-# -- words --------------------------------------------------------------------------------
-
-LABELS = {"cycle_phase_deg": "crank angles", "pressure_MPa": "contact pressures",
-          "sliding_speed_m_per_s": "sliding speeds", "sliding_distance_m": "sliding distances",
-          "load_turn_rate_deg_per_s": "load turn rates", "bore_angle_deg": "bore angles"}
-
-
-def _levels(v: VariableShape) -> tuple[float, float]:
-    """(low, high) of ĝ where the data determine it: over the grid points whose band is no
-    wider than twice its median width (where little wears, g is free to wander)."""
-    width = v.g_upper - v.g_lower
-    ok = width <= 2.0 * np.median(width)
-    g = v.g[ok] if ok.any() else v.g
-    return float(g.min()), float(g.max())
+def _full_cov(out: lsq.Outcome, free) -> np.ndarray:
+    """The covariance of all of u (P, P), zero on held columns."""
+    P = len(free)
+    C = np.zeros((P, P))
+    idx = np.flatnonzero(free)
+    cov = out.errors.cov if out.errors is not None else out.cov.cov
+    C[np.ix_(idx, idx)] = np.where(np.isfinite(cov), cov, 0.0)
+    return C
 
 
-def _region(v: VariableShape) -> tuple[float, float]:
-    """Where ĝ is above half-way between its low and high levels (`_levels`), around the
-    peak: for a step, from the step on."""
-    g = v.g
-    low, high = _levels(v)
-    half = low + 0.5 * (high - low)
-    k = int(np.argmax(g))
-    n = len(g)
-    lo = hi = k
-    step = (lambda i: i % n) if v.name in ("cycle_phase_deg", "bore_angle_deg") else (
-        lambda i: min(max(i, 0), n - 1))
-    for _ in range(n):
-        nxt = step(lo - 1)
-        if g[nxt] < half or nxt == lo:
-            break
-        lo = nxt
-    for _ in range(n):
-        nxt = step(hi + 1)
-        if g[nxt] < half or nxt == hi:
-            break
-        hi = nxt
-    return float(v.z[lo]), float(v.z[hi])
-
-
-def threshold(v: VariableShape, rising: bool = True) -> float:
-    """Where ĝ steps up (`rising`; else down): the best two-level step fitted to ĝ over the
-    plotting grid (uniform in the wear-weighted quantile), each point weighted by 1/(its
-    band width)², so that where the data leave g free it counts little. Returns z at the
-    first point past the step (for a rate that jumps at a threshold, the threshold)."""
-    g = v.g if rising else -v.g
-    w = 1.0 / np.maximum(v.g_upper - v.g_lower, 1e-12) ** 2
-    best, k_best = math.inf, 1
-    for k in range(1, len(g)):
-        sse = 0.0
-        for part, wp in ((g[:k], w[:k]), (g[k:], w[k:])):
-            m = float(np.sum(wp * part) / np.sum(wp))
-            sse += float(np.sum(wp * (part - m) ** 2))
-        if sse < best:
-            best, k_best = sse, k
-    return float(v.z[k_best])
-
-
-def p_text(p: float) -> str:
-    """"p 3.1e-03", or "p ≤ 5.0e-05" where no simulated draw reached the statistic (the
-    p-value (1 + 0)/(1 + draws) is then a bound)."""
-    return f"p ≤ {p:.1e}" if p <= 1.5 / (1.0 + DRAWS) else f"p {p:.1e}"
-
-
-def describe(best, results, load, after, alternatives=()) -> str:
-    on_top = "" if after == "base" else f" on top of {after}"
-    if best is None:
-        return (f"No state variable explains the misfit{on_top} beyond noise "
-                f"(family-wise α = {ALPHA:g} over {len(results)} variables).")
-    v = next(r for r in results if r.name == best)
-    lo, hi = _region(v)
-    rising = trend(v) > 0
-    unit = v.unit
-    if v.name in ("cycle_phase_deg", "bore_angle_deg"):
-        where = f"at {LABELS[v.name]} {lo:.0f}-{hi:.0f}°"
-    elif rising and hi >= v.z[int(0.85 * (len(v.z) - 1))]:
-        where = f"above {LABELS[v.name][:-1]} {threshold(v):.3g} {unit}, rising with it"
-    elif not rising and lo <= v.z[int(0.15 * (len(v.z) - 1))]:
-        where = (f"below {LABELS[v.name][:-1]} {threshold(v, rising=False):.3g} {unit}, "
-                 f"falling with it")
-    else:
-        where = f"at {LABELS[v.name]} {lo:.3g}-{hi:.3g} {unit}"
-    s = (f"The missing wear{on_top} follows {best} (explains {v.explained_fraction:.0%} of "
-         f"the misfit, {p_text(v.p_value)}): it concentrates {where}")
-    if v.name == "cycle_phase_deg" and load:
-        fast = float(load["phase_deg"][int(np.argmax(load["turn_rate_deg_per_s"]))])
-        d = abs((fast - v.peak_at + 180.0) % 360.0 - 180.0)
-        if d <= 20.0:
-            s += f", where the joint load turns fastest ({fast:.0f}°)"
-    s += "."
-    if alternatives:
-        s += (f" The data cannot tell it from {', '.join(alternatives)} (AIC within ln 20: "
-              f"the experiments vary them together).")
-    return s
+def _correction(cm: Model, u, carriers, form) -> dict:
+    """The refitted correction as data (for the effect file): per variable its form,
+    size, knots and coefficients."""
+    out = {"form": form, "variables": []}
+    for var in cm.ext.cfg.shape.variables:
+        out["variables"].append({"name": var.name, "form": var.form, "size": var.size,
+                                 "knots": list(var.knots),
+                                 "coefficients": [float(u[cm.index[k]]) for k in var.keys()]})
+    return out

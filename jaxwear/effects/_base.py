@@ -76,7 +76,9 @@ class RateContext(eqx.Module):
     `pressure` (steps, nodes) [Pa]; `slide` dS_i (steps,) [m]; `dt` Δt_i (steps,) [s];
     `sliding_distance` S at the start of the block [m]; `load_angle` θ_W (steps,) [rad],
     the direction of the joint load in the bushing frame (its turn rate marks impacts at
-    force reversals; `effects.shape.state_variables` computes it and the others).
+    force reversals; `effects.shape.state_variables` computes it and the others); `load`
+    |W_i| (steps,) [N]. Extra wear not tied to sliding (a deposit where the pin presses)
+    is added to the rate with `effects.shape.swept_kernel(pressure, load_angle)`.
     """
 
     pressure: object
@@ -84,6 +86,7 @@ class RateContext(eqx.Module):
     dt: object
     sliding_distance: object
     load_angle: object = None
+    load: object = None
 
 
 class Effect(eqx.Module):

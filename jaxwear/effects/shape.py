@@ -1,21 +1,33 @@
-"""A non-parametric correction of the local wear rate: exp(g(z)) along state variables.
+"""A non-parametric correction of the local wear, in the two forms missing wear takes
+(DESIGN §7, `--shape`): a factor of the local Archard rate, or extra wear not tied to
+sliding deposited where the pin presses.
 
-The library's effects are parametric corrections of the wear rate along a few state
-variables (running-in: sliding distance; speed: sliding speed; ...). `diagnose --shape`
-asks the data which shape they want along each variable, including shapes no effect has:
-the local rate K_d p_ij dS_i becomes K_d p_ij dS_i exp(Σ_v g_v(z_v,ij)), each g_v a smooth
-function on a small B-spline basis. All coefficients zero is the base model exactly
-(nesting), so one forward-mode Jacobian at zero gives the linearised fit of every variable.
+- **factor**: the local rate K_d p_ij dS_i becomes K_d p_ij dS_i exp(Σ_v g_v(z_v,ij)), each
+  g_v a smooth function on a small B-spline basis (what a speed, pressure or running-in
+  law does: more or less of the wear Archard already puts there);
+- **deposit**: + Σ_v e_v(z_v,i) κ_ij per step, e_v ≥ 0 on nonnegative B-spline coefficients,
+  κ_ij the kernel of where the pin presses during step i (`swept_kernel`): the step's
+  pressure pattern, swept along the arc the load direction turns through before the next
+  step, normalised to unit integral over the bore angle. So e is a depth × arc
+  [m·rad] per step: the deposited volume is e R_b B, whatever the node count. This is
+  what impacts, fretting or cold flow make: wear where Archard puts little (at a force
+  reversal the load dips and the sliding stops, while the load direction sweeps tens of
+  degrees within a few crank degrees).
+
+All coefficients zero is the base model exactly (nesting), so one forward-mode Jacobian at
+zero gives the linearised fit of every variable in both forms.
 
 State variables (`VARIABLES`), per step i of a cycle and node j of the bore:
 
 | name | unit | what |
 |---|---|---|
-| `cycle_phase_deg` | deg | crank angle (swing phase of the oscillating joint): 360 i / steps |
+| `cycle_phase_deg` | deg | crank angle (swing phase, load file phase): 360 i / steps |
 | `pressure_MPa` | MPa | contact pressure p_ij |
 | `sliding_speed_m_per_s` | m/s | dS_i / Δt_i |
 | `sliding_distance_m` | m | accumulated sliding distance S (time in the test) |
 | `load_turn_rate_deg_per_s` | deg/s | how fast the load direction θ_W turns (impacts at reversal) |
+| `load_turn_deg_per_deg` | deg/deg | the same per degree of cycle (kinematic: not ∝ speed) |
+| `load_N` | N | the joint load magnitude |W_i| |
 | `bore_angle_deg` | deg | node angle on the bore, 360 j / nodes |
 
 The two angles are periodic: their basis is cubic B-splines on the circle. The others use
@@ -33,29 +45,39 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-# name -> (unit, periodic)
-VARIABLES: dict[str, tuple[str, bool]] = {
-    "cycle_phase_deg": ("deg", True),
-    "pressure_MPa": ("MPa", False),
-    "sliding_speed_m_per_s": ("m/s", False),
-    "sliding_distance_m": ("m", False),
-    "load_turn_rate_deg_per_s": ("deg/s", False),
-    "bore_angle_deg": ("deg", True),
+# name -> (unit, periodic, per step (same for every node))
+VARIABLES: dict[str, tuple[str, bool, bool]] = {
+    "cycle_phase_deg": ("deg", True, True),
+    "pressure_MPa": ("MPa", False, False),
+    "sliding_speed_m_per_s": ("m/s", False, True),
+    "sliding_distance_m": ("m", False, True),
+    "load_turn_rate_deg_per_s": ("deg/s", False, True),
+    "load_turn_deg_per_deg": ("deg/deg", False, True),
+    "load_N": ("N", False, True),
+    "bore_angle_deg": ("deg", True, False),
 }
+FORMS = ("factor", "deposit")
+# deposits come from events in the cycle (when, how hard, how fast the load turns), not
+# from where on the bore or at which pressure: those are the kernel's business
+DEPOSIT_VARIABLES = ("cycle_phase_deg", "sliding_speed_m_per_s", "sliding_distance_m",
+                     "load_turn_rate_deg_per_s", "load_turn_deg_per_deg", "load_N")
+SWEEP_SUBSTEPS = 8  # points along the arc the load turns through within one step
+DEPOSIT_UNIT_M = 1e-9  # a deposit coefficient of 1 is 1 nm·rad of depth per step
 
 
 @dataclass(frozen=True)
 class ShapeVariable:
-    """One variable's basis: `size` cubic B-splines. Periodic variables: uniform on the
-    circle [0, 360) deg. The others: uniform in the coordinate t = F(z) ∈ [0, 1], F the
-    wear-weighted distribution of z met in the data (`knots`: z at t = 0, 1/Q, ..., 1,
+    """One variable's basis in one form: `size` cubic B-splines. Periodic variables: uniform
+    on the circle [0, 360) deg. The others: uniform in the coordinate t = F(z) ∈ [0, 1], F
+    the wear-weighted distribution of z met in the data (`knots`: z at t = 0, 1/Q, ..., 1,
     increasing; F piecewise linear between them), z clamped to [knots[0], knots[-1]]: the
-    basis is fine where the wear happens and coarse where little does, and g is flat beyond
-    the data, never extrapolated."""
+    basis is fine where the wear happens and coarse where little does, and the correction
+    is flat beyond the data, never extrapolated."""
 
     name: str
     size: int
     knots: tuple = ()
+    form: str = "factor"
 
     @property
     def unit(self) -> str:
@@ -66,6 +88,10 @@ class ShapeVariable:
         return VARIABLES[self.name][1]
 
     @property
+    def per_step(self) -> bool:
+        return VARIABLES[self.name][2]
+
+    @property
     def lo(self) -> float:
         return 0.0 if self.periodic else float(self.knots[0])
 
@@ -73,9 +99,15 @@ class ShapeVariable:
     def hi(self) -> float:
         return 360.0 if self.periodic else float(self.knots[-1])
 
+    @property
+    def label(self) -> str:
+        """`name` for the factor form (the keys of earlier results), `deposit:name` else."""
+        return self.name if self.form == "factor" else f"deposit:{self.name}"
+
     def keys(self) -> tuple[str, ...]:
         """The effect-parameter keys of the coefficients (dimensionless)."""
-        return tuple(f"shape_{self.name}_{k:02d}" for k in range(self.size))
+        prefix = "shape" if self.form == "factor" else "deposit"
+        return tuple(f"{prefix}_{self.name}_{k:02d}" for k in range(self.size))
 
     def coordinate(self, z, xp=jnp):
         """t = F(z) ∈ [0, 1] (non-periodic variables)."""
@@ -123,43 +155,97 @@ def _cubic_bspline(t, xp):
 
 @dataclass(frozen=True)
 class ShapeBasis:
-    """The variables of a shape correction (static: part of `ModelConfig`)."""
+    """The variables of a shape correction, each in its form (static: part of
+    `ModelConfig`)."""
 
     variables: tuple[ShapeVariable, ...]
 
     def keys(self) -> tuple[str, ...]:
         return tuple(k for v in self.variables for k in v.keys())
 
+    def of_form(self, form: str) -> tuple[ShapeVariable, ...]:
+        return tuple(v for v in self.variables if v.form == form)
 
-def state_variables(pressure, slide, dt, sliding, angle, xp=jnp):
+
+def _wrap(a, xp=jnp):
+    return xp.mod(a + xp.pi, 2 * xp.pi) - xp.pi
+
+
+def state_variables(pressure, slide, dt, sliding, angle, load=None, xp=jnp):
     """Every variable of `VARIABLES` for one cycle, each broadcastable to (steps, nodes).
 
     `pressure` (steps, nodes) [Pa]; `slide` dS_i (steps,) [m]; `dt` (steps,) [s];
-    `sliding` S [m] (scalar); `angle` θ_W (steps,) [rad]."""
+    `sliding` S [m] (scalar); `angle` θ_W (steps,) [rad]; `load` |W_i| (steps,) [N]
+    (None: `load_N` is absent)."""
     steps, nodes = pressure.shape
     phase = xp.arange(steps) * (360.0 / steps)
     speed = slide / xp.where(dt > 0, dt, 1.0)
     # central difference of the load direction over the cycle, wrapped to (-π, π]
-    turn = xp.roll(angle, -1) - xp.roll(angle, 1)
-    turn = xp.mod(turn + xp.pi, 2 * xp.pi) - xp.pi
+    turn = xp.degrees(xp.abs(_wrap(xp.roll(angle, -1) - xp.roll(angle, 1), xp)))
     span = xp.roll(dt, 1) + dt  # from step i-1 to i+1
-    turn_rate = xp.degrees(xp.abs(turn)) / xp.where(span > 0, span, 1.0)
-    return {
+    out = {
         "cycle_phase_deg": phase[:, None],
         "pressure_MPa": pressure * 1e-6,
         "sliding_speed_m_per_s": speed[:, None],
         "sliding_distance_m": xp.broadcast_to(sliding, (1, 1)),
-        "load_turn_rate_deg_per_s": turn_rate[:, None],
+        "load_turn_rate_deg_per_s": (turn / xp.where(span > 0, span, 1.0))[:, None],
+        # per degree of the cycle (two steps of 360/steps degrees each)
+        "load_turn_deg_per_deg": (turn / (2 * 360.0 / steps))[:, None],
         "bore_angle_deg": (xp.arange(nodes) * (360.0 / nodes))[None, :],
     }
+    if load is not None:
+        out["load_N"] = load[:, None]
+    return out
 
 
-def shape_log_factor(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle):
-    """Σ_v g_v(z_v) (steps, nodes): the log of the correction of the local wear rate, with
-    the coefficients from `p.effect_params` under `ShapeVariable.keys()`."""
-    z = state_variables(pressure, slide, dt, sliding, angle)
+def swept_kernel(pressure, angle, substeps: int = SWEEP_SUBSTEPS):
+    """κ_ij [1/rad] (steps, nodes): where the pin presses during step i, as it turns with
+    the load from θ_i to θ_{i+1}: the pressure pattern of step i rotated by s (θ_{i+1} − θ_i)
+    for s = 0, 1/K, ..., (K−1)/K (periodic linear interpolation in the node angle; the
+    pattern's own change within the step is left out: it is the next step's), averaged and
+    normalised so that Σ_j κ_ij Δθ = 1 (Δθ = 2π/N). Steps without contact give 0.
+
+    Why swept: at a force reversal the load direction turns tens of degrees between two
+    steps of a coarse cycle; a deposit read at the step's end points alone would land at
+    two spots instead of along the arc."""
+    steps, nodes = pressure.shape
+    d_node = 2 * jnp.pi / nodes
+    sweep = _wrap(jnp.roll(angle, -1) - angle)  # (steps,) [rad]
+    s = (jnp.arange(substeps) / substeps)[:, None]  # (K, 1)
+    shift = s * sweep[None, :] / d_node  # (K, steps) nodes
+    j = jnp.arange(nodes)
+    x = j[None, None, :] - shift[..., None]  # (K, steps, nodes): read p at j - shift
+    fl = jnp.floor(x)
+    w = x - fl
+    i0 = fl.astype(jnp.int32) % nodes
+    i1 = (i0 + 1) % nodes
+    p = jnp.broadcast_to(pressure[None], (substeps, steps, nodes))
+    pk = jnp.take_along_axis(p, i0, 2) * (1 - w) + jnp.take_along_axis(p, i1, 2) * w
+    pk = jnp.mean(pk, axis=0)
+    total = jnp.sum(pk, axis=1, keepdims=True) * d_node
+    return jnp.where(total > 0, pk / jnp.where(total > 0, total, 1.0), 0.0)
+
+
+def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load):
+    """(Σ_v g_v(z_v) (steps, nodes), the deposit Σ_v e_v(z_v) κ (steps, nodes) [m]) with the
+    coefficients from `p.effect_params` under `ShapeVariable.keys()`; a form absent from
+    the basis contributes 0 (and no work)."""
+    z = state_variables(pressure, slide, dt, sliding, angle, load)
     g = jnp.zeros(pressure.shape)
+    e = jnp.zeros(pressure.shape)
     for var in shape.variables:
         coef = jnp.stack([p.effect_params[k] for k in var.keys()])
-        g = g + var.basis(z[var.name]) @ coef
-    return g
+        term = jnp.broadcast_to(var.basis(z[var.name]) @ coef, pressure.shape)
+        if var.form == "factor":
+            g = g + term
+        else:
+            e = e + term
+    deposit = None
+    if shape.of_form("deposit"):
+        deposit = DEPOSIT_UNIT_M * e * swept_kernel(pressure, angle)
+    return g, deposit
+
+
+def shape_log_factor(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load=None):
+    """Σ_v g_v(z_v) (steps, nodes) of the factor form (see `shape_terms`)."""
+    return shape_terms(shape, p, pressure, slide, dt, sliding, angle, load)[0]
