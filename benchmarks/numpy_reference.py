@@ -21,27 +21,31 @@ E_PTFE, NU_PTFE = 0.5e9, 0.3
 E_W = (1 - NU_PTFE) * E_PTFE / ((1 + NU_PTFE) * (1 - 2 * NU_PTFE))  # eq 15
 
 
-def kinematics(phi1, omega, gamma, xi):
-    """Eqs 3-7 with constant crank speed and a stationary clearance link (γ̇ = γ̈ = 0)."""
-    s1, c1 = math.sin(phi1), math.cos(phi1)
-    phi2 = math.asin((L1 * s1 + xi * math.sin(gamma)) / L2)  # eq 3
-    s2, c2 = math.sin(phi2), math.cos(phi2)
-    phi2_d = L1 * omega * c1 / (L2 * c2)  # eq 4
-    phi2_dd = (-L1 * omega**2 * s1 + L2 * phi2_d**2 * s2) / (L2 * c2)  # eq 5
-    xs = L1 * c1 + L2 * c2 + xi * math.cos(gamma)  # eq 1
-    xs_dd = -L1 * omega**2 * c1 - L2 * phi2_dd * s2 - L2 * phi2_d**2 * c2  # eq 7
+def kinematics(phi1, omega, gamma, xi, l1=L1):
+    """Eqs 3-7 with constant crank speed and a stationary clearance link (γ̇ = γ̈ = 0).
+
+    Scalars or NumPy arrays (element-wise); `l1` the crank length [m] (Table 1 by default)."""
+    s1, c1 = np.sin(phi1), np.cos(phi1)
+    phi2 = np.arcsin((l1 * s1 + xi * np.sin(gamma)) / L2)  # eq 3
+    s2, c2 = np.sin(phi2), np.cos(phi2)
+    phi2_d = l1 * omega * c1 / (L2 * c2)  # eq 4
+    phi2_dd = (-l1 * omega**2 * s1 + L2 * phi2_d**2 * s2) / (L2 * c2)  # eq 5
+    xs = l1 * c1 + L2 * c2 + xi * np.cos(gamma)  # eq 1
+    xs_dd = -l1 * omega**2 * c1 - L2 * phi2_dd * s2 - L2 * phi2_d**2 * c2  # eq 7
     return phi2, phi2_d, phi2_dd, xs, xs_dd
 
 
-def pin_force(phi1, omega, phi2, phi2_d, phi2_dd, xs, xs_dd, spring, x0):
-    """F_C, the force of the slider's pin on the coupler (eqs 8-10 as fixed in DESIGN.md §1)."""
+def pin_force(phi1, omega, phi2, phi2_d, phi2_dd, xs, xs_dd, spring, x0, l1=L1):
+    """F_C, the force of the slider's pin on the coupler (eqs 8-10 as fixed in DESIGN.md §1).
+
+    Scalars or NumPy arrays (element-wise)."""
     fcx = -spring * (xs - x0) - M3 * xs_dd  # slider, x: m3 ẍs = F_s - F_Cx
-    s2, c2 = math.sin(phi2), math.cos(phi2)
+    s2, c2 = np.sin(phi2), np.cos(phi2)
     r_db = (L2 * c2, -L2 * s2)  # D - B; D = B + L2 (cos Φ2, -sin Φ2)
     r_gb = (0.5 * r_db[0], 0.5 * r_db[1])  # uniform bar: G at the midpoint
     # a_G = a_B + (L2/2) d²/dt² (cos Φ2, -sin Φ2), crank at constant speed
-    a_gx = -L1 * omega**2 * math.cos(phi1) + 0.5 * L2 * (-s2 * phi2_dd - c2 * phi2_d**2)
-    a_gy = -L1 * omega**2 * math.sin(phi1) + 0.5 * L2 * (-c2 * phi2_dd + s2 * phi2_d**2)
+    a_gx = -l1 * omega**2 * np.cos(phi1) + 0.5 * L2 * (-s2 * phi2_dd - c2 * phi2_d**2)
+    a_gy = -l1 * omega**2 * np.sin(phi1) + 0.5 * L2 * (-c2 * phi2_dd + s2 * phi2_d**2)
     qx, qy = -M2 * a_gx, -M2 * a_gy - M2 * G_ACC  # inertia + weight, applied at G
     i_g = M2 * L2**2 / 12.0
     psi_dd = -phi2_dd  # coupler direction angle ψ = -Φ2
@@ -52,11 +56,13 @@ def pin_force(phi1, omega, phi2, phi2_d, phi2_dd, xs, xs_dd, spring, x0):
     return fcx, fcy
 
 
-def load_history(speed_rpm, steps, clearance, spring, scla_passes, gamma0, x0=L2 - L1):
+def load_history(speed_rpm, steps, clearance, spring, scla_passes, gamma0, x0=None, l1=L1):
     """SCLA (paper §1.2): γ frozen per step, forces, γ <- atan2(F_Cy, F_Cx), repeat.
 
+    `x0` the spring's free position (default L2 - l1, DESIGN §1), `l1` the crank length.
     Returns F (steps, 2), θ_W (steps,) in the bushing (coupler) frame, Φ̇2 (steps,) and T.
     """
+    x0 = L2 - l1 if x0 is None else x0
     omega = 2 * math.pi * speed_rpm / 60.0
     gamma = np.full(steps, float(gamma0))
     force = np.zeros((steps, 2))
@@ -65,9 +71,9 @@ def load_history(speed_rpm, steps, clearance, spring, scla_passes, gamma0, x0=L2
     for _ in range(scla_passes):
         for i in range(steps):
             phi1 = 2 * math.pi * i / steps
-            kin = kinematics(phi1, omega, gamma[i], clearance)
+            kin = kinematics(phi1, omega, gamma[i], clearance, l1)
             phi2[i], phi2_d[i] = kin[0], kin[1]
-            force[i] = pin_force(phi1, omega, *kin, spring, x0)
+            force[i] = pin_force(phi1, omega, *kin, spring, x0, l1)
         gamma = np.arctan2(force[:, 1], force[:, 0])  # eq 11, quadrant fixed
     # Bushing in the coupler eye: θ_W = γ - ψ = γ + Φ2 (Φ2 from the last pass's kinematics).
     theta_w = np.arctan2(np.sin(gamma + phi2), np.cos(gamma + phi2))  # wrapped to (-π, π]

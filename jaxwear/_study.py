@@ -22,6 +22,7 @@ from ._errors import InputError
 from ._noise import profile_noise
 from ._params import DERIVED_KEYS, PARAMETER_KEYS, PRESETS, Params, preset
 from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
+from .effects._files import load_effect_files
 
 
 @dataclass(frozen=True)
@@ -350,7 +351,7 @@ def read_history(path: Path) -> History:
 
 
 _MODEL_KEYS = {"preset", "contact", "effects", "parameters", "algorithm", "scla_passes",
-               "gamma0_deg", "bushing", "double_layer", "duty_cycle"}
+               "gamma0_deg", "bushing", "double_layer", "duty_cycle", "effect_files"}
 _NUMERIC_KEYS = {"nodes", "steps_per_rev", "revolutions_per_update", "integrator",
                  "wear_tolerance_um"}
 _FIT_KEYS = {"clearance_tolerance_um", "angle_tolerance_deg", "parameters", "noise_um"}
@@ -412,6 +413,8 @@ def load_study(path) -> Study:
     _check_keys(path, "", raw, {"model", "numerics", "experiment", "fit"})
     model = raw.get("model", {})
     _check_keys(path, "model", model, _MODEL_KEYS)
+    if "effect_files" in model:  # user effects, registered before anything is built (§7)
+        load_effect_files(path, model["effect_files"])
     name = model.get("preset", "rig")
     if name not in PRESETS:
         _fail(path, f"model.preset must be one of {sorted(PRESETS)}, got {name!r}")

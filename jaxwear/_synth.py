@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -45,6 +46,7 @@ from ._errors import InputError
 from ._io import OutputDir, open_outputs, per_experiment
 from ._study import Experiment, History, Profile, Study, load_study
 from .effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
+from .effects._files import effect_file_names, effect_file_paths
 
 # The paper's rig matrix (§3.3): name, speed [r/min], revolutions, nominal clearance [mm].
 PAPER_MATRIX = (
@@ -244,9 +246,9 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
         raise InputError(f"--angle-offset-deg must be finite, got {angle_offset_deg}")
     if int(refine) < 1 or int(refine_updates) < 1:
         raise InputError("refine and refine_updates must be whole numbers >= 1")
+    base = _conditions(conditions, numerics)  # first: its effect files name effects
     hid = hidden if isinstance(hidden, dict) else parse_hidden(hidden)
     hid = {k: dict(v) for k, v in hid.items()}  # filled in below; the caller's stays
-    base = _conditions(conditions, numerics)
     outdir = None
     if out is not None:  # before any work: the study and CSVs must not replace an input
         outdir = out if isinstance(out, OutputDir) else open_outputs(
@@ -386,11 +388,23 @@ def synth_outputs(conditions: Study) -> list[str]:
     return ["study.toml", "truth.json", *per_experiment(conditions, "{}.csv")]
 
 
+def _relative(path: Path, folder: Path) -> str:
+    """`path` relative to `folder` (as a study there names it), absolute where no relative
+    path exists (another drive)."""
+    try:
+        return Path(os.path.relpath(path.resolve(), folder.resolve())).as_posix()
+    except ValueError:
+        return path.resolve().as_posix()
+
+
 def _write(out: OutputDir, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
     lines = ["# Written by `jaxwear synth`: data from a model with hidden effects.",
              "# The truth is in truth.json (not referenced by this study).",
              "[model]", f"preset = {_toml_value(planned.preset)}",
              f"contact = {_toml_value(cfg.contact)}"]
+    if effect_file_names(planned):  # the conditions' own effects, found from the new folder
+        lines.append("effect_files = [" + ", ".join(_toml_value(_relative(f, out.root)) for f
+                                                    in effect_file_paths(planned)) + "]")
     if cfg.effects:
         lines.append("effects = [" + ", ".join(_toml_value(e) for e in cfg.effects) + "]")
     if cfg.double_layer and planned.preset != "boom":

@@ -79,7 +79,8 @@ def test_neighbour_noise_estimate_and_autocorrelation_on_known_series():
         es.append(e)
     sigma, nu = noise_level(np.concatenate(es))
     assert sigma == pytest.approx(0.3, rel=0.06)  # the smooth profile cancels
-    assert nu == pytest.approx(30 * (len(x) - 2) / 1.944, rel=1e-3)
+    # the estimator drops differences beyond 3.5 robust SDs (for Gaussian noise 0.05 %)
+    assert nu == pytest.approx(30 * (len(x) - 2) / 1.944, rel=3e-3)
     # white residuals: z ~ N(0,1); a smooth misfit: strongly positive
     n = 2000
     pairs = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)

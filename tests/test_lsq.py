@@ -278,3 +278,99 @@ def test_robust_start_backs_off_a_worn_through_start_and_rescales():
     assert why is None and pt.usable
     assert u[0] == pytest.approx(TRUE[0], abs=0.05)  # ln 10 steps down, then rescaled
     assert evals >= 4
+
+
+def _linear(X, y, prior=None):
+    """u ↦ Point of X u − y (prior: (rows r0 (m,), J (m, k)) in SD units, linear in u)."""
+
+    def evaluate(u):
+        m = X @ u
+        rp = np.zeros(0) if prior is None else prior[0] + prior[1] @ u
+        Jp = np.zeros((0, X.shape[1])) if prior is None else prior[1]
+        return lsq.Point(u=np.array(u, float), r=m - y, predicted=m, J=X, r_prior=rp,
+                         J_prior=Jp, usable=True)
+
+    return evaluate
+
+
+def test_a_lost_jacobian_is_a_status_never_converged():
+    """An all-zero Jacobian (the model lost its dependence on u: a truncated history, a
+    tangent dropped) determines nothing: the core says so at the start, with the misfit
+    untouched, instead of "converged" (it did before: every column undetermined, so no
+    determined parameter was left to move and the stop held vacuously)."""
+    y = np.linspace(1.0, 2.0, 50)
+    calls: list = []
+
+    def evaluate(u):
+        calls.append(u)
+        return lsq.Point(u=np.array(u, float), r=-y, predicted=np.zeros_like(y),
+                         J=np.zeros((50, 2)), r_prior=np.zeros(0), J_prior=np.zeros((0, 2)),
+                         usable=True)
+
+    out = lsq.solve(evaluate, np.zeros(2), noise_um=0.1)
+    assert out.status == "undetermined" and not out.converged, out.message
+    assert "determine none" in out.message
+    assert out.evaluations == 1 and len(calls) == 1
+    assert np.all(out.cov.undetermined) and np.all(np.isinf(out.cov.se))
+
+
+def test_a_column_in_small_units_is_determined():
+    """The same linear model with one column in units a million times smaller (a
+    parameter in µm fitted beside one in m): the answer and its standard error are the same
+    up to the unit, not 'undetermined'. Judged on the unscaled JᵀJ, the small column's
+    eigenvalue (1e-12 of the other's) fell under the null threshold: SE inf, and it left the
+    stop."""
+    rng = np.random.default_rng(11)
+    X = np.stack([np.ones_like(T), T], 1)
+    y = X @ np.array([0.5, -0.2]) + SIGMA * rng.standard_normal(T.size)
+    ref = lsq.solve(_linear(X, y), np.zeros(2), noise_um=SIGMA)
+    Xs = X * np.array([1.0, 1e-6])  # u_1 now in µ-units
+    out = lsq.solve(_linear(Xs, y), np.zeros(2), noise_um=SIGMA)
+    assert out.converged, out.message
+    assert not out.cov.undetermined.any()
+    np.testing.assert_allclose(out.u * [1.0, 1e-6], ref.u, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(out.cov.se * [1.0, 1e-6], ref.cov.se, rtol=1e-6)
+
+
+def test_a_parameter_its_prior_determines_costs_the_noise_no_dof():
+    """Ten rows, two parameters, one of them fixed by a tight prior and not seen by the
+    data: σ̂ from the residuals divides by n − k_eff with k_eff = 1 (the data determine one
+    parameter), not n − 2; its standard error is the prior's. Independent reference: the
+    closed-form σ̂ of the one-parameter fit."""
+    rng = np.random.default_rng(12)
+    x = np.linspace(0.0, 1.0, 10)
+    y = 2.0 * x + SIGMA * rng.standard_normal(10)
+    X = np.stack([x, np.zeros(10)], 1)  # the data do not see u_1
+    tau = 0.01
+    prior = (np.array([0.0]), np.array([[0.0, 1.0 / tau]]))  # u_1 / τ
+    out = lsq.solve(_linear(X, y, prior), np.zeros(2))
+    assert out.converged, out.message
+    b = float(x @ y) / float(x @ x)
+    sigma_hat = math.sqrt(float(np.sum((y - b * x) ** 2)) / (10 - 1))
+    assert out.cov.k_eff == pytest.approx(1.0, abs=1e-9)
+    assert out.noise_um == pytest.approx(sigma_hat, rel=1e-6)
+    assert out.cov.se[1] == pytest.approx(tau, rel=1e-9)
+
+
+def test_converged_and_status_cannot_disagree():
+    y = data(13)
+    for kw in ({}, {"max_evaluations": 1}):
+        out = lsq.solve(exp_model(y), np.array([1.5, 0.1]), **kw)
+        assert out.converged == (out.status == "converged")
+
+
+def test_errors_widen_where_the_misfit_exceeds_the_noise():
+    """σ stated too small (0.1 of the real noise): the fit is weighted with it, but the
+    standard errors the core reports (`errors`) are those of the misfit per degree of
+    freedom, as the closed-form OLS errors with σ̂ give them."""
+    rng = np.random.default_rng(14)
+    X = np.stack([np.ones_like(T), T], 1)
+    y = X @ np.array([0.5, -0.2]) + SIGMA * rng.standard_normal(T.size)
+    out = lsq.solve(_linear(X, y), np.zeros(2), noise_um=0.1 * SIGMA)
+    beta = np.linalg.lstsq(X, y, rcond=None)[0]
+    s2 = float(np.sum((y - X @ beta) ** 2)) / (T.size - 2)
+    se_ols = np.sqrt(np.diag(s2 * np.linalg.inv(X.T @ X)))
+    np.testing.assert_allclose(out.errors.se, se_ols, rtol=1e-6)
+    assert out.error_scale_um == pytest.approx(math.sqrt(s2), rel=1e-9)
+    assert out.error_dof == pytest.approx(T.size - 2, rel=1e-9)
+    np.testing.assert_allclose(out.cov.se, se_ols * 0.1 * SIGMA / math.sqrt(s2), rtol=1e-6)

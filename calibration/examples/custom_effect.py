@@ -1,38 +1,25 @@
-"""A user-defined effect in a few lines: registered, then found by `diagnose` and fitted by
-`calibrate`, without touching jaxwear's core.
+"""A user-defined effect in a few lines (debris_effect.py): loaded, then found by `diagnose`
+and fitted by `calibrate`, without touching jaxwear's core.
 
     python calibration/examples/custom_effect.py            # small grid, about a minute
     python calibration/examples/custom_effect.py --out DIR  # also write the report
 
 The effect: wear debris trapped in the joint abrades the layer, so the wear rate grows with
-the sliding distance already covered, K_d → K_d (1 + g S / 100 m). See docs/effects.md.
+the sliding distance already covered, K_d → K_d (1 + g S / 100 m). A study uses the same
+file with `[model] effect_files = ["debris_effect.py"]` (the command line then needs no
+script of yours). See docs/effects.md.
 """
 
 import argparse
 import tempfile
+from pathlib import Path
 
 import jaxwear as jw
+from jaxwear.effects import load_effect_file
 
-
-# ---- the effect: 15 lines ------------------------------------------------------------
-class DebrisAbrasion(jw.Effect):
-    """K_d → K_d (1 + g S/S_ref), S the accumulated sliding distance, S_ref = 100 m.
-    Signature: depth grows faster than the base model late in each test."""
-
-    name = "debris"
-    parameters = {"debris_gain": jw.EffectParameter(
-        to_si=1.0, default=0.0, off=0.0, lower=0.0, upper=20.0,
-        doc="g: extra wear per 100 m of sliding [-]", scale=0.1, realistic=0.5)}
-    signature = "wear accelerating with sliding distance (late profiles deeper than predicted)"
-
-    def block_factor(self, p, sliding_start, sliding_per_cycle, cycles):
-        # exact mean of the linear factor over the block of `cycles` cycles
-        mid = sliding_start + 0.5 * cycles * sliding_per_cycle
-        return 1.0 + p.effect_params["debris_gain"] * mid / 100.0
-
-
-jw.register_effect(DebrisAbrasion())
-# ---------------------------------------------------------------------------------------
+# The effect lives in a file of its own (debris_effect.py, 15 lines), as a study loads it
+# with `[model] effect_files = ["debris_effect.py"]`; here the script loads it directly.
+load_effect_file(Path(__file__).with_name("debris_effect.py"))
 
 
 def main(argv=None):

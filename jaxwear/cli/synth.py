@@ -23,10 +23,7 @@ class Synth(Verb):
                        help="registration offset of every scan [deg] (truth.json only)")
 
     def options(self, args):
-        from .._synth import parse_hidden
-
-        return {"hidden": parse_hidden(args.hidden),
-                "noise_um": number("--noise-um", args.noise_um, nonneg=True),
+        return {"noise_um": number("--noise-um", args.noise_um, nonneg=True),
                 "seed": number("--seed", args.seed, integer=True, nonneg=True),
                 "angle_offset_deg": number("--angle-offset-deg", args.angle_offset_deg)}
 
@@ -34,6 +31,12 @@ class Synth(Verb):
         from .._synth import _conditions
 
         return _conditions(args.conditions, None)
+
+    def resolve(self, study, opts):
+        from .._synth import parse_hidden
+
+        # after the conditions: their effect files may define the hidden effects
+        opts["hidden"] = parse_hidden(opts["args"].hidden)
 
     def outputs(self, study, opts):
         from .._synth import synth_outputs

@@ -2,7 +2,8 @@
 
 `registered_effects()` are the parametric candidates (hooks into the wear loop);
 `STRUCTURAL_CANDIDATES` the model choices `unsymmetric` and `double_layer`. docs/effects.md
-explains how to add your own.
+explains how to add your own; `load_effect_file` registers those a Python file defines (a
+study's `[model] effect_files`).
 """
 
 from ._base import Effect as Effect
@@ -16,6 +17,8 @@ from ._base import register_effect as register_effect
 from ._base import registered_effects as registered_effects
 from ._base import safe_power as safe_power
 from ._base import unregister_effect as unregister_effect
+from ._files import load_effect_file as load_effect_file
+from ._files import load_effect_files as load_effect_files
 from .creep import Creep as Creep
 from .friction import Friction as Friction
 from .pressure_exponent import PressureExponent as PressureExponent
