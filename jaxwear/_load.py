@@ -31,6 +31,7 @@ class LoadHistory(eqx.Module):
     gamma_change: Float[Array, "regimes steps"]  # SCLA last-pass |Δγ| [rad]
     fx: Float[Array, "regimes steps"]  # joint force components, ground frame [N]
     fy: Float[Array, "regimes steps"]
+    shape_pre: object = None  # the shape correction's constant parts (`effects.shape`)
 
 
 def _crank_slider(p: Params, cfg: ModelConfig) -> LoadHistory:

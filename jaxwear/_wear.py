@@ -25,7 +25,7 @@ from ._load import LoadHistory, load_history
 from ._params import Params
 from ._schedule import Schedule, bucket, crank_segments, duty_segments, make_schedule
 from .effects import RateContext, get_effect
-from .effects.shape import shape_terms
+from .effects.shape import precompute, shape_terms
 
 
 class WearResult(eqx.Module):
@@ -63,6 +63,15 @@ def node_area(p: Params, nodes: int) -> Scalar:
     return p.bore_radius * (2 * jnp.pi / nodes) * p.width
 
 
+def run_history(p: Params, cfg: ModelConfig) -> LoadHistory:
+    """The load history of a run, with what the shape correction needs precomputed (its
+    constant parts are computed once, not at every stage of every step)."""
+    hist = load_history(p, cfg)
+    if cfg.shape is not None:
+        hist = dataclasses.replace(hist, shape_pre=precompute(cfg.shape, hist, cfg.nodes))
+    return hist
+
+
 def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
                 start=None):
     """Wear of each step of one cycle on the frozen profile `h` [m] (steps, nodes), with the
@@ -86,7 +95,8 @@ def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, slidi
         for eff in effects:
             rate = eff.local_rate(p, rate, ctx)
     if cfg.shape is not None:
-        g, deposit = shape_terms(cfg.shape, p, sol.pressure, slide, dt, sliding, angle, load)
+        g, deposit = shape_terms(cfg.shape, p, sol.pressure, slide, dt, sliding, angle, load,
+                                 hist.shape_pre, regime)
         rate = rate * jnp.exp(g)
         if deposit is not None:
             rate = rate + deposit
@@ -126,7 +136,7 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
     if schedule.adaptive:
         return _adaptive_loop(p, cfg, schedule, h0)
     effects = [get_effect(n) for n in cfg.effects]
-    hist = load_history(p, cfg)
+    hist = run_history(p, cfg)
     n = cfg.nodes
     area = node_area(p, n)
     per_cycle_slide = jnp.sum(hist.slide, axis=1)  # (regimes,)
@@ -236,7 +246,7 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
     controller): the solution on the chosen steps as a smooth function of `p`.
     """
     effects = [get_effect(n) for n in cfg.effects]
-    hist = load_history(p, cfg)
+    hist = run_history(p, cfg)
     n = cfg.nodes
     area = node_area(p, n)
     per_cycle_slide = jnp.sum(hist.slide, axis=1)

@@ -1,107 +1,133 @@
-"""From the shape of the missing wear to a new effect, and the error falling (docs/effects.md).
+"""From the shape of the missing wear to a physical law, and the error falling
+(docs/effects.md, "Add it, watch the error fall").
 
-    python calibration/examples/shape_to_effect.py            # small grid, a few minutes
-    python calibration/examples/shape_to_effect.py --out DIR  # also the reports and plots
+    python calibration/examples/shape_to_effect.py [--out DIR] [--full]
 
-1. A virtual rig hides physics the library does not have: extra wear where the joint load
-   turns fast (impacts at the force reversals). It is registered only while the data are
-   made, so `diagnose` has no candidate for it.
-2. `diagnose --shape` on the study as written: the shape of the missing wear names the
-   state variable it follows (the load turn rate) and where its g rises.
-3. From that plot the user writes the effect below (15 lines): the rate steps up above a
-   turn rate ω0, read off the shape where g crosses half-way. It is not the hidden law (a
-   smooth rise in log ω): the user's guess, as in real life. ω0 is where ĝ steps up
-   (`jaxwear.diagnose.threshold`), what one reads off the plot.
-4. `diagnose` with the new effect registered: it is named, and the error falls to noise.
+1. A rig study whose data carry physics jaxwear does not have: impact wear at the force
+   reversals (wear deposited where the load points while it swings round, not in
+   proportion to sliding), made by an independent generator at finer numerics
+   (`benchmarks/hidden_physics.py`, law `impact`; 0.3 µm noise on whole-bore scans).
+2. `diagnose --shape`: no candidate explains it; the shape says extra wear not tied to
+   sliding (a deposit), following the load's turn rate, made at the reversals, and writes
+   `missing_wear.py`.
+3. `missing_wear.py` loaded in the study (`[model] effect_files`), its gain calibrated:
+   the error falls.
+4. The user's physical law in its place (`impact_law.py` below, 20 lines): the deposit
+   per step grows with the turn rate beyond ω0, read off the shape's plot; calibrated,
+   the error falls as far, with one constant in place of a spline.
+
+By default a small grid (CI runs it); `--full` uses the paper's five experiments.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import shutil
+import subprocess
+import sys
 import tempfile
+from pathlib import Path
+
+import jaxwear as jw
+from jaxwear.diagnose import threshold
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# ---- 4. the user's law, written from the shape's plot (step 2 prints ω0) ------------------
+LAW = '''"""Impact wear at the force reversals: a deposit where the load points, growing with how
+fast the load direction turns beyond OMEGA0 (read off `diagnose --shape`)."""
 
 import jax.numpy as jnp
 
 import jaxwear as jw
-from jaxwear.diagnose import threshold
-from jaxwear.effects.shape import state_variables
+from jaxwear.effects.shape import state_variables, swept_kernel
 
-SMALL = dict(nodes=64, steps_per_rev=72, revolutions_per_update=500)
+OMEGA0 = {omega0:.6g}  # deg/s: where the shape's deposit rises
 
 
-# ---- 1. the hidden physics (the virtual rig's, not the user's) -----------------------
-class _Impacts(jw.Effect):
-    name = "hidden_impacts"
-    parameters = {"hidden_impacts_gain": jw.EffectParameter(
-        1.0, 0.0, 0.0, 0.0, 100.0, "extra wear factor at fast load turns", realistic=3.0)}
-    signature = "hidden"
+class ImpactWear(jw.Effect):
+    name = "impact_wear"
+    parameters = {{"impact_wear_nm": jw.EffectParameter(
+        1e-9, 0.0, 0.0, 0.0, 1e4, "C: depth x arc per radian of load sweep beyond OMEGA0 "
+        "[nm·rad/rad]", scale=0.01)}}
+    signature = "extra wear at the force reversals, where the load swings round fast"
 
     def local_rate(self, p, rate, ctx):
         w = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
-                            ctx.load_angle)["load_turn_rate_deg_per_s"]
-        x = (jnp.log10(w + 1e-9) - math.log10(300.0)) / 0.1
-        return rate * (1.0 + p.effect_params["hidden_impacts_gain"] / (1.0 + jnp.exp(-x)))
+                            ctx.load_angle)["load_turn_rate_deg_per_s"][:, 0]
+        swept = jnp.radians(jnp.maximum(w - OMEGA0, 0.0)) * ctx.dt  # rad beyond OMEGA0
+        e = p.effect_params["impact_wear_nm"] * swept  # [m·rad] per step
+        return rate + e[:, None] * swept_kernel(ctx.load_angle, ctx.pressure.shape[1])
+'''
+# -------------------------------------------------------------------------------------------
 
 
-# ---- 3. the user's effect, written from the shape plot: 15 lines --------------------
-def impact_effect(turn_threshold_deg_per_s: float):
-    class ImpactWear(jw.Effect):
-        """K_d → K_d (1 + a) where the load direction turns faster than ω0 (impacts)."""
+def make_study(out: Path, full: bool) -> Path:
+    """The impact study (step 1): the independent generator, finer than the study."""
+    args = [sys.executable, str(ROOT / "benchmarks" / "hidden_physics.py"), "--law", "impact",
+            "--seed", "7", "--out", str(out)]
+    if not full:
+        cond = out.parent / "conditions.toml"
+        cond.write_text('[model]\npreset = "rig"\n' + "".join(
+            f'[[experiment]]\nname = "{n}"\nspeed_rpm = {s}\nrevolutions = {r}\n'
+            f'clearance_mm = {c}\n' for n, s, r, c in (
+                ("n276-r10000", 276, 10000, 0.05), ("n148-r10000", 148, 10000, 0.05),
+                ("n230-r10000-c010", 230, 10000, 0.10))))
+        args += ["--conditions", str(cond), "--nodes", "96", "--steps", "144", "--M", "100",
+                 "--study-numerics", "48x72"]
+    p = subprocess.run(args, capture_output=True, text=True)
+    if p.returncode:
+        raise SystemExit(p.stderr)
+    return out / "study.toml"
 
-        name = "impact"
-        parameters = {"impact_gain": jw.EffectParameter(
-            to_si=1.0, default=0.0, off=0.0, lower=0.0, upper=50.0,
-            doc="a: extra wear factor where the load turns faster than ω0 [-]", scale=0.5)}
-        signature = "extra wear at the force reversals, where the load turns fast"
 
-        def local_rate(self, p, rate, ctx):
-            w = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
-                                ctx.load_angle)["load_turn_rate_deg_per_s"]
-            fast = (w > turn_threshold_deg_per_s).astype(rate.dtype)
-            return rate * (1.0 + p.effect_params["impact_gain"] * fast)
-
-    return ImpactWear()
-# ---------------------------------------------------------------------------------------
+def with_effect(study: Path, effect: Path, name: str, out: Path) -> Path:
+    """A copy of the study that loads `effect` and switches `name` on."""
+    shutil.copytree(study.parent, out)
+    shutil.copy(effect, out / effect.name)
+    text = (out / "study.toml").read_text().replace(
+        "[model]\n", f'[model]\neffect_files = ["{effect.name}"]\neffects = ["{name}"]\n', 1)
+    (out / "study.toml").write_text(text)
+    return out / "study.toml"
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default=None, help="write both diagnoses (reports, plots) here")
+    ap.add_argument("--out", default=None, help="keep the studies, reports and plots here")
+    ap.add_argument("--full", action="store_true", help="the paper's five experiments")
     args = ap.parse_args(argv)
-    with tempfile.TemporaryDirectory() as tmp:
-        jw.register_effect(_Impacts())
-        try:
-            res = jw.synthesize(["hidden_impacts"], "paper", noise_um=0.3, seed=3,
-                                numerics=SMALL, out=tmp)
-        finally:
-            jw.unregister_effect("hidden_impacts")
-        # 2. what is missing, and its shape
-        before = jw.diagnose(res.study, shape=True, verbose=True)
-        print("verdict:", before.status, before.effects)
-        print("shape:", before.shape.sentence)
-        if args.out:
-            jw.write_diagnosis(before, f"{args.out}/before")
-        best = before.shape.best
-        if best != "load_turn_rate_deg_per_s":
-            raise SystemExit(f"the shape pointed at {best}, not the load turn rate")
-        omega0 = threshold(before.shape.variable(best))  # where ĝ steps up
-        print(f"read off the shape: the rate steps up above ω0 ≈ {omega0:.0f} deg/s")
-        # 3-4. the user's effect, registered: diagnose names it and the error falls
-        jw.register_effect(impact_effect(omega0))
-        try:
-            study = jw.load_study(res.study.path)  # Params now carry impact_gain
-            after = jw.diagnose(study, verbose=True)
-        finally:
-            jw.unregister_effect("impact")
-        if args.out:
-            jw.write_diagnosis(after, f"{args.out}/after")
-    print("verdict with the new effect:", after.status, after.effects)
-    print(f"{'':28s}{'RMSE [µm]':>10s}")
-    print(f"{'base model':28s}{before.base.rmse:10.3f}")
-    print(f"{'+ ' + ' + '.join(after.effects):28s}{after.final.rmse:10.3f}")
-    print(f"{'noise level':28s}{after.noise_um:10.3f}")
-    return before, after, omega0
+    tmp = tempfile.TemporaryDirectory()
+    work = Path(args.out or tmp.name)
+    work.mkdir(parents=True, exist_ok=True)
+    study = make_study(work / "impact", args.full)
+    # 2. what is missing, and its shape
+    d = jw.diagnose(jw.load_study(study), shape=True, verbose=True)
+    jw.write_diagnosis(d, work / "diagnose")
+    shp = d.shape
+    print("verdict:", d.status, "| shape:", shp.best, shp.form)
+    print(shp.sentence)
+    if shp.best is None:
+        raise SystemExit("the shape found nothing")
+    # 3. the fitted shape as an effect file, its gain calibrated
+    file = work / "diagnose" / "missing_wear.py"
+    fitted = jw.calibrate(jw.load_study(with_effect(study, file, "missing_wear",
+                                                    work / "with_missing_wear")))
+    # 4. the user's law: ω0 read off the deposit along the turn rate
+    v = shp.variable("load_turn_rate_deg_per_s", "deposit")
+    omega0 = threshold(v)
+    print(f"read off the shape: the deposit rises above ω0 ≈ {omega0:.0f} deg/s")
+    law_file = work / "impact_law.py"
+    law_file.write_text(LAW.format(omega0=omega0))
+    law = jw.calibrate(jw.load_study(with_effect(study, law_file, "impact_wear",
+                                                 work / "with_law")))
+    base = d.base.rmse
+    print(f"{'':34s}{'RMSE [µm]':>10s}")
+    print(f"{'base model':34s}{base:10.3f}")
+    print(f"{'+ the shape, refitted (diagnose)':34s}{shp.rmse_after_um:10.3f}")
+    print(f"{'+ missing_wear.py, calibrated':34s}{fitted.rmse_um:10.3f}")
+    print(f"{'+ impact_law.py, calibrated':34s}{law.rmse_um:10.3f}")
+    print(f"{'noise level':34s}{d.noise_um:10.3f}")
+    return d, fitted, law, omega0
 
 
 if __name__ == "__main__":

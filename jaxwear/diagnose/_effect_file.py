@@ -87,7 +87,8 @@ class MissingWear(jw.Effect):
         if FORM == "factor":
             return rate * jnp.exp(gain * correction(z))
         e = jnp.maximum(correction(z), 0.0)  # a deposit is never negative
-        return rate + gain * DEPOSIT_UNIT_M * e * swept_kernel(ctx.pressure, ctx.load_angle)
+        kernel = swept_kernel(ctx.load_angle, ctx.pressure.shape[1])  # at the load direction
+        return rate + gain * DEPOSIT_UNIT_M * e * kernel
 '''
 
 

@@ -20,8 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import norm
 
-from .._load import load_history
-from .._wear import cycle_rates
+from .._wear import cycle_rates, run_history
 
 PER_CYCLES = 1e4  # the map's unit: µm per 10⁴ cycles
 EVENT_WINDOW_DEG = 20.0  # "at a reversal": within this many degrees of the cycle
@@ -36,8 +35,9 @@ class WhenWhere:
     (steps, nodes). `reversals_deg`: phases where the load direction turns fastest (local
     maxima of its turn rate above 3x its median); `peak_load_deg`: where |W| peaks;
     `share_at_reversals`: the share of the extra volume made within `EVENT_WINDOW_DEG` of
-    a reversal; `made_deg`, `lands_deg`: the shortest arcs that hold 68 % of the extra
-    volume over the cycle and over the bore."""
+    a reversal; `made`, `lands`: the arcs (from, to [deg], share) over the cycle and over
+    the bore where the extra wear is above a tenth of its peak, largest first, as many as
+    hold 80 % of it (at most three)."""
 
     experiment: str
     level: float
@@ -55,15 +55,17 @@ class WhenWhere:
     reversals_deg: tuple = ()
     peak_load_deg: float = math.nan
     share_at_reversals: float = math.nan
-    made_deg: tuple = (math.nan, math.nan)
-    lands_deg: tuple = (math.nan, math.nan)
+    made: tuple = ()
+    lands: tuple = ()
     total_um_rad: float = math.nan
 
     def to_json(self) -> dict:
         f = lambda x: None if x is None or not math.isfinite(float(x)) else float(x)  # noqa: E731
         return {"experiment": self.experiment, "unit": "per 1e4 cycles",
-                "made_at_phase_deg": [f(x) for x in self.made_deg],
-                "lands_at_bore_deg": [f(x) for x in self.lands_deg],
+                "made_at_phase_deg": [{"from": a, "to": b, "share": w}
+                                      for a, b, w in self.made],
+                "lands_at_bore_deg": [{"from": a, "to": b, "share": w}
+                                      for a, b, w in self.lands],
                 "load_reversals_deg": [f(x) for x in self.reversals_deg],
                 "peak_load_deg": f(self.peak_load_deg),
                 "share_at_reversals": f(self.share_at_reversals),
@@ -99,7 +101,7 @@ def when_where(cm, u, cov, experiment: str, deepest: int, level: float
     return WhenWhere(experiment, level, phase, when, when - q * sd_w,
                      when + q * sd_w, bore, where, where - q * sd_r, where + q * sd_r, d,
                      load_n, turn, tuple(rev), float(phase[int(np.argmax(load_n))]), share,
-                     _arc(phase, np.clip(when, 0, None)), _arc(bore, np.clip(where, 0, None)),
+                     arcs(phase, np.clip(when, 0, None)), arcs(bore, np.clip(where, 0, None)),
                      total)
 
 
@@ -112,7 +114,7 @@ def _jit_maps(ext, u, deepest, h):
 
     def parts(v):
         p = jax.tree.map(lambda x: x[deepest], ext.batched_params(v))
-        hist = load_history(p, cfg)
+        hist = run_history(p, cfg)
         S = jnp.zeros(())
         corrected, sol = cycle_rates(p, cfg, hist, 0, h, S)
         own, _ = cycle_rates(p, base_cfg, hist, 0, h, S)
@@ -146,20 +148,34 @@ def _reversals(phase, turn) -> list[float]:
     return merged
 
 
-def _arc(x_deg, w, share: float = 0.68) -> tuple[float, float]:
-    """The shortest periodic arc [deg] holding `share` of the weights w over x_deg."""
-    n = len(w)
+def arcs(x_deg, w, floor: float = 0.1, hold: float = 0.8, most: int = 3) -> tuple:
+    """((from, to [deg], share), ...): the periodic runs of w above `floor` of its peak,
+    largest share first, as many as hold `hold` of the total (at most `most`)."""
+    w = np.asarray(w, float)
     total = float(np.sum(w))
     if not total > 0:
-        return (math.nan, math.nan)
-    best = (n, 0)
-    ww = np.concatenate([w, w])
-    c = np.concatenate([[0.0], np.cumsum(ww)])
-    for start in range(n):
-        # the smallest length from `start` holding the share
-        k = int(np.searchsorted(c, c[start] + share * total, side="left")) - start
-        if 0 < k <= n and k < best[0]:
-            best = (k, start)
-    k, start = best
-    step = 360.0 / n
-    return (float(x_deg[start]), float(np.mod(x_deg[start] + (k - 1) * step, 360.0)))
+        return ()
+    on = w > floor * float(np.max(w))
+    n = len(w)
+    if on.all():
+        return ((float(x_deg[0]), float(x_deg[-1]), 1.0),)
+    start = int(np.argmin(on))  # a point that is off: runs never wrap past it
+    runs, cur = [], []
+    for k in range(n):
+        i = (start + k) % n
+        if on[i]:
+            cur.append(i)
+        elif cur:
+            runs.append(cur)
+            cur = []
+    if cur:
+        runs.append(cur)
+    out = sorted(((float(x_deg[r[0]]), float(x_deg[r[-1]]), float(np.sum(w[r])) / total)
+                  for r in runs), key=lambda t: -t[2])
+    kept, held = [], 0.0
+    for a in out[:most]:
+        kept.append(a)
+        held += a[2]
+        if held >= hold:
+            break
+    return tuple(kept)

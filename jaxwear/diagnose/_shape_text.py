@@ -14,6 +14,9 @@ LABELS = {"cycle_phase_deg": "crank angles", "pressure_MPa": "contact pressures"
           "load_turn_rate_deg_per_s": "load turn rates",
           "load_turn_deg_per_deg": "load turns per degree of the cycle",
           "load_N": "joint loads", "bore_angle_deg": "bore angles"}
+LABEL = {"pressure_MPa": "contact pressure", "sliding_speed_m_per_s": "sliding speed",
+         "sliding_distance_m": "sliding distance", "load_turn_rate_deg_per_s": "load turn rate",
+         "load_turn_deg_per_deg": "load turn per degree of the cycle", "load_N": "joint load"}
 FORM_WORDS = {"factor": "more of the wear Archard already makes there (a factor of the "
                         "local rate)",
               "deposit": "extra wear not tied to sliding, made where the pin presses (as "
@@ -91,9 +94,9 @@ def where_along(v) -> str:
     if v.name in ("cycle_phase_deg", "bore_angle_deg"):
         return f"at {LABELS[v.name]} {lo:.0f}-{hi:.0f}°"
     if rising and hi >= v.z[int(0.85 * (len(v.z) - 1))]:
-        return f"above {LABELS[v.name][:-1]} {threshold(v):.3g} {unit}, rising with it"
+        return f"above {LABEL[v.name]} {threshold(v):.3g} {unit}, rising with it"
     if not rising and lo <= v.z[int(0.15 * (len(v.z) - 1))]:
-        return (f"below {LABELS[v.name][:-1]} {threshold(v, rising=False):.3g} {unit}, "
+        return (f"below {LABEL[v.name]} {threshold(v, rising=False):.3g} {unit}, "
                 f"falling with it")
     return f"at {LABELS[v.name]} {lo:.3g}-{hi:.3g} {unit}"
 
@@ -112,18 +115,17 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
     if others:
         s += f"; together with {', '.join(others)}, which carry part of it too"
     s += "."
-    if ww is not None and math.isfinite(ww.made_deg[0]):
-        s += (f" It is made at cycle phases {ww.made_deg[0]:.0f}-{ww.made_deg[1]:.0f}°"
-              f" and lands on the bore at {ww.lands_deg[0]:.0f}-{ww.lands_deg[1]:.0f}° "
-              f"({ww.experiment})")
+    if ww is not None and ww.made:
+        s += (f" It is made at cycle phases {_arcs(ww.made)} and lands on the bore at "
+              f"{_arcs(ww.lands)} ({ww.experiment})")
         if ww.reversals_deg and ww.share_at_reversals >= 0.5:
             s += (f", {ww.share_at_reversals:.0%} of it within {20:.0f}° of the load's "
                   f"reversals ({', '.join(f'{r:.0f}°' for r in ww.reversals_deg)}): look at "
                   f"what happens when the joint load swings round (impacts across the "
                   f"clearance)")
-        elif math.isfinite(ww.peak_load_deg) and abs(np.mod(
-                0.5 * (ww.made_deg[0] + ww.made_deg[1]) - ww.peak_load_deg + 180.0,
-                360.0) - 180.0) <= 30.0:
+        elif math.isfinite(ww.peak_load_deg) and any(
+                abs(np.mod(0.5 * (a + b) - ww.peak_load_deg + 180.0, 360.0) - 180.0) <= 30.0
+                for a, b, _ in ww.made[:1]):
             s += f", around the load's peak ({ww.peak_load_deg:.0f}°)"
         s += "."
     stand = sorted({r.name: r.stand_in_for for r in results
@@ -134,3 +136,8 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
     if alternatives:
         s += (f" The data cannot tell it from {', '.join(alternatives)} (AIC within ln 20).")
     return s
+
+
+def _arcs(arcs) -> str:
+    """"50-70° (55 %) and 290-310° (43 %)"."""
+    return " and ".join(f"{a:.0f}-{b:.0f}° ({w:.0%})" for a, b, w in arcs)

@@ -78,7 +78,7 @@ class RateContext(eqx.Module):
     the direction of the joint load in the bushing frame (its turn rate marks impacts at
     force reversals; `effects.shape.state_variables` computes it and the others); `load`
     |W_i| (steps,) [N]. Extra wear not tied to sliding (a deposit where the pin presses)
-    is added to the rate with `effects.shape.swept_kernel(pressure, load_angle)`.
+    is added to the rate with `effects.shape.swept_kernel(load_angle, nodes)`.
     """
 
     pressure: object

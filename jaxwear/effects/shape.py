@@ -6,10 +6,10 @@ sliding deposited where the pin presses.
   g_v a smooth function on a small B-spline basis (what a speed, pressure or running-in
   law does: more or less of the wear Archard already puts there);
 - **deposit**: + Σ_v e_v(z_v,i) κ_ij per step, e_v ≥ 0 on nonnegative B-spline coefficients,
-  κ_ij the kernel of where the pin presses during step i (`swept_kernel`): the step's
-  pressure pattern, swept along the arc the load direction turns through before the next
-  step, normalised to unit integral over the bore angle. So e is a depth × arc
-  [m·rad] per step: the deposited volume is e R_b B, whatever the node count. This is
+  κ_ij the kernel of where the pin bears during step i (`swept_kernel`): a narrow bump at
+  the load direction, swept along the arc the load turns through before the next step,
+  normalised to unit integral over the bore angle. So e is a depth × arc [m·rad] per
+  step: the deposited volume is e R_b B, whatever the node count. This is
   what impacts, fretting or cold flow make: wear where Archard puts little (at a force
   reversal the load dips and the sliding stops, while the load direction sweeps tens of
   degrees within a few crank degrees).
@@ -61,7 +61,8 @@ FORMS = ("factor", "deposit")
 # from where on the bore or at which pressure: those are the kernel's business
 DEPOSIT_VARIABLES = ("cycle_phase_deg", "sliding_speed_m_per_s", "sliding_distance_m",
                      "load_turn_rate_deg_per_s", "load_turn_deg_per_deg", "load_N")
-SWEEP_SUBSTEPS = 8  # points along the arc the load turns through within one step
+SWEEP_SUBSTEPS = 32  # points along the arc the load turns through within one step
+DEPOSIT_WIDTH_DEG = 5.0  # width of the bump a deposit is made in at the load direction
 DEPOSIT_UNIT_M = 1e-9  # a deposit coefficient of 1 is 1 nm·rad of depth per step
 
 
@@ -198,51 +199,86 @@ def state_variables(pressure, slide, dt, sliding, angle, load=None, xp=jnp):
     return out
 
 
-def swept_kernel(pressure, angle, substeps: int = SWEEP_SUBSTEPS):
-    """κ_ij [1/rad] (steps, nodes): where the pin presses during step i, as it turns with
-    the load from θ_i to θ_{i+1}: the pressure pattern of step i rotated by s (θ_{i+1} − θ_i)
-    for s = 0, 1/K, ..., (K−1)/K (periodic linear interpolation in the node angle; the
-    pattern's own change within the step is left out: it is the next step's), averaged and
-    normalised so that Σ_j κ_ij Δθ = 1 (Δθ = 2π/N). Steps without contact give 0.
+# variables whose values over a cycle depend on the load history only (not on the worn
+# profile or the sliding distance): their basis is computed once per run (`precompute`)
+CONSTANT = ("cycle_phase_deg", "sliding_speed_m_per_s", "load_turn_rate_deg_per_s",
+            "load_turn_deg_per_deg", "load_N", "bore_angle_deg")
 
-    Why swept: at a force reversal the load direction turns tens of degrees between two
-    steps of a coarse cycle; a deposit read at the step's end points alone would land at
-    two spots instead of along the arc."""
-    steps, nodes = pressure.shape
+
+def swept_kernel(angle, nodes: int, substeps: int = SWEEP_SUBSTEPS,
+                 width_deg: float = DEPOSIT_WIDTH_DEG):
+    """κ_ij [1/rad] (steps, nodes): where the pin presses during step i: at the load
+    direction, as it turns over the step's share of the arc, from half-way back to θ_{i−1}
+    to half-way on to θ_{i+1}: a narrow bump (Gaussian of `width_deg`, at least 1.5 node
+    spacings) at K points evenly along it, averaged, normalised so that Σ_j κ_ij Δθ = 1
+    (Δθ = 2π/N). It depends on the load history only (computed once per run,
+    `precompute`).
+
+    Why at the load direction and swept: an impact, a fretting micro-slip or cold flow is
+    made where the pin bears on the bore, and at a force reversal the load direction turns
+    tens of degrees between two steps of a coarse cycle, across the bore between the two
+    Archard wear zones; read at the steps' end points alone, a deposit would land in the
+    Archard zones, where it cannot be told from K_d."""
     d_node = 2 * jnp.pi / nodes
-    sweep = _wrap(jnp.roll(angle, -1) - angle)  # (steps,) [rad]
-    s = (jnp.arange(substeps) / substeps)[:, None]  # (K, 1)
-    shift = s * sweep[None, :] / d_node  # (K, steps) nodes
-    j = jnp.arange(nodes)
-    x = j[None, None, :] - shift[..., None]  # (K, steps, nodes): read p at j - shift
-    fl = jnp.floor(x)
-    w = x - fl
-    i0 = fl.astype(jnp.int32) % nodes
-    i1 = (i0 + 1) % nodes
-    p = jnp.broadcast_to(pressure[None], (substeps, steps, nodes))
-    pk = jnp.take_along_axis(p, i0, 2) * (1 - w) + jnp.take_along_axis(p, i1, 2) * w
-    pk = jnp.mean(pk, axis=0)
-    total = jnp.sum(pk, axis=1, keepdims=True) * d_node
-    return jnp.where(total > 0, pk / jnp.where(total > 0, total, 1.0), 0.0)
+    w = max(float(np.radians(width_deg)), 1.5 * float(d_node))
+    ahead = _wrap(jnp.roll(angle, -1) - angle)  # θ_{i+1} − θ_i (steps,) [rad]
+    behind = jnp.roll(ahead, 1)  # θ_i − θ_{i−1}
+    s = ((jnp.arange(substeps) + 0.5) / substeps)[:, None]  # (K, 1)
+    # from half-way back to θ_{i−1} to half-way on to θ_{i+1}: the step's share of the
+    # arc, as the central-difference turn rate of the step (`state_variables`) sees it
+    centre = angle[None, :] - 0.5 * behind[None, :] + s * 0.5 * (behind + ahead)[None, :]
+    theta = jnp.arange(nodes) * d_node
+    d = _wrap(theta[None, None, :] - centre[..., None])  # (K, steps, nodes)
+    g = jnp.exp(-0.5 * (d / w) ** 2)
+    g = g / (jnp.sum(g, axis=2, keepdims=True) * d_node)
+    return jnp.mean(g, axis=0)
 
 
-def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load):
-    """(Σ_v g_v(z_v) (steps, nodes), the deposit Σ_v e_v(z_v) κ (steps, nodes) [m]) with the
-    coefficients from `p.effect_params` under `ShapeVariable.keys()`; a form absent from
-    the basis contributes 0 (and no work)."""
-    z = state_variables(pressure, slide, dt, sliding, angle, load)
+def precompute(shape: ShapeBasis, hist, nodes: int) -> dict:
+    """What of the correction does not change within a run, for every regime of the load
+    history `hist`: the basis values of the `CONSTANT` variables (by the variable's first
+    key: (regimes, steps or 1, nodes or 1, size)) and the sweep's interpolation for the
+    deposit. Computed once per run, outside the wear loop, instead of at every stage of
+    every step (it dominated the correction's compile and run time)."""
+    regimes, steps = hist.angle.shape
+    dummy = jnp.zeros((steps, nodes))
+    out = {}
+    for r in range(regimes):
+        z = state_variables(dummy, hist.slide[r], hist.dt[r], 0.0, hist.angle[r], hist.load[r])
+        for var in shape.variables:
+            if var.name in CONSTANT:
+                out.setdefault(var.keys()[0], []).append(var.basis(z[var.name]))
+        if shape.of_form("deposit"):
+            out.setdefault("kernel", []).append(swept_kernel(hist.angle[r], nodes))
+    return {k: jnp.stack(v) for k, v in out.items()}
+
+
+def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
+                pre: dict | None = None, regime=None):
+    """(Σ_v g_v(z_v) (steps, nodes), the deposit Σ_v e_v(z_v) κ (steps, nodes) [m] or None)
+    with the coefficients from `p.effect_params` under `ShapeVariable.keys()`; `pre`
+    (`precompute`) and the `regime` index give the constant parts."""
+    z = None
     g = jnp.zeros(pressure.shape)
     e = jnp.zeros(pressure.shape)
     for var in shape.variables:
         coef = jnp.stack([p.effect_params[k] for k in var.keys()])
-        term = jnp.broadcast_to(var.basis(z[var.name]) @ coef, pressure.shape)
+        if pre is not None and var.name in CONSTANT:
+            B = pre[var.keys()[0]][regime]
+        else:
+            if z is None:
+                z = state_variables(pressure, slide, dt, sliding, angle, load)
+            B = var.basis(z[var.name])
+        term = jnp.broadcast_to(B @ coef, pressure.shape)
         if var.form == "factor":
             g = g + term
         else:
             e = e + term
     deposit = None
     if shape.of_form("deposit"):
-        deposit = DEPOSIT_UNIT_M * e * swept_kernel(pressure, angle)
+        kern = (pre["kernel"][regime] if pre is not None
+                else swept_kernel(angle, pressure.shape[1]))
+        deposit = DEPOSIT_UNIT_M * e * kern
     return g, deposit
 
 
