@@ -20,6 +20,7 @@ import numpy as np
 from ._config import DutyBlock, ModelConfig
 from ._errors import InputError
 from ._params import DERIVED_KEYS, PARAMETER_KEYS, PRESETS, Params, preset
+from ._plausible import check_study
 from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
 
 
@@ -59,10 +60,11 @@ class Experiment:
     @property
     def snapshot_points(self) -> list[float]:
         """Revolutions (crank) or hours (oscillating) at which the data measure the profile."""
+        # np.unique, not a Python set: a 300 000-row profile asks this often
         if self.profile is not None:
-            return sorted(set(float(r) for r in self.profile.revolutions))
+            return np.unique(self.profile.revolutions).tolist()
         if self.history is not None:
-            return sorted(set(float(t) for t in self.history.hours))
+            return np.unique(self.history.hours).tolist()
         return []
 
 
@@ -240,20 +242,23 @@ def _header(path: Path) -> list[str]:
     return []
 
 
-def robust_noise(angle: np.ndarray, depth: np.ndarray, revolutions: np.ndarray) -> float:
+def robust_noise(angle: np.ndarray, depth: np.ndarray, revolutions: np.ndarray,
+                 periodic: bool = True) -> float:
     """Noise level of profile rows [depth's unit], robust to the scar and to outliers.
 
     Within each scan (rows of one revolution count, in angle order) each depth minus the
-    mean of its two neighbours (periodic) cancels a smooth profile and has variance 1.5 σ²
-    for white noise; σ = 1.4826 MAD / √1.5. NaN with fewer than 5 usable points."""
+    mean of its two neighbours (periodic; `periodic=False` for a series in time, whose ends
+    are not neighbours) cancels a smooth profile and has variance 1.5 σ² for white noise;
+    σ = 1.4826 MAD / √1.5. NaN with fewer than 5 usable points."""
     e = []
     revs = np.where(np.isnan(revolutions), -1.0, revolutions)
     for r in np.unique(revs):
         m = revs == r
-        order = np.argsort(angle[m])
+        order = np.argsort(angle[m], kind="stable")
         y = depth[m][order]
         if len(y) >= 3:
-            e.append(y - 0.5 * (np.roll(y, 1) + np.roll(y, -1)))
+            d = y - 0.5 * (np.roll(y, 1) + np.roll(y, -1))
+            e.append(d if periodic else d[1:-1])
     e = np.concatenate(e) if e else np.zeros(0)
     if len(e) < 5:
         return math.nan
@@ -307,9 +312,61 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
                   f"noise levels (noise {sigma * 1e6:.3g} µm from neighbouring points; "
                   f"lowest {depth[j] * 1e6:.3g} µm at line {j + 2}): check the scan's zero "
                   f"and sign", file=sys.stderr)
-    angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
     column = "radius_before_um,radius_after_um" if raw_scans else used[1]
+    check_repeats(path, np.c_[a[:, 0], np.where(has_revs, revs, 0.0)],
+                  ["angle_deg", "revolutions"][:1 + has_revs], depth, column, sigma)
+    angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
     return Profile(angle, depth, revs, str(path), float(angle_offset_deg), column)
+
+
+REPEAT_LEVELS = 5.0  # repeated rows further apart than 5 √2 noise levels disagree
+
+
+def check_repeats(path: Path, keys: np.ndarray, names: list[str], depth: np.ndarray,
+                  column: str, sigma: float) -> None:
+    """Refuse (exit 2) rows that repeat a key (`keys` (rows, k): angle and revolutions, or
+    hours) with depths [m] further apart than the noise allows: two readings of one place at
+    one time cannot differ by 25 noise levels, one of them is wrong (4 rows of 50 µm among 2
+    µm rows once calibrated to an RMSE of 12 µm without a word). Repeats that agree are
+    measurements like any other. The allowance is `REPEAT_LEVELS` √2 σ (σ of the file, from
+    neighbouring points), at least what a gauge resolves (`PLAUSIBLE_SCAR_UM`); without a
+    noise estimate (fewer than 5 usable rows), a tenth of the file's depth range."""
+    if len(depth) < 2:
+        return
+    _, group = np.unique(keys, axis=0, return_inverse=True)
+    group = group.ravel()
+    n = group.max() + 1
+    lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+    np.minimum.at(lo, group, depth)
+    np.maximum.at(hi, group, depth)
+    floor = PLAUSIBLE_SCAR_UM * 1e-6
+    if math.isfinite(sigma):
+        allowed = max(REPEAT_LEVELS * math.sqrt(2.0) * sigma, floor)
+        why = (f"{REPEAT_LEVELS:g} √2 noise levels of {sigma * 1e6:.3g} µm from neighbouring "
+               f"points")
+    else:
+        allowed = max(0.1 * float(np.ptp(depth)), floor)
+        why = "a tenth of the file's depth range: too few rows to estimate the noise"
+    bad = np.flatnonzero(hi - lo > allowed)
+    if not len(bad):
+        return
+    first = np.full(n, len(depth))
+    np.minimum.at(first, group, np.arange(len(depth)))
+    g = bad[np.argmin(first[bad])]  # the first in the file
+    rows = np.flatnonzero(group == g)
+    i, j = rows[np.argmin(depth[rows])], rows[np.argmax(depth[rows])]
+    i, j = sorted((int(i), int(j)))
+    at = ", ".join(f"{nm} {v:g}" for nm, v in zip(names, keys[i]))
+    scale, unit = (1e3, "depth_mm") if column == "depth_mm" else (1e6, column)
+    if "," in column:  # two raw scans
+        unit = "depths [µm] (radius_after_um - radius_before_um)"
+    more = f"; {len(bad) - 1} more repeated point(s) disagree too" if len(bad) > 1 else ""
+    raise InputError(f"{path}: lines {i + 2} and {j + 2} measure the same point ({at}) as "
+                     f"{unit} {depth[i] * scale:.4g} and {depth[j] * scale:.4g}, "
+                     f"{abs(depth[j] - depth[i]) * 1e6:.3g} µm apart, beyond the "
+                     f"{allowed * 1e6:.3g} µm that the noise allows ({why}){more}: one of "
+                     f"them is wrong; correct or remove it (repeats that agree within the "
+                     f"noise are fine)")
 
 
 def _check_angles_in_degrees(path: Path, angle_deg: np.ndarray) -> None:
@@ -365,6 +422,8 @@ def read_history(path: Path) -> History:
     depth = a[:, 1] * (1e-6 if header[1] == "depth_um" else 1e-3)
     if header[1] == "depth_um":
         _check_not_tiny(path, depth, "depth_um")
+    check_repeats(path, a[:, :1], ["hours"], depth, header[1],
+                  robust_noise(a[:, 0], depth, np.full(len(a), np.nan), periodic=False))
     return History(a[:, 0], depth, str(path), header[1])
 
 
@@ -559,14 +618,16 @@ def load_study(path) -> Study:
             _data_file(path, f"{where}.profile", e["profile"])
             profile = read_profile(path.parent / e["profile"], offset)
         if "history" in e:
+            if config.driver == "crank_slider":  # before the file is read: its columns
+                # are not what is wrong (it asked for `hours` in a profile)
+                _fail(path, f"{where}.history: 'history' is depth-vs-time data (hours,depth_mm) "
+                            f"of the oscillating joint (preset \"boom\"); a {name!r} "
+                            f"experiment takes a 'profile' (angle_deg,depth_um[,revolutions])")
             if not isinstance(e["history"], str) or not e["history"].strip():
                 _fail(path, f"{where}.history must be a file name, got {e['history']!r}")
             _data_file(path, f"{where}.history", e["history"])
             history = read_history(path.parent / e["history"])
         revs = hours = None
-        if config.driver == "crank_slider" and history is not None:
-            _fail(path, f"{where}: 'history' (depth vs hours) is for the oscillating joint "
-                        f"(preset \"boom\"); a crank-slider experiment takes a 'profile'")
         if config.driver == "crank_slider":
             if "revolutions" not in e:
                 _fail(path, f"{where}: missing key 'revolutions'")
@@ -603,5 +664,7 @@ def load_study(path) -> Study:
         if config.driver == "crank_slider" and not float(p.speed) > 0:
             _fail(path, f"{where}: speed_rpm must be > 0")
         experiments.append(exp)
-    return Study(path, name, config, params, tuple(experiments), M, float(tol),
-                 tuple(fit_params), integrator, wear_tol, angle_tol, noise, auto, raw)
+    # every number against the ranges the model is valid in (`_plausible`), before any work
+    return check_study(Study(path, name, config, params, tuple(experiments), M, float(tol),
+                             tuple(fit_params), integrator, wear_tol, angle_tol, noise, auto,
+                             raw))

@@ -348,12 +348,13 @@ def test_fuzzed_history_csv(tmp_path_factory, text, enc):
 @SETTINGS
 @given(rows=st.lists(st.tuples(st.floats(0, 359.99), st.floats(-5, 50),
                                st.sampled_from([500.0, 1000.0, 2000.0])),
-                     min_size=1, max_size=30),
+                     min_size=1, max_size=30, unique_by=lambda r: (r[0], r[2])),
        enc=encodings(), blank=st.booleans(), data=st.data())
 def test_what_editors_and_scanners_write_loads_as_meant(tmp_path_factory, rows, enc, blank,
                                                         data):
     """BOM, CRLF, blank lines, unsorted rows, repeated angles and negative depths are valid:
-    the study loads, with the same rows whatever the order or the encoding."""
+    the study loads, with the same rows whatever the order or the encoding. (Repeats that
+    disagree beyond the noise are refused: issue 29; here they repeat a row exactly.)"""
     rows = rows + data.draw(st.lists(st.sampled_from(rows), max_size=3))  # repeated angles
     shuffled = data.draw(st.permutations(rows))
     d = tmp_path_factory.mktemp("ok")
@@ -489,14 +490,15 @@ def _refused(args, *must):
 
 
 @pytest.mark.parametrize("verb", ALL_VERBS, ids=lambda v: "-".join(v))
-def test_revolutions_1e15_under_the_adaptive_integrator_is_refused_at_once(
+def test_revolutions_1e11_under_the_adaptive_integrator_is_refused_at_once(
         tmp_path, engines_stubbed, verb):
     """The estimate bounded adaptive steps by a cap (4096): `revolutions = 1e15` ran for
-    hours. The stability limit (~1700 revolutions per step on the rig) gives ~1e12 steps:
-    refused in well under a second, before any model evaluation, naming the limit."""
+    hours. The stability limit (~1700 revolutions per step on the rig) gives ~1e8 steps for
+    1e11: refused in well under a second, before any model evaluation, naming the limit.
+    (1e15 itself is now refused as implausible, > 1e12: issue 29.)"""
     import time
 
-    study = _study(tmp_path, "angle_deg,depth_um\n10,1\n90,2\n", revs="1e15")
+    study = _study(tmp_path, "angle_deg,depth_um\n10,1\n90,2\n", revs="1e11")
     t0 = time.perf_counter()
     line = _refused([*verb[:1], study, *verb[1:], "--out", tmp_path / "o"],
                     "study.toml", "too much work", "adaptive", "JAXWEAR_MAX_WORK")
@@ -504,8 +506,11 @@ def test_revolutions_1e15_under_the_adaptive_integrator_is_refused_at_once(
     assert "stable up to ~1.74e+03 revolutions" in line
 
 
-def test_hours_1e15_on_the_stiff_boom_is_refused(tmp_path, engines_stubbed):
-    study = _study(tmp_path, boom=True, hours="1e15")
+def test_hours_1e6_on_the_stiff_boom_is_refused(tmp_path, engines_stubbed):
+    # at the boom's calibrated K_d (1e15 h, this test's value before issue 29, is now
+    # refused as implausible: > 1e6 h)
+    study = _study(tmp_path, boom=True, hours="1e6",
+                   params="[model.parameters]\nK_d_per_Pa = 3.8e-13")
     _refused(["simulate", study, "--out", tmp_path / "o"], "too much work", "swing cycles")
 
 

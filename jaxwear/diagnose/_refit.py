@@ -115,10 +115,20 @@ def _noise(model: Model, r, known: float | None = None):
             raise InputError(f"noise_um must be > 0, got {known}")
         return float(known), math.inf
     e, _ = neighbour_differences(model, r)
-    if len(e) < 2:
-        raise InputError(f"{model.study.path}: too few neighbouring points to estimate the "
-                         f"noise level (need 3 or more points per profile or history)")
+    if len(e) < MIN_TRIPLES:
+        raise InputError(too_few_triples(model.study, len(e), model.n))
     return noise_level(e)
+
+
+MIN_TRIPLES = 2  # neighbour triples for a noise level (each one degree of freedom)
+
+
+def too_few_triples(study, triples: int, rows: int) -> str:
+    """The message when the data cannot give their own noise level."""
+    return (f"{study.path}: {rows} data row(s) give {triples} neighbour triple(s) (a point "
+            f"and its two neighbours in one profile scan or history, spaced within 2.5x the "
+            f"median); estimating the noise level needs {MIN_TRIPLES}: 4 or more evenly "
+            f"spaced points in one profile or history, or give the noise as [fit] noise_um")
 
 
 def _second_stage(model, by_contact, best: Candidate, rest, noise, nu, pairs, max_refits,

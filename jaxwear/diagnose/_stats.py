@@ -19,20 +19,51 @@ def measurement_series(model: Model) -> list:
     further apart than 2.5 times its median spacing are not neighbours (the ends of a
     scar, unmeasured arcs); a depth history (one experiment) is ordered by time.
     """
+    return _series(np.asarray(model.row_exp), np.asarray(model.row_time),
+                   np.asarray(model.row_x), np.asarray(model.is_max, bool))
+
+
+def _series(row_exp, row_time, row_x, is_max) -> list:
     out = []
-    for e in range(len(model.exp_names)):
-        hist = np.flatnonzero((model.row_exp == e) & model.is_max)
+    for e in sorted(set(row_exp.tolist())):
+        hist = np.flatnonzero((row_exp == e) & is_max)
         if len(hist):
-            order = np.argsort(model.row_time[hist])
-            out.append((hist[order], model.row_time[hist][order], math.inf))
-        prof = (model.row_exp == e) & ~model.is_max
-        for t in sorted(set(model.row_time[prof].tolist())):
-            rows = np.flatnonzero(prof & (model.row_time == t))
-            order = np.argsort(model.row_x[rows])
-            x = model.row_x[rows][order]
+            order = np.argsort(row_time[hist])
+            out.append((hist[order], row_time[hist][order], math.inf))
+        prof = (row_exp == e) & ~is_max
+        for t in sorted(set(row_time[prof].tolist())):
+            rows = np.flatnonzero(prof & (row_time == t))
+            order = np.argsort(row_x[rows])
+            x = row_x[rows][order]
             gap = 2.5 * float(np.median(np.diff(x))) if len(x) > 1 else math.inf
             out.append((rows[order], x, gap))
     return out
+
+
+def noise_triples(study) -> tuple[int, int]:
+    """(neighbour triples that estimate the noise, data rows) of a study's measurements, as
+    `neighbour_differences` will find them, from the files alone (before any model is
+    built): an interior point of a series and its two neighbours, within the spacing."""
+    exp, time, x, hist = [], [], [], []
+    for i, e in enumerate(study.experiments):
+        if e.profile is not None:
+            n = len(e.profile.angle)
+            exp += [i] * n
+            time += list(e.profile.revolutions)
+            x += list(np.degrees(e.profile.angle))
+            hist += [False] * n
+        if e.history is not None:
+            n = len(e.history.hours)
+            exp += [i] * n
+            time += list(e.history.hours)
+            x += list(e.history.hours)
+            hist += [True] * n
+    if not exp:
+        return 0, 0
+    series = _series(np.asarray(exp), np.asarray(time, float), np.asarray(x, float),
+                     np.asarray(hist, bool))
+    return sum(len(line_residuals(xs, np.zeros(len(xs)), gap)[0]) for _, xs, gap in series
+               ), len(exp)
 
 
 def line_residuals(x, y, gap=math.inf):
