@@ -7,9 +7,9 @@ own process, `jaxwear ...` or `python -m jaxwear`, it also makes Ctrl-C one line
 `_interrupt`.)
 """
 
-from ._interrupt import guard_import as _guard_import
+from . import _interrupt
 
-_guard_import()  # the command line: Ctrl-C while JAX imports is one line, not a traceback
+_interrupt.guard_import()  # the command line: Ctrl-C while JAX imports is one line
 
 import jax  # noqa: E402
 

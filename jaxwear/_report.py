@@ -15,6 +15,8 @@ from ._io import save_figure
 
 
 def _fmt(x):
+    if type(x) is float:  # the common cell first: a 300 000-row table has millions
+        return f"{x:.10g}"
     if isinstance(x, (float, np.floating)):
         return f"{float(x):.10g}"
     return x

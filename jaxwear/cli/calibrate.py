@@ -102,9 +102,10 @@ def write_tables(out, study, result: FitResult):
     names = [e.name for e in study.experiments]
     rows = [(names[ei], "history" if h else "profile", points[ei][si], np.nan if h else xi,
              m, f, r)
-            for ei, si, h, xi, m, f, r in zip(exp_idx.tolist(), snap.tolist(), is_max.tolist(),
-                                              x.tolist(), result.measured_um,
-                                              result.predicted_um, result.residuals_um)]
+            for ei, si, h, xi, m, f, r in zip(
+                exp_idx.tolist(), snap.tolist(), is_max.tolist(), x.tolist(),
+                *(np.asarray(v, float).tolist() for v in (
+                    result.measured_um, result.predicted_um, result.residuals_um)))]
     col = "hours" if osc else "revolutions"
     out.write_csv("fit_residuals.csv", ["experiment", "kind", col, "angle_deg", "measured_um",
                                         "fitted_um", "residual_um"], rows)
