@@ -57,8 +57,9 @@ _LENGTH = "a crank-slider from a millimetre to 10 m"
 _MASS = "from massless to 10 t"
 _MODULUS = "from a soft elastomer (1 MPa) to diamond (1200 GPa)"
 _POISSON = ("ν → 0.5 makes the Winkler stiffness (1-ν)E/((1+ν)(1-2ν)) of an incompressible "
-            "layer infinite")
-_CYCLES = "longer than any machine runs (10¹² revolutions at 3000 r/min is 630 years)"
+            "layer infinite (and no bearing layer is auxetic, ν < 0)")
+_CYCLES = ("at least one whole revolution (one cycle's wear is the model's unit), at most "
+           "10¹² (630 years at 3000 r/min)")
 
 # key -> Range. Study parameter keys by name; other study keys by section.key.
 RANGES: dict[str, Range | None] = {

@@ -122,3 +122,14 @@ def test_winkler_strain_matches_the_contact_solve(name, load):
     # and the load limit is the load at the strain limit
     assert peak_strain(p, strain_load_limit(p, cfg_double), cfg_double) == pytest.approx(
         STRAIN_LIMIT, rel=1e-6)
+
+
+def test_the_docs_list_every_range():
+    """docs/plausibility.md is the table in prose: every key and ratio is in it."""
+    from jaxwear._plausible import RELATIONS
+
+    text = (ROOT / "docs" / "plausibility.md").read_text()
+    for key in RANGES:
+        assert f"`{key}`" in text, key
+    for rel in RELATIONS:
+        assert f"`{rel.keys}`" in text, rel.keys
