@@ -9,7 +9,7 @@ atom. Every number a study or a command-line flag carries is checked here agains
 - `RANGES`: one `Range` per key (study keys by their name, `numerics.`/`fit.`/`experiment.`
   keys by their section), with the reason in one clause; `PRESET_RANGES[preset]` replaces or
   adds entries for one preset (None: the preset does not use the key, not checked);
-- `relations`: ranges of ratios of keys (crank shorter than coupler, clearance against the
+- `RELATIONS`: ranges of ratios of keys (crank shorter than coupler, clearance against the
   bore radius, layer against the bore radius);
 - the layer's elastic strain at the peak load (`peak_strain`): the Winkler foundation is
   linear elasticity of a thin layer; a load that would compress it by more than
@@ -17,6 +17,9 @@ atom. Every number a study or a command-line flag carries is checked here agains
   from `LOAD_BOUNDS` without a model evaluation (the crank-slider's own hand-derived
   equations in NumPy, the boom's `load_N`), and the Winkler contact in closed form, so
   the check costs about a millisecond.
+
+Rows of data files too: `check_repeats` refuses repeated points (the same angle and
+revolutions, or the same hours) whose depths disagree beyond the file's noise.
 
 A new preset adds its keys to `RANGES` (or `PRESET_RANGES[name]`) and, for a new driver,
 a `LoadBound` to `LOAD_BOUNDS`; nothing else changes. The study reader (`_study.py`), the
@@ -31,6 +34,8 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import SimpleNamespace
+
+import numpy as np
 
 from ._errors import InputError
 
@@ -213,8 +218,6 @@ def crank_slider_peak_load(p, cfg=None) -> float:
     hand-derived eqs 4-10 (`_mechanism.kinematics_by_hand`, `forces_from_kinematics`)
     evaluated in NumPy at 720 crank angles for the ideal joint: no compilation, ~1 ms. The
     clearance link changes |F| by 2e-4 relative at most (DESIGN §8), the sampling by less."""
-    import numpy as np
-
     from ._mechanism import forces_from_kinematics, kinematics_by_hand
     from ._params import PARAMETER_KEYS
 
@@ -366,6 +369,59 @@ def check_params(where: str, p, cfg) -> None:
     """Relations and the layer strain of one experiment's parameters (SI `Params`)."""
     check_relations(where, p, cfg.driver)
     check_strain(where, p, cfg)
+
+
+# ------------------------------------------------------------------ repeated rows
+
+REPEAT_LEVELS = 5.0  # repeated rows further apart than 5 √2 noise levels disagree
+
+
+def check_repeats(path, keys, names: list[str], depth, column: str, sigma: float,
+                  gauge_um: float) -> None:
+    """Refuse (exit 2) rows that repeat a key (`keys` (rows, k): angle and revolutions, or
+    hours) with depths [m] further apart than the noise allows: two readings of one place at
+    one time cannot differ by 25 noise levels, one of them is wrong (4 rows of 50 µm among 2
+    µm rows once calibrated to an RMSE of 12 µm without a word). Repeats that agree are
+    measurements like any other. The allowance is `REPEAT_LEVELS` √2 σ (σ of the file, from
+    neighbouring points; NaN when there are too few rows), at least what a gauge resolves
+    (`gauge_um`); without a noise estimate, a tenth of the file's depth range.
+    `column`: the file's depth column(s), for the message."""
+    if len(depth) < 2:
+        return
+    _, group = np.unique(keys, axis=0, return_inverse=True)
+    group = group.ravel()
+    n = group.max() + 1
+    lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+    np.minimum.at(lo, group, depth)
+    np.maximum.at(hi, group, depth)
+    floor = gauge_um * 1e-6
+    if math.isfinite(sigma):
+        allowed = max(REPEAT_LEVELS * math.sqrt(2.0) * sigma, floor)
+        why = (f"{REPEAT_LEVELS:g} √2 noise levels of {sigma * 1e6:.3g} µm from neighbouring "
+               f"points")
+    else:
+        allowed = max(0.1 * float(np.ptp(depth)), floor)
+        why = "a tenth of the file's depth range: too few rows to estimate the noise"
+    bad = np.flatnonzero(hi - lo > allowed)
+    if not len(bad):
+        return
+    first = np.full(n, len(depth))
+    np.minimum.at(first, group, np.arange(len(depth)))
+    g = bad[np.argmin(first[bad])]  # the first in the file
+    rows = np.flatnonzero(group == g)
+    i, j = rows[np.argmin(depth[rows])], rows[np.argmax(depth[rows])]
+    i, j = sorted((int(i), int(j)))
+    at = ", ".join(f"{nm} {v:g}" for nm, v in zip(names, keys[i]))
+    scale, unit = (1e3, "depth_mm") if column == "depth_mm" else (1e6, column)
+    if "," in column:  # two raw scans
+        unit = "depths [µm] (radius_after_um - radius_before_um)"
+    more = f"; {len(bad) - 1} more repeated point(s) disagree too" if len(bad) > 1 else ""
+    raise InputError(f"{path}: lines {i + 2} and {j + 2} measure the same point ({at}) as "
+                     f"{unit} {depth[i] * scale:.4g} and {depth[j] * scale:.4g}, "
+                     f"{abs(depth[j] - depth[i]) * 1e6:.3g} µm apart, beyond the "
+                     f"{allowed * 1e6:.3g} µm that the noise allows ({why}){more}: one of "
+                     f"them is wrong; correct or remove it (repeats that agree within the "
+                     f"noise are fine)")
 
 
 # ------------------------------------------------------------------ a whole study

@@ -20,7 +20,7 @@ import numpy as np
 from ._config import DutyBlock, ModelConfig
 from ._errors import InputError
 from ._params import DERIVED_KEYS, PARAMETER_KEYS, PRESETS, Params, preset
-from ._plausible import check_study
+from ._plausible import check_repeats, check_study
 from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
 
 
@@ -314,59 +314,10 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
                   f"and sign", file=sys.stderr)
     column = "radius_before_um,radius_after_um" if raw_scans else used[1]
     check_repeats(path, np.c_[a[:, 0], np.where(has_revs, revs, 0.0)],
-                  ["angle_deg", "revolutions"][:1 + has_revs], depth, column, sigma)
+                  ["angle_deg", "revolutions"][:1 + has_revs], depth, column, sigma,
+                  PLAUSIBLE_SCAR_UM)
     angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
     return Profile(angle, depth, revs, str(path), float(angle_offset_deg), column)
-
-
-REPEAT_LEVELS = 5.0  # repeated rows further apart than 5 √2 noise levels disagree
-
-
-def check_repeats(path: Path, keys: np.ndarray, names: list[str], depth: np.ndarray,
-                  column: str, sigma: float) -> None:
-    """Refuse (exit 2) rows that repeat a key (`keys` (rows, k): angle and revolutions, or
-    hours) with depths [m] further apart than the noise allows: two readings of one place at
-    one time cannot differ by 25 noise levels, one of them is wrong (4 rows of 50 µm among 2
-    µm rows once calibrated to an RMSE of 12 µm without a word). Repeats that agree are
-    measurements like any other. The allowance is `REPEAT_LEVELS` √2 σ (σ of the file, from
-    neighbouring points), at least what a gauge resolves (`PLAUSIBLE_SCAR_UM`); without a
-    noise estimate (fewer than 5 usable rows), a tenth of the file's depth range."""
-    if len(depth) < 2:
-        return
-    _, group = np.unique(keys, axis=0, return_inverse=True)
-    group = group.ravel()
-    n = group.max() + 1
-    lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
-    np.minimum.at(lo, group, depth)
-    np.maximum.at(hi, group, depth)
-    floor = PLAUSIBLE_SCAR_UM * 1e-6
-    if math.isfinite(sigma):
-        allowed = max(REPEAT_LEVELS * math.sqrt(2.0) * sigma, floor)
-        why = (f"{REPEAT_LEVELS:g} √2 noise levels of {sigma * 1e6:.3g} µm from neighbouring "
-               f"points")
-    else:
-        allowed = max(0.1 * float(np.ptp(depth)), floor)
-        why = "a tenth of the file's depth range: too few rows to estimate the noise"
-    bad = np.flatnonzero(hi - lo > allowed)
-    if not len(bad):
-        return
-    first = np.full(n, len(depth))
-    np.minimum.at(first, group, np.arange(len(depth)))
-    g = bad[np.argmin(first[bad])]  # the first in the file
-    rows = np.flatnonzero(group == g)
-    i, j = rows[np.argmin(depth[rows])], rows[np.argmax(depth[rows])]
-    i, j = sorted((int(i), int(j)))
-    at = ", ".join(f"{nm} {v:g}" for nm, v in zip(names, keys[i]))
-    scale, unit = (1e3, "depth_mm") if column == "depth_mm" else (1e6, column)
-    if "," in column:  # two raw scans
-        unit = "depths [µm] (radius_after_um - radius_before_um)"
-    more = f"; {len(bad) - 1} more repeated point(s) disagree too" if len(bad) > 1 else ""
-    raise InputError(f"{path}: lines {i + 2} and {j + 2} measure the same point ({at}) as "
-                     f"{unit} {depth[i] * scale:.4g} and {depth[j] * scale:.4g}, "
-                     f"{abs(depth[j] - depth[i]) * 1e6:.3g} µm apart, beyond the "
-                     f"{allowed * 1e6:.3g} µm that the noise allows ({why}){more}: one of "
-                     f"them is wrong; correct or remove it (repeats that agree within the "
-                     f"noise are fine)")
 
 
 def _check_angles_in_degrees(path: Path, angle_deg: np.ndarray) -> None:
@@ -423,7 +374,8 @@ def read_history(path: Path) -> History:
     if header[1] == "depth_um":
         _check_not_tiny(path, depth, "depth_um")
     check_repeats(path, a[:, :1], ["hours"], depth, header[1],
-                  robust_noise(a[:, 0], depth, np.full(len(a), np.nan), periodic=False))
+                  robust_noise(a[:, 0], depth, np.full(len(a), np.nan), periodic=False),
+                  PLAUSIBLE_SCAR_UM)
     return History(a[:, 0], depth, str(path), header[1])
 
 

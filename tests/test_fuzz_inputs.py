@@ -927,7 +927,7 @@ def test_sweep_reports_failed_points_as_failed(tmp_path, monkeypatch):
         status = [r["status"] for r in csv.DictReader(f)]
     assert status == ["ok", "worn_through", "contact_failed"]
     text = out.getvalue()
-    assert "1 worn through, 1 contact solve failed" in text, text
+    assert "1 worn through, 1 with a failed contact solve" in text, text
     assert "every point wore through" not in text
 
 

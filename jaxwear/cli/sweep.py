@@ -22,9 +22,10 @@ def _preset(study, values: dict):
 
 
 def status_counts(status) -> str:
-    """'3 worn through, 1 contact solve failed' from `SweepResult.status` (failures only)."""
-    names = {"worn_through": "worn through", "contact_failed": "contact solve failed",
-             "integration_failed": "integration failed"}
+    """'3 worn through, 1 with a failed contact solve' from `SweepResult.status` (failures
+    only)."""
+    names = {"worn_through": "worn through", "contact_failed": "with a failed contact solve",
+             "integration_failed": "with an unfinished integration"}
     return ", ".join(f"{int((status == k).sum())} {v}" for k, v in names.items()
                      if (status == k).any())
 
