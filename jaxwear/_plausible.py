@@ -170,7 +170,7 @@ class Relation:
     keys: str  # what the ratio is, in study keys (for the message)
     value: Callable
     range: Range
-    drivers: tuple[str, ...] = ("crank_slider", "oscillating")
+    drivers: tuple[str, ...] | None = None  # None: every driver (the joint's own ratios)
 
 
 RELATIONS = [
@@ -193,7 +193,7 @@ RELATIONS = [
 def check_relations(where: str, p, driver: str) -> None:
     """`InputError` when a ratio of `p`'s keys (SI `Params`) is outside its range."""
     for rel in RELATIONS:
-        if driver not in rel.drivers:
+        if rel.drivers is not None and driver not in rel.drivers:
             continue
         v = rel.value(p)
         if v not in rel.range:
