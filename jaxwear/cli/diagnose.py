@@ -110,6 +110,16 @@ class Diagnose(Verb):
     def run(self, study, out, opts):
         import importlib
 
+        from ..diagnose._refit import MIN_TRIPLES, too_few_triples
+        from ..diagnose._stats import noise_triples
+
+        # the data must give their own noise level (unless the study states it): counted
+        # from the files before the engine starts, not after its model has compiled
+        if study.noise_um is None:
+            triples, rows = noise_triples(study)
+            if triples < MIN_TRIPLES:
+                raise InputError(too_few_triples(study, triples, rows))
+
         # the package (`jaxwear.diagnose` the attribute is the function), looked up now:
         # tests stand in for the engine
         dia = importlib.import_module("jaxwear.diagnose")
