@@ -140,8 +140,10 @@ class Diagnose(Verb):
                   + ("" if err <= tol else "; ABOVE tolerance: lower "
                      "numerics.wear_tolerance_um and rerun"))
         else:
-            print(f"integration (paper, eq 23): {integ['steps']} updates; no error estimate "
-                  f"(compare with half numerics.revolutions_per_update)")
+            err = integ["error_estimate_um"]
+            print(f"integration (paper, eq 23): {integ['steps']} updates; Euler's estimate "
+                  f"{err if isinstance(err, str) else f'{err:.3g}'} µm (a bound; compare with "
+                  f"half numerics.revolutions_per_update)")
         print(f"wrote {Path(args.out) / 'report.html'}, {Path(args.out) / 'diagnosis.json'}"
               + (f", {args.json}" if args.json else ""))
         return diag
