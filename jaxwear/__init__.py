@@ -2,10 +2,16 @@
 
 Importing jaxwear switches JAX to float64 (`jax_enable_x64`). This is deliberate and the
 only global setting the package touches: wear depths are micrometres on 50 µm clearances
-accumulated over 10⁴-10⁵ revolutions, which float32 cannot resolve.
+accumulated over 10⁴-10⁵ revolutions, which float32 cannot resolve. (In the command line's
+own process, `jaxwear ...` or `python -m jaxwear`, it also makes Ctrl-C one line:
+`_interrupt`.)
 """
 
-import jax
+from . import _interrupt
+
+_interrupt.guard_import()  # the command line: Ctrl-C while JAX imports is one line
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

@@ -14,7 +14,12 @@ wear updates, `nodes = 100000000` for arrays of steps × nodes floats far beyond
   S_cycle the sliding per cycle; `_wear.adaptive_attempts`), so a piece of c cycles takes at
   least c λ / 2.5 steps, and about 3.4x that in attempts at the limit (rejections, and
   accepted steps below the limit: measured on the boom; 4x is used). Accuracy: ~40 steps
-  at the default tolerance, growing like tol^(-1/3) (3rd order). Plus 4 per piece (regime starts,
+  at the default tolerance, growing like tol^(-1/2): the controller spends a global error
+  budget on local estimates of the embedded 2nd-order solution (error ~ ΔN³ per step, so n
+  steps of N/n cycles leave ~N³/n² and n ~ tol^(-1/2); measured on the rig, 2000 rev at 64 x
+  72: 7, 19, 66, 211, 649, 1982 accepted steps at 2e-3 ... 2e-8 µm, i.e. x3.1 per decade
+  from 2e-5 down, where tol^(-1/3) gave x2.2 and under-counted 1e-12 µm fourfold). Plus 4
+  per piece (regime starts,
   snapshots). Each attempt evaluates 3 cycles (first-same-as-last), so the estimate's
   "updates" are cycle evaluations: 3 × attempts. λ comes from the study's parameters by
   closed forms (no model evaluation): S_cycle = R_pin × 4 asin(L1/L2) per revolution of the
@@ -111,14 +116,19 @@ def stiff_rates(study, exp) -> list[tuple[float, float]]:
     return [(kd * k * r_pin * 4.0 * math.asin(ratio), 1.0)]
 
 
+def accuracy_attempts(tolerance_um: float) -> float:
+    """Attempted steps the accuracy alone asks for at `tolerance_um` [µm] (module docstring:
+    `ACCURACY_STEPS` at the default 0.002 µm, growing like tol^(-1/2) below it)."""
+    return ACCURACY_STEPS * max(1.0, (0.002 / tolerance_um) ** 0.5)
+
+
 def adaptive_attempts_estimate(study, exp, cycles: float, pieces: float) -> float:
     """Attempted steps of the adaptive integrator over `cycles` in `pieces` pieces (see the
     module docstring): stability-limited, accuracy-limited and per-piece steps."""
     with_stiff = sum(cycles * share * lam for lam, share in stiff_rates(study, exp)
                      if lam > 0 and share > 0)  # (inf x 0 would be NaN)
     stable = ATTEMPTS_PER_STABLE_STEP * with_stiff / STABILITY_LIMIT
-    tol = float(getattr(study, "wear_tolerance_um", 0.002) or 0.002)
-    accuracy = ACCURACY_STEPS * max(1.0, (0.002 / tol) ** (1 / 3))
+    accuracy = accuracy_attempts(float(getattr(study, "wear_tolerance_um", 0.002) or 0.002))
     return stable + accuracy + STEPS_PER_PIECE * pieces
 
 
@@ -198,16 +208,21 @@ def _duration(s: float) -> str:
     return f"~{s:.3g} s"
 
 
-def check_work(study, *, tangents: int = 0) -> WorkEstimate:
+def check_work(study, *, tangents: int = 0, length_from: str | None = None) -> WorkEstimate:
     """Raise `InputError` (exit 2) when one evaluation of the study's model would exceed the
-    work or memory limit; the message gives the estimate and the keys to change."""
+    work or memory limit; the message gives the estimate and the keys to change.
+    `length_from`: what set the run's length when not the study's `revolutions`/`hours`
+    (predict: "`--at`"), named instead of them."""
     est = estimate_work(study, tangents=tangents)
     if est is None:
         return est
     osc = study.config.driver == "oscillating"
-    what = "hours" if osc else "revolutions"
+    what = length_from or f"`{'hours' if osc else 'revolutions'}`"
     paper = not (ADAPTIVE_LOOP and study.integrator == "adaptive")
-    keys = f"lower `{what}`" + (", raise `numerics.revolutions_per_update`" if paper else "")
+    keys = f"lower {what}" + (", raise `numerics.revolutions_per_update`" if paper else "")
+    if not paper and accuracy_attempts(study.wear_tolerance_um) > ACCURACY_STEPS:
+        keys += (f", raise `numerics.wear_tolerance_um` ({study.wear_tolerance_um:g} µm: "
+                 f"~{accuracy_attempts(study.wear_tolerance_um):.3g} steps for accuracy)")
     where = f"{study.path}: experiment {est.experiment!r}"
     work_limit, mem_limit = max_work(), max_memory_bytes()
     problems, env = [], []

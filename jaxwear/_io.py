@@ -63,9 +63,16 @@ class OutputDir:
 
     def __init__(self, root, inputs: Iterable = (), *, planned: Iterable[str] = (),
                  json_file=None):
+        # An empty name is no folder: Path("") is ".", so `--out ""` (an unset shell
+        # variable) wrote every output into the current folder without a word.
+        for flag, value in (("--out", root), ("--json", json_file)):
+            if value is not None and not str(value).strip():
+                raise InputError(f"{flag} {str(value)!r}: an empty name; give a "
+                                 + ("folder (`.` for the current one)" if flag == "--out"
+                                    else "file name") + " or leave the option out")
         self.root = Path(root)
         self._inputs = {_key(Path(p)) for p in inputs}
-        self.json_file = Path(json_file) if json_file else None
+        self.json_file = Path(json_file) if json_file is not None else None
         _no_link_loop(self.root, "--out")
         if self.root.exists() and not self.root.is_dir():
             raise InputError(f"{self.root}: --out must be a folder, and this is a file"

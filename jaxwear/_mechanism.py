@@ -63,28 +63,31 @@ def kinematics(p: Params, t: StepArray, gamma_fn, xi) -> Kinematics:
                       gy_dd=a[3])
 
 
-def kinematics_by_hand(p: Params, t: StepArray, gamma, xi) -> Kinematics:
-    """Eqs 4-7 of the paper for a stationary link (γ̇ = γ̈ = 0), written out by hand."""
+def kinematics_by_hand(p: Params, t: StepArray, gamma, xi, xp=jnp) -> Kinematics:
+    """Eqs 4-7 of the paper for a stationary link (γ̇ = γ̈ = 0), written out by hand.
+    `xp=numpy` with float parameters evaluates them without JAX (`_plausible`'s peak load,
+    before any model is compiled)."""
     L1, L2, w = p.crank_length, p.coupler_length, p.speed
     phi1 = w * t
-    phi2 = jnp.arcsin((L1 * jnp.sin(phi1) + xi * jnp.sin(gamma)) / L2)
-    c2, s2 = jnp.cos(phi2), jnp.sin(phi2)
-    phi2_d = L1 * w * jnp.cos(phi1) / (L2 * c2)  # eq 4
-    phi2_dd = (-L1 * w**2 * jnp.sin(phi1) + L2 * phi2_d**2 * s2) / (L2 * c2)  # eq 5
-    xs = L1 * jnp.cos(phi1) + L2 * c2 + xi * jnp.cos(gamma)
-    xs_dd = (-L1 * w**2 * jnp.cos(phi1) - L2 * phi2_dd * s2 - L2 * phi2_d**2 * c2)  # eq 7
-    gx_dd = -L1 * w**2 * jnp.cos(phi1) - 0.5 * L2 * (phi2_dd * s2 + phi2_d**2 * c2)
-    gy_dd = -L1 * w**2 * jnp.sin(phi1) - 0.5 * L2 * (phi2_dd * c2 - phi2_d**2 * s2)
+    phi2 = xp.arcsin((L1 * xp.sin(phi1) + xi * xp.sin(gamma)) / L2)
+    c2, s2 = xp.cos(phi2), xp.sin(phi2)
+    phi2_d = L1 * w * xp.cos(phi1) / (L2 * c2)  # eq 4
+    phi2_dd = (-L1 * w**2 * xp.sin(phi1) + L2 * phi2_d**2 * s2) / (L2 * c2)  # eq 5
+    xs = L1 * xp.cos(phi1) + L2 * c2 + xi * xp.cos(gamma)
+    xs_dd = (-L1 * w**2 * xp.cos(phi1) - L2 * phi2_dd * s2 - L2 * phi2_d**2 * c2)  # eq 7
+    gx_dd = -L1 * w**2 * xp.cos(phi1) - 0.5 * L2 * (phi2_dd * s2 + phi2_d**2 * c2)
+    gy_dd = -L1 * w**2 * xp.sin(phi1) - 0.5 * L2 * (phi2_dd * c2 - phi2_d**2 * s2)
     return Kinematics(phi2=phi2, phi2_d=phi2_d, phi2_dd=phi2_dd, xs=xs, xs_dd=xs_dd,
                       gx_dd=gx_dd, gy_dd=gy_dd)
 
 
-def forces_from_kinematics(p: Params, k: Kinematics):
-    """Eqs 8-10 (d'Alembert), signs fixed as in DESIGN §1. Returns (F_Cx, F_Cy) [N]."""
+def forces_from_kinematics(p: Params, k: Kinematics, xp=jnp):
+    """Eqs 8-10 (d'Alembert), signs fixed as in DESIGN §1. Returns (F_Cx, F_Cy) [N].
+    (`xp`: as for `kinematics_by_hand`.)"""
     L2, m2, m3 = p.coupler_length, p.coupler_mass, p.slider_mass
     spring = -p.spring_rate * (k.xs - p.spring_free_position)
     fx = spring - m3 * k.xs_dd  # slider: the coupler pushes it with -F_C
-    dx, dy = L2 * jnp.cos(k.phi2), -L2 * jnp.sin(k.phi2)  # r_DB
+    dx, dy = L2 * xp.cos(k.phi2), -L2 * xp.sin(k.phi2)  # r_DB
     inertial_x = -m2 * k.gx_dd
     inertial_y = -m2 * k.gy_dd - m2 * p.gravity
     moment_g = 0.5 * (dx * inertial_y - dy * inertial_x)  # r_GB × (-m2 a_G - m2 g ŷ)

@@ -68,7 +68,7 @@ def run_experiment(study: Study, exp: Experiment, *, M=None, check=True,
                    snapshots=exp.snapshot_points, check=False, pad_to=pad_to,
                    **_numerics(study, M))
     if check:
-        check_result(res, study.config, f"experiment {exp.name!r}")
+        check_result(res, study.config, f"{study.path}: experiment {exp.name!r}", p)
     return res
 
 

@@ -21,6 +21,7 @@ from ._config import DutyBlock, ModelConfig
 from ._errors import InputError
 from ._noise import profile_noise
 from ._params import DERIVED_KEYS, PARAMETER_KEYS, PRESETS, Params, preset
+from ._plausible import check_repeats, check_study
 from .effects import STRUCTURAL, effect_parameter_specs, registered_effects
 from .effects._files import load_effect_files
 
@@ -61,10 +62,11 @@ class Experiment:
     @property
     def snapshot_points(self) -> list[float]:
         """Revolutions (crank) or hours (oscillating) at which the data measure the profile."""
+        # np.unique, not a Python set: a 300 000-row profile asks this often
         if self.profile is not None:
-            return sorted(set(float(r) for r in self.profile.revolutions))
+            return np.unique(self.profile.revolutions).tolist()
         if self.history is not None:
-            return sorted(set(float(t) for t in self.history.hours))
+            return np.unique(self.history.hours).tolist()
         return []
 
 
@@ -289,8 +291,11 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
                   f"noise levels (noise {sigma * 1e6:.3g} µm from neighbouring points; "
                   f"lowest {depth[j] * 1e6:.3g} µm at line {j + 2}): check the scan's zero "
                   f"and sign", file=sys.stderr)
-    angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
     column = "radius_before_um,radius_after_um" if raw_scans else used[1]
+    check_repeats(path, np.c_[a[:, 0], np.where(has_revs, revs, 0.0)],
+                  ["angle_deg", "revolutions"][:1 + has_revs], depth, column, sigma,
+                  PLAUSIBLE_SCAR_UM)
+    angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
     return Profile(angle, depth, revs, str(path), float(angle_offset_deg), column)
 
 
@@ -347,6 +352,9 @@ def read_history(path: Path) -> History:
     depth = a[:, 1] * (1e-6 if header[1] == "depth_um" else 1e-3)
     if header[1] == "depth_um":
         _check_not_tiny(path, depth, "depth_um")
+    check_repeats(path, a[:, :1], ["hours"], depth, header[1],
+                  profile_noise(a[:, 0], depth, np.full(len(a), np.nan)),
+                  PLAUSIBLE_SCAR_UM)
     return History(a[:, 0], depth, str(path), header[1])
 
 
@@ -543,14 +551,16 @@ def load_study(path) -> Study:
             _data_file(path, f"{where}.profile", e["profile"])
             profile = read_profile(path.parent / e["profile"], offset)
         if "history" in e:
+            if config.driver == "crank_slider":  # before the file is read: its columns
+                # are not what is wrong (it asked for `hours` in a profile)
+                _fail(path, f"{where}.history: 'history' is depth-vs-time data (hours,depth_mm) "
+                            f"of the oscillating joint (preset \"boom\"); a {name!r} "
+                            f"experiment takes a 'profile' (angle_deg,depth_um[,revolutions])")
             if not isinstance(e["history"], str) or not e["history"].strip():
                 _fail(path, f"{where}.history must be a file name, got {e['history']!r}")
             _data_file(path, f"{where}.history", e["history"])
             history = read_history(path.parent / e["history"])
         revs = hours = None
-        if config.driver == "crank_slider" and history is not None:
-            _fail(path, f"{where}: 'history' (depth vs hours) is for the oscillating joint "
-                        f"(preset \"boom\"); a crank-slider experiment takes a 'profile'")
         if config.driver == "crank_slider":
             if "revolutions" not in e:
                 _fail(path, f"{where}: missing key 'revolutions'")
@@ -587,5 +597,7 @@ def load_study(path) -> Study:
         if config.driver == "crank_slider" and not float(p.speed) > 0:
             _fail(path, f"{where}: speed_rpm must be > 0")
         experiments.append(exp)
-    return Study(path, name, config, params, tuple(experiments), M, float(tol),
-                 tuple(fit_params), integrator, wear_tol, angle_tol, noise, auto, raw)
+    # every number against the ranges the model is valid in (`_plausible`), before any work
+    return check_study(Study(path, name, config, params, tuple(experiments), M, float(tol),
+                             tuple(fit_params), integrator, wear_tol, angle_tol, noise, auto,
+                             raw))

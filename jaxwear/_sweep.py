@@ -73,6 +73,20 @@ class SweepResult:
             ok &= np.isfinite(self.error_estimate_um)
         return ok
 
+    @property
+    def status(self) -> np.ndarray:
+        """Per point, why its numbers can or cannot be used: `"ok"`, `"worn_through"` (the
+        layer wore through: `worn_through_cycle` says when), `"contact_failed"` (a contact
+        solve did not converge: its numbers are not a solution) or `"integration_failed"`
+        (the wear integration did not reach the end). A failure is named before a worn
+        layer: a point whose contact failed may look worn through."""
+        out = np.full(self.shape, "ok", dtype=object)
+        out[self.worn_through_cycle >= 0] = "worn_through"
+        if self.error_estimate_um is not None:
+            out[~np.isfinite(self.error_estimate_um)] = "integration_failed"
+        out[~(self.max_contact_residual < 1e-9)] = "contact_failed"
+        return out
+
     def points(self) -> dict:
         """Axis values at every grid point, each flattened in C order (like `.ravel()`)."""
         mesh = np.meshgrid(*self.axes.values(), indexing="ij")
@@ -284,9 +298,14 @@ def _heatmap(path, title, label, res: SweepResult, z):
         fig.colorbar(im, ax=ax, label=label)
         ax.set_xlabel(names[1])
         ax.set_ylabel(names[0])
+        status = res.status
+        for what, label, mark in (("worn_through", "layer worn through", "x"),
+                                  ("contact_failed", "contact solve failed", "s"),
+                                  ("integration_failed", "integration failed", "D")):
+            if (status == what).any():
+                yy, xx = np.nonzero(status == what)
+                ax.plot(x[xx], y[yy], mark, color="tab:red", mfc="none", label=label)
         if not res.valid.all():
-            yy, xx = np.nonzero(~res.valid)
-            ax.plot(x[xx], y[yy], "x", color="tab:red", label="layer worn through")
             ax.legend(fontsize=8)
     else:  # one axis with several values: a line
         k = next((i for i, s in enumerate(res.shape) if s > 1), 0)

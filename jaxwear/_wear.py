@@ -527,17 +527,21 @@ def simulate(p: Params, cfg: ModelConfig = ModelConfig(), *, revolutions=None, h
         sched = sched.more_attempts()
         res = _wear_loop_jit(p, cfg, sched, h0)
     if check:
-        check_result(res, cfg)
+        check_result(res, cfg, p=p)
     return res
 
 
-def check_result(res: WearResult, cfg: ModelConfig, what: str = "simulation"):
+def check_result(res: WearResult, cfg: ModelConfig, what: str = "simulation", p=None):
+    """Raise for a run whose numbers are not physical: a contact solve that did not converge
+    (`_plausible.contact_failure`: exit 2 naming the keys when the load strains the layer
+    beyond the model's range, given the parameters `p`) or a layer worn through."""
     worn = float(jnp.max(res.worn_through_cycle))
     unit = "swing cycle" if cfg.driver == "oscillating" else "revolution"
     residual = float(jnp.max(res.max_residual))
     if not residual < 1e-9:
-        raise RuntimeError(f"{what}: contact solve did not converge (relative force residual "
-                           f"{residual:.2e} ≥ 1e-9)")
+        from ._plausible import contact_failure
+
+        raise contact_failure(what, p, cfg, residual, float(jnp.max(res.history.load)))
     if worn >= 0:
         raise WornThroughError(f"{what}: the bushing layer is worn through at {unit} "
                                f"{worn:.0f} (h ≥ layer thickness)")

@@ -231,9 +231,10 @@ def test_cli_writes_the_design_json_and_a_self_contained_report(tmp_path):
     ev = [c["evidence"] for c in doc["candidates"]]
     assert ev == sorted(ev, reverse=True)  # best first
     assert json.loads((out / "diagnosis.json").read_text()) == doc
-    for part in ("baseline", "after"):  # eq 23 here: step count, no error estimate
-        integ = doc[part]["integration"]
-        assert integ["integrator"] == "paper" and integ["error_estimate_um"] is None
+    for part in ("baseline", "after"):  # eq 23 here: step count and Euler's estimate, as
+        integ = doc[part]["integration"]  # calibrate and simulate report it (one report)
+        assert integ["integrator"] == "paper" and integ["tolerance_um"] is None
+        assert 0 <= integ["error_estimate_um"] < math.inf
         assert integ["steps"] == 30  # 15 000 rev / M = 500: the longest experiment's updates
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 5

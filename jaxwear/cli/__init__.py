@@ -63,9 +63,11 @@ def main(argv=None) -> int:
     except InputError as e:
         print(f"jaxwear: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("jaxwear: interrupted", file=sys.stderr)
-        return 1
+    except KeyboardInterrupt:  # one line, exit 1 (`jaxwear._interrupt`)
+        from .._interrupt import EXIT_CODE, MESSAGE
+
+        print(MESSAGE, file=sys.stderr)
+        return EXIT_CODE
     except Exception as e:  # one line, never a traceback, unless asked for
         if os.environ.get("JAXWEAR_DEBUG"):
             raise

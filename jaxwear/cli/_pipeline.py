@@ -67,6 +67,11 @@ class Verb:
         """The study whose one evaluation is estimated (predict: to its forecast horizon)."""
         return study
 
+    def length_from(self, study, opts: dict) -> str | None:
+        """What set the run's length, when not the study's `revolutions`/`hours` (named by
+        the work estimate's refusal)."""
+        return None
+
     def tangents(self, study, opts: dict) -> int:
         """Forward-mode Jacobian columns carried through one evaluation."""
         return 0
@@ -86,7 +91,8 @@ class Verb:
         out = open_outputs(study, args.out, planned=self.outputs(study, opts),
                            json_file=getattr(args, "json", None))
         opts["estimate"] = check_work(self.work_study(study, opts),
-                                      tangents=self.tangents(study, opts))
+                                      tangents=self.tangents(study, opts),
+                                      length_from=self.length_from(study, opts))
         return self.run(study, out, opts)
 
 

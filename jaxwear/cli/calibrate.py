@@ -97,13 +97,14 @@ def write_tables(out, study, result: FitResult):
     d = prob.data
     exp_idx, snap = np.asarray(d.exp), np.asarray(d.snap)
     x, is_max = np.asarray(d.x), np.asarray(d.is_max)
-    rows = []
-    for i in range(result.n_data):
-        e = study.experiments[exp_idx[i]]
-        at = e.snapshot_points[snap[i]]
-        rows.append((e.name, "history" if is_max[i] else "profile",
-                     at, x[i] if not is_max[i] else np.nan,
-                     result.measured_um[i], result.predicted_um[i], result.residuals_um[i]))
+    points = [e.snapshot_points for e in study.experiments]  # once: not per row
+    names = [e.name for e in study.experiments]
+    rows = [(names[ei], "history" if h else "profile", points[ei][si], np.nan if h else xi,
+             m, f, r)
+            for ei, si, h, xi, m, f, r in zip(
+                exp_idx.tolist(), snap.tolist(), is_max.tolist(), x.tolist(),
+                *(np.asarray(v, float).tolist() for v in (
+                    result.measured_um, result.predicted_um, result.residuals_um)))]
     col = "hours" if osc else "revolutions"
     out.write_csv("fit_residuals.csv", ["experiment", "kind", col, "angle_deg", "measured_um",
                                         "fitted_um", "residual_um"], rows)
@@ -119,7 +120,7 @@ def write_tables(out, study, result: FitResult):
 
 def plot_fits(out, study, result: FitResult):
     """fit_<experiment>.png: measured vs fitted, with the residual below."""
-    from .._report import plt
+    from .._report import plt, thinned, thinned_label
 
     pl = plt()
     prob = result.problem
@@ -153,13 +154,15 @@ def plot_fits(out, study, result: FitResult):
                 prof = result.snapshots_um[ei, si]
                 label = f"fitted, {s:g} rev" if len(points) > 1 else "fitted model"
                 top.plot(angles, np.append(prof, prof[0]), "-", color=c, lw=1.4, label=label)
-                m = rows & (snap == si)
+                m = np.flatnonzero(rows & (snap == si))
                 last = si == len(points) - 1
-                label = None if not last else (
-                    "measured (same colours)" if len(points) > 1 else "measured")
-                top.plot(x[m], result.measured_um[m], "o", ms=3, color=c, alpha=0.8,
+                label = None if not last else thinned_label(
+                    "measured (same colours)" if len(points) > 1 else "measured", len(m))
+                k = m[thinned(x[m], result.measured_um[m])]
+                top.plot(x[k], result.measured_um[k], "o", ms=3, color=c, alpha=0.8,
                          mfc="none", label=label)
-                bot.plot(x[m], result.residuals_um[m], "o", ms=3, color=c)
+                k = m[thinned(x[m], result.residuals_um[m])]
+                bot.plot(x[k], result.residuals_um[k], "o", ms=3, color=c)
             top.set_ylabel("wear depth [µm]")
             bot.set_xlabel("bushing angle θ [deg] (from B→D, counter-clockwise)")
             bot.set_xlim(0, 360)

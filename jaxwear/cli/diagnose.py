@@ -128,6 +128,16 @@ class Diagnose(Verb):
     def run(self, study, out, opts):
         import importlib
 
+        from ..diagnose._refit import MIN_TRIPLES, too_few_triples
+        from ..diagnose._stats import noise_triples
+
+        # the data must give their own noise level (unless the study states it): counted
+        # from the files before the engine starts, not after its model has compiled
+        if study.noise_um is None:
+            triples, rows = noise_triples(study)
+            if triples < MIN_TRIPLES:
+                raise InputError(too_few_triples(study, triples, rows))
+
         # the package (`jaxwear.diagnose` the attribute is the function), looked up now:
         # tests stand in for the engine
         dia = importlib.import_module("jaxwear.diagnose")
@@ -148,8 +158,10 @@ class Diagnose(Verb):
                   + ("" if err <= tol else "; ABOVE tolerance: lower "
                      "numerics.wear_tolerance_um and rerun"))
         else:
-            print(f"integration (paper, eq 23): {integ['steps']} updates; no error estimate "
-                  f"(compare with half numerics.revolutions_per_update)")
+            err = integ["error_estimate_um"]
+            print(f"integration (paper, eq 23): {integ['steps']} updates; Euler's estimate "
+                  f"{err if isinstance(err, str) else f'{err:.3g}'} µm (a bound; compare with "
+                  f"half numerics.revolutions_per_update)")
         print(f"wrote {Path(args.out) / 'report.html'}, {Path(args.out) / 'diagnosis.json'}"
               + (f", {args.json}" if args.json else ""))
         return diag

@@ -125,7 +125,7 @@ def plot_profiles(out, study, res):
     """profile_<experiment>.png (crank-slider studies): the profile at the last --at point."""
     if study.config.driver == "oscillating":
         return []
-    from .._report import plt
+    from .._report import plt, thinned, thinned_label
 
     pl = plt()
     paths = []
@@ -146,8 +146,10 @@ def plot_profiles(out, study, res):
             r = np.asarray(e.profile.revolutions)
             hit = np.isclose(r, pr["at"])
             if hit.any():
-                ax.plot(np.degrees(e.profile.angle[hit]) % 360, e.profile.depth[hit] * 1e6,
-                        "o", ms=2.5, color="tab:red", label="measured at this count")
+                xs, ys = np.degrees(e.profile.angle[hit]) % 360, e.profile.depth[hit] * 1e6
+                k = thinned(xs, ys)
+                ax.plot(xs[k], ys[k], "o", ms=2.5, color="tab:red",
+                        label=thinned_label("measured at this count", len(xs)))
         ax.set_xlim(0, 360)
         ax.set_xticks(range(0, 361, 45))
         ax.set_xlabel("bushing angle θ [deg] (from B→D, counter-clockwise)")
@@ -241,7 +243,21 @@ class Predict(Verb):
 
     def resolve(self, study, opts):
         from .._packing import study_fit_keys
+        from .._plausible import check_value
 
+        # the flags against the ranges of what they stand for (revolutions or hours, noise)
+        osc = study.config.driver == "oscillating"
+        count = "experiment.hours" if osc else "experiment.revolutions"
+        kw = opts["kw"]
+        for at in kw["at"]:
+            check_value("--at", count, at, preset=study.preset,
+                        name=f"--at ({'hours' if osc else 'revolutions'})")
+        if kw["train_until"] is not None:
+            check_value("--train-until", count, kw["train_until"], preset=study.preset,
+                        name=f"--train-until ({'hours' if osc else 'revolutions'})")
+        if kw["noise_um"] is not None:
+            check_value("--noise-um", "fit.noise_um", kw["noise_um"], preset=study.preset,
+                        name="--noise-um")
         opts["keys"] = study_fit_keys(study, opts["fit"])
 
     def outputs(self, study, opts):
@@ -262,6 +278,20 @@ class Predict(Verb):
             top = max(max(opts["kw"]["at"]), LIFE_HORIZON * last)
             exps.append(replace(e, hours=top) if osc else replace(e, revolutions=top))
         return study.with_experiments(exps)
+
+    def length_from(self, study, opts):
+        """`--at` when its largest point sets the forecast's length (not the study's)."""
+        from .._predict import LIFE_HORIZON
+
+        osc = study.config.driver == "oscillating"
+        at = max(opts["kw"]["at"])
+        last = max((max(e.snapshot_points) if e.snapshot_points else
+                    float((e.hours if osc else e.revolutions) or 0))
+                   for e in study.experiments)
+        if at >= LIFE_HORIZON * last:
+            return f"`--at` (its largest point, {at:g} {'hours' if osc else 'revolutions'})"
+        return (f"the life search ({LIFE_HORIZON:g}x the last measured "
+                f"{'hours' if osc else 'revolutions'}, {last:g}: lower the study's)")
 
     def tangents(self, study, opts):
         return fit_columns(study, opts["keys"])

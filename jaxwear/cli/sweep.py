@@ -21,6 +21,15 @@ def _preset(study, values: dict):
     return preset(study.preset, **values)
 
 
+def status_counts(status) -> str:
+    """'3 worn through, 1 with a failed contact solve' from `SweepResult.status` (failures
+    only)."""
+    names = {"worn_through": "worn through", "contact_failed": "with a failed contact solve",
+             "integration_failed": "with an unfinished integration"}
+    return ", ".join(f"{int((status == k).sum())} {v}" for k, v in names.items()
+                     if (status == k).any())
+
+
 class Sweep(Verb):
     name = "sweep"
     help = "batched sweep over speed and clearance"
@@ -51,12 +60,17 @@ class Sweep(Verb):
         # the grid's ends against the geometry of the swept experiment (clearance > 0 and
         # below the bore radius, speed > 0: each check is monotone in its value), now rather
         # than inside the sweep
+        import itertools
+
+        from .._plausible import check_params, check_value
         from .._study import _check_geometry
 
         exp = study.experiments[0]
+        ends = {}
         for key, values in opts["grid"].items():
             option = "--" + key.replace("_", "-")
-            for v in (float(np.min(values)), float(np.max(values))):
+            ends[key] = (float(np.min(values)), float(np.max(values)))
+            for v in ends[key]:
                 if key == "speed_rpm" and not v > 0:
                     raise InputError(f"{option}: speed_rpm must be > 0, got {v:g}")
                 try:
@@ -65,6 +79,15 @@ class Sweep(Verb):
                 except InputError as e:
                     raise InputError(f"{e} (experiment {exp.name!r} of {study.path})"
                                      ) from None
+                check_value(option, key, v, preset=study.preset)
+        # the ratios and the layer strain at the grid's corners (each grows monotonically
+        # with speed and with clearance, so the corners bound the grid)
+        for corner in itertools.product(*ends.values()):
+            at = dict(zip(ends, corner))
+            p = _preset(study, {**study.parameters, **exp.overrides, **at})
+            where = ", ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in at.items())
+            check_params(f"{where} (experiment {exp.name!r} of {study.path})", p,
+                         study.config)
 
     def outputs(self, study, opts):
         return list(SWEEP_OUTPUTS)
@@ -87,6 +110,7 @@ class Sweep(Verb):
         cols = ["clearance_mm"] if osc else ["speed_rpm", "clearance_mm"]
         fixed = {k: float(p.get(k)) / key_to_si(k) for k in cols}
         valid = res.valid.ravel()
+        status = res.status.ravel()
         rows = []
         for i in range(total):
             keyvals = [pts[k][i] if k in pts else fixed[k] for k in cols]
@@ -95,11 +119,14 @@ class Sweep(Verb):
                                    res.worn_volume_mm3.ravel()[i] if ok else np.nan,
                                    res.peak_angle_deg.ravel()[i] if ok else np.nan,
                                    res.worn_through_cycle.ravel()[i],
-                                   res.error_estimate_um.ravel()[i], res.steps.ravel()[i]])
+                                   res.error_estimate_um.ravel()[i], res.steps.ravel()[i],
+                                   status[i]])
         unit = "cycle" if osc else "revolution"
+        # status last: the columns before it kept their places for existing readers
         out.write_csv("sweep.csv", cols + ["peak_depth_um", "worn_volume_mm3",
                                            "peak_angle_deg", f"worn_through_{unit}",
-                                           "integration_error_um", "integration_steps"], rows)
+                                           "integration_error_um", "integration_steps",
+                                           "status"], rows)
         _sweep._heatmap(out.path("sweep_peak_depth.png"),
                         f"{exp.name}, {what}: peak wear depth", "peak depth [µm]", res,
                         res.peak_depth_um)
@@ -111,8 +138,8 @@ class Sweep(Verb):
               f"{np.nanmax(np.where(v, res.peak_depth_um, np.nan)):.4g} µm, worn volume "
               f"{np.nanmin(np.where(v, res.worn_volume_mm3, np.nan)):.4g} to "
               f"{np.nanmax(np.where(v, res.worn_volume_mm3, np.nan)):.4g} mm³"
-              if v.any() else f"sweep of {total} points in {dt:.1f} s: every point wore "
-                              f"through")
+              if v.any() else f"sweep of {total} points in {dt:.1f} s: no point gave a "
+                              f"result ({status_counts(res.status)})")
         err = res.error_estimate_um[np.isfinite(res.error_estimate_um)]
         if err.size:
             how = (f"adaptive, tolerance {res.tolerance_um:g} µm"
@@ -120,8 +147,11 @@ class Sweep(Verb):
             print(f"integration ({how}): error estimate up to {err.max():.3g} µm, "
                   f"{int(res.steps.min())}-{int(res.steps.max())} steps per point")
         if not v.all():
-            print(f"{int((~v).sum())} points wore through the layer (or the contact or the "
-                  f"integration did not converge): NaN in sweep.csv, marked in the plots")
+            print(f"{int((~v).sum())} of {total} points without a result "
+                  f"({status_counts(res.status)}): NaN in sweep.csv with their status, "
+                  f"marked in the plots"
+                  + ("; a failed contact solve is outside what the model can solve there: "
+                     "narrow the grid" if (res.status == "contact_failed").any() else ""))
         r = res.resolution
         if r is not None:
             if r.get("auto"):

@@ -23,9 +23,17 @@ class Synth(Verb):
                        help="registration offset of every scan [deg] (truth.json only)")
 
     def options(self, args):
-        return {"noise_um": number("--noise-um", args.noise_um, nonneg=True),
+        from .._plausible import check_value
+
+        noise = number("--noise-um", args.noise_um, nonneg=True)
+        if noise > 0:  # 0: noise-free data
+            check_value("--noise-um", "fit.noise_um", noise, name="--noise-um")
+        offset = number("--angle-offset-deg", args.angle_offset_deg)
+        check_value("--angle-offset-deg", "experiment.angle_offset_deg", offset,
+                    name="--angle-offset-deg")
+        return {"noise_um": noise,
                 "seed": number("--seed", args.seed, integer=True, nonneg=True),
-                "angle_offset_deg": number("--angle-offset-deg", args.angle_offset_deg)}
+                "angle_offset_deg": offset}
 
     def load(self, args, opts):
         from .._synth import _conditions

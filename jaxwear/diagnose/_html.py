@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from .._report import plt
+from .._report import PLOT_POINTS, plt, thinned, thinned_label
 
 
 def _png(fig) -> str:
@@ -72,8 +72,9 @@ def _fig_residuals_angle(diag) -> str | None:
     for ax, fit, title in ((axes[0], diag.base, "base model"),
                            (axes[1], diag.final, f"after ({diag.final.label})")):
         for i, name in enumerate(m.exp_names):
-            sel = prof & (m.row_exp == i)
-            ax.plot(m.row_x[sel], fit.ev.r[sel], ".", ms=3, label=name)
+            sel = np.flatnonzero(prof & (m.row_exp == i))
+            k = sel[thinned(m.row_x[sel], fit.ev.r[sel])]
+            ax.plot(m.row_x[k], fit.ev.r[k], ".", ms=3, label=thinned_label(name, len(sel)))
         ax.axhline(0, color="k", lw=0.8)
         for s in (-2, 2):
             ax.axhline(s * diag.noise_um, color="k", ls=":", lw=0.8)
@@ -161,12 +162,16 @@ def _fig_profiles(diag) -> str:
             dx = np.diff(x)
             gap = np.r_[dx > 2.5 * np.median(dx), False] if len(dx) else np.zeros(len(x), bool)
 
-            def broken(y):
-                return _with_breaks(x, y, gap)
-
-            ax.plot(x, m.measured[last][order], "k.", ms=3, label="measured")
-            ax.plot(*broken(diag.base.ev.pred[last][order]), "-", lw=1, label="base")
-            ax.plot(*broken(diag.final.ev.pred[last][order]), "-", lw=1, label="after")
+            y = m.measured[last][order]
+            k = thinned(x, y)
+            ax.plot(x[k], y[k], "k.", ms=3, label=thinned_label("measured", len(x)))
+            # the model lines are smooth: every row up to PLOT_POINTS, then every k-th
+            keep = np.unique(np.r_[np.arange(0, len(x), max(1, len(x) // PLOT_POINTS)),
+                                   np.flatnonzero(gap), np.flatnonzero(gap) + 1,
+                                   len(x) - 1]) if len(x) else np.arange(0)
+            for pred, label in ((diag.base.ev.pred, "base"), (diag.final.ev.pred, "after")):
+                ax.plot(*_with_breaks(x[keep], pred[last][order][keep], gap[keep]), "-", lw=1,
+                        label=label)
             ax.set_xlabel("angle [deg]")
             ax.set_ylabel("depth [µm]")
             name += f" @ {m.row_time[sel].max():g} rev"

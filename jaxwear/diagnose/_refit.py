@@ -14,7 +14,7 @@ from ._fit import Fit, _log, fit_masked
 from ._model import Eval, Model, objective
 from ._result import Candidate
 from ._screen import Screen, screen
-from ._stats import Tests, run_tests
+from ._stats import Tests, neighbour_differences, run_tests
 
 # A refit's budget of evaluations (each a full run of every experiment with its Jacobian:
 # seconds at the default numerics); it stops earlier when done (`jaxwear.lsq.solve`), and
@@ -120,11 +120,21 @@ def _noise(model: Model, known: float | None = None):
     nz = stated_noise(model.ext.data, known)
     if nz.sigma_um is not None:
         return float(nz.sigma_um), float(nz.dof)
-    if nz.data_dof > 0 and nz.data_sigma_um > 0:
-        return float(nz.data_sigma_um), float(nz.data_dof)
-    raise InputError(f"{model.study.path}: too few neighbouring points to estimate the "
-                     f"noise level ({model.n} rows; a scan or history needs 3 or more "
-                     f"points in a row, or give [fit] noise_um)")
+    e, _ = neighbour_differences(model, model.measured)
+    if len(e) < MIN_TRIPLES:
+        raise InputError(too_few_triples(model.study, len(e), model.n))
+    return float(nz.data_sigma_um), float(nz.data_dof)
+
+
+MIN_TRIPLES = 2  # neighbour triples for a noise level (each one degree of freedom)
+
+
+def too_few_triples(study, triples: int, rows: int) -> str:
+    """The message when the data cannot give their own noise level."""
+    return (f"{study.path}: {rows} data row(s) give {triples} neighbour triple(s) (a point "
+            f"and its two neighbours in one profile scan or history, spaced within 2.5x the "
+            f"median); estimating the noise level needs {MIN_TRIPLES}: 4 or more evenly "
+            f"spaced points in one profile or history, or give the noise as [fit] noise_um")
 
 
 def _second_stage(model, by_contact, best: Candidate, rest, noise, nu, pairs, max_refits,

@@ -29,6 +29,32 @@ def neighbour_differences(model: Model, values=None):
                                         model.measured if values is None else values)
 
 
+def noise_triples(study) -> tuple[int, int]:
+    """(neighbour triples that estimate the noise, data rows) of a study's measurements, as
+    `neighbour_differences` will find them, from the files alone (before any model is
+    built): an interior point of a series and its two neighbours, within the spacing."""
+    exp, snap, x, hist = [], [], [], []
+    for i, e in enumerate(study.experiments):
+        if e.profile is not None:
+            n = len(e.profile.angle)
+            exp += [i] * n
+            snap += list(e.profile.revolutions)
+            x += list(np.degrees(e.profile.angle))
+            hist += [False] * n
+        if e.history is not None:
+            n = len(e.history.hours)
+            exp += [i] * n
+            snap += [0.0] * n
+            x += list(e.history.hours)
+            hist += [True] * n
+    if not exp:
+        return 0, 0
+    series = _noise.series(np.asarray(exp), np.asarray(snap, float), np.asarray(hist, bool),
+                           np.asarray(x, float))
+    return sum(len(line_residuals(xs, np.zeros(len(xs)), gap)[0]) for _, xs, gap in series
+               ), len(exp)
+
+
 def neighbour_pairs(model: Model):
     """Index pairs (i, j) of neighbouring rows of one series."""
     return _noise.neighbour_pairs(model.series)

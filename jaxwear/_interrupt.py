@@ -1,0 +1,47 @@
+"""Ctrl-C at any moment of the command line is one line and exit 1 (issue 29).
+
+`cli.main` turns a `KeyboardInterrupt` into `jaxwear: interrupted` and exit 1 (DESIGN §7:
+0 done, 2 bad input, 1 anything else; not the shell's 130, so that scripts see only the
+three documented codes). Before `main` runs, the package itself is being imported (JAX takes
+seconds), and an interrupt there printed Python's traceback. `guard_import` is called first
+thing in `jaxwear/__init__.py`: when this process is the command line (`jaxwear ...` or
+`python -m jaxwear ...`, never a user's own program importing jaxwear), an interrupt that
+nothing catches prints the same one line and exits 1. Outputs are written atomically
+(`_io`), so an interrupted run leaves the previous file or none.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+MESSAGE = "jaxwear: interrupted"
+EXIT_CODE = 1
+
+
+def launched_as_cli() -> bool:
+    """True when this process runs the command line: the `jaxwear` script or `python -m
+    jaxwear` (`sys.orig_argv`: while -m locates the module, `sys.argv[0]` is only '-m')."""
+    if Path(sys.argv[0] if sys.argv else "").name in ("jaxwear", "jaxwear.exe"):
+        return True
+    orig = list(getattr(sys, "orig_argv", ()))
+    return any(a == "-m" and orig[i + 1:i + 2] == ["jaxwear"] for i, a in enumerate(orig))
+
+
+def guard_import() -> None:
+    """In the command line's process, an uncaught `KeyboardInterrupt` (during `import
+    jaxwear`, before `main` catches it) becomes `MESSAGE` and exit `EXIT_CODE`."""
+    if not launched_as_cli():
+        return
+    previous = sys.excepthook
+
+    def hook(kind, value, tb):
+        if issubclass(kind, KeyboardInterrupt):
+            try:
+                print(MESSAGE, file=sys.stderr, flush=True)
+            finally:
+                os._exit(EXIT_CODE)  # nothing to clean up: no output is open yet
+        previous(kind, value, tb)
+
+    sys.excepthook = hook
