@@ -6,8 +6,8 @@ Every verb opens its outputs with one call before any work,
 
 which refuses (`InputError`, exit 2) an output folder that is a file, and any planned output
 (a file under `--out`, or `--json FILE`) that would replace an input file: the study, its
-profile/history CSVs (for `synth`, the conditions study and its data). Names not planned are
-checked again when written. Every file is written to a temporary name in its folder and
+load and profile/history CSVs (for `synth`, the conditions study and its data). Names not
+planned are checked again when written. Every file is written to a temporary name in its folder and
 renamed over the final name (`os.replace`, atomic on POSIX and Windows), so an interrupted
 run leaves the previous file or none, never half a file. Each output folder is created and
 probed with a real file (removed at once) before any work, so that an output that cannot be
@@ -29,9 +29,13 @@ from ._errors import InputError
 
 
 def input_files(study) -> list[Path]:
-    """The files a study was read from: the study file and its profile/history CSVs (those
-    that exist; a study made in memory, like synth's paper conditions, has none)."""
+    """The files a study was read from: the study file, its load files and its
+    profile/history CSVs (those that exist; a study made in memory, like synth's paper
+    conditions, has none)."""
     files = [Path(study.path)] if getattr(study, "path", None) else []
+    for block in getattr(getattr(study, "config", None), "duty_cycle", ()):
+        if getattr(block, "load", None) is not None:  # a load_history study's load files
+            files.append(Path(block.load.path))
     for e in study.experiments:
         for d in (e.profile, e.history):
             if d is not None and d.path:

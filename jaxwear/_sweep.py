@@ -23,7 +23,7 @@ from ._config import ModelConfig
 from ._errors import InputError
 from ._numbers import MAX_POINTS, parse_range  # noqa: F401  (the CLI range parser)
 from ._parallel import sharded_vmap
-from ._params import PARAMETER_KEYS, Params, key_to_si
+from ._params import MECHANISM_KEYS, PARAMETER_KEYS, Params, key_to_si
 from ._schedule import Schedule
 from ._wear import DEFAULT_WEAR_TOLERANCE_UM, build_schedule, node_area, wear_loop
 from .effects import effect_parameter_specs
@@ -91,6 +91,9 @@ def _check_grid(p: Params, cfg: ModelConfig, grid: dict) -> dict:
         if cfg.driver == "oscillating" and key == "swing_period_s":
             raise InputError("sweep: swing_period_s changes the number of cycles of an "
                              "oscillating joint's schedule; sweep it with separate runs")
+        if cfg.driver == "load_history" and key in MECHANISM_KEYS:
+            raise InputError(f"sweep: {key} does not enter a load_history joint (its load and "
+                             f"motion come from the load file; sweep load_scale instead)")
         if cfg.driver == "oscillating" and key in ("speed_rpm", "crank_length_mm",
                                                    "coupler_length_mm"):
             raise InputError(f"sweep: {key} does not enter an oscillating joint")

@@ -42,7 +42,7 @@ def residual_table(diag) -> tuple[list[str], list[tuple]]:
     m = diag.model
     after = diag.final.ev.pred
     hist = [bool(x) for x in m.is_max]
-    osc = diag.study.config.driver == "oscillating"
+    osc = diag.study.config.timed
     values = ["measured_um", "base_um", "after_um"]
     data = list(zip(m.measured, diag.base.ev.pred, after))
     names = [m.exp_names[e] for e in m.row_exp]

@@ -123,7 +123,7 @@ def plot_fans(out, res):
 
 def plot_profiles(out, study, res):
     """profile_<experiment>.png (crank-slider studies): the profile at the last --at point."""
-    if study.config.driver == "oscillating":
+    if study.config.timed:
         return []
     from .._report import plt
 
@@ -255,7 +255,7 @@ class Predict(Verb):
 
         from .._predict import LIFE_HORIZON
 
-        osc = study.config.driver == "oscillating"
+        osc = study.config.timed
         exps = []
         for e in study.experiments:
             pts = e.snapshot_points

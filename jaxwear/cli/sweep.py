@@ -45,7 +45,7 @@ class Sweep(Verb):
         return {"grid": grid, "total": total}
 
     def resolve(self, study, opts):
-        if "speed_rpm" in opts["grid"] and study.config.driver == "oscillating":
+        if "speed_rpm" in opts["grid"] and study.config.timed:
             raise InputError("--speed-rpm: the study's joint is oscillating (no crank speed); "
                              "sweep --clearance-mm only")
         # the grid's ends against the geometry of the swept experiment (clearance > 0 and
@@ -76,7 +76,7 @@ class Sweep(Verb):
         grid, total = opts["grid"], opts["total"]
         exp = study.experiments[0]
         p = study.params(exp)
-        osc = study.config.driver == "oscillating"
+        osc = study.config.timed
         what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
         print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first "
               f"chunk compiles the model", file=sys.stderr, flush=True)

@@ -82,7 +82,7 @@ def where_it_fails(model: Model, r) -> dict:
                 per_angle.append({"from_deg": a, "to_deg": a + 30, "rows": int(m.sum()),
                                   "mean_um": float(np.mean(r[m])),
                                   "rmse_um": float(np.sqrt(np.mean(r[m] ** 2)))})
-    unit = "hours" if st.config.driver == "oscillating" else "revolutions"
+    unit = "hours" if st.config.timed else "revolutions"
     return {"per_experiment": per_exp, "per_time": per_time, "time_unit": unit,
             "per_angle": per_angle}
 
