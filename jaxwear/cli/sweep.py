@@ -1,4 +1,5 @@
-"""`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11 [--out DIR]`."""
+"""`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11
+[--load-scale A:B:N] [--hours A:B:N | --revolutions A:B:N] [--out DIR]`."""
 
 from __future__ import annotations
 
@@ -23,21 +24,30 @@ def _preset(study, values: dict):
 
 class Sweep(Verb):
     name = "sweep"
-    help = "batched sweep over speed and clearance"
+    help = "batched sweep over speed, clearance, load scale and duration"
 
     def add_arguments(self, p):
         p.add_argument("--speed-rpm", default=None, help="START:STOP:COUNT [r/min]")
         p.add_argument("--clearance-mm", default=None, help="START:STOP:COUNT [mm]")
+        p.add_argument("--load-scale", default=None,
+                       help="START:STOP:COUNT, multiplier of the joint load [-]")
+        p.add_argument("--hours", default=None,
+                       help="START:STOP:COUNT, duration of a timed joint (snapshots) [h]")
+        p.add_argument("--revolutions", default=None,
+                       help="START:STOP:COUNT, duration of a crank-slider (snapshots)")
 
     def options(self, args):
         grid = {}
-        if args.speed_rpm is not None:
-            grid["speed_rpm"] = parse_range("--speed-rpm", args.speed_rpm)
-        if args.clearance_mm is not None:
-            grid["clearance_mm"] = parse_range("--clearance-mm", args.clearance_mm)
+        for key in ("speed_rpm", "clearance_mm", "load_scale", "hours", "revolutions"):
+            text = getattr(args, key)
+            if text is not None:
+                grid[key] = parse_range("--" + key.replace("_", "-"), text)
         if not grid:
-            raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
-                             "--clearance-mm START:STOP:COUNT")
+            raise InputError("sweep: give --speed-rpm START:STOP:COUNT, --clearance-mm, "
+                             "--load-scale, --hours or --revolutions (one or more)")
+        if "hours" in grid and "revolutions" in grid:
+            raise InputError("sweep: give --hours (timed joints) or --revolutions "
+                             "(crank-slider), not both")
         total = math.prod(len(v) for v in grid.values())
         if total > MAX_POINTS:
             raise InputError(f"sweep: {total} grid points; at most {MAX_POINTS} (each is a "
@@ -46,8 +56,13 @@ class Sweep(Verb):
 
     def resolve(self, study, opts):
         if "speed_rpm" in opts["grid"] and study.config.timed:
-            raise InputError("--speed-rpm: the study's joint is oscillating (no crank speed); "
-                             "sweep --clearance-mm only")
+            raise InputError("--speed-rpm: the study's joint is oscillating or a load history "
+                             "(no crank speed); sweep --clearance-mm, --load-scale or --hours")
+        want = "hours" if study.config.timed else "revolutions"
+        for key in ("hours", "revolutions"):
+            if key in opts["grid"] and key != want:
+                raise InputError(f"--{key}: the study's experiments run for {want}; "
+                                 f"give --{want}")
         # the grid's ends against the geometry of the swept experiment (clearance > 0 and
         # below the bore radius, speed > 0: each check is monotone in its value), now rather
         # than inside the sweep
@@ -56,6 +71,8 @@ class Sweep(Verb):
         exp = study.experiments[0]
         for key, values in opts["grid"].items():
             option = "--" + key.replace("_", "-")
+            if key in ("hours", "revolutions"):
+                continue  # a duration is checked by the engine (> 0)
             for v in (float(np.min(values)), float(np.max(values))):
                 if key == "speed_rpm" and not v > 0:
                     raise InputError(f"{option}: speed_rpm must be > 0, got {v:g}")
@@ -68,6 +85,18 @@ class Sweep(Verb):
 
     def outputs(self, study, opts):
         return list(SWEEP_OUTPUTS)
+
+    def work_study(self, study, opts):
+        """The swept experiment run to the longest duration of a duration axis."""
+        from dataclasses import replace
+
+        grid = opts["grid"]
+        e = study.experiments[0]
+        if "hours" in grid:
+            e = replace(e, hours=float(np.max(grid["hours"])))
+        elif "revolutions" in grid:
+            e = replace(e, revolutions=float(np.max(grid["revolutions"])))
+        return study.with_experiments([e])
 
     def run(self, study, out, opts):
         from .. import _sweep  # looked up now: tests stand in for the engine
@@ -85,7 +114,9 @@ class Sweep(Verb):
         dt = time.perf_counter() - t0
         pts = res.points()
         cols = ["clearance_mm"] if osc else ["speed_rpm", "clearance_mm"]
-        fixed = {k: float(p.get(k)) / key_to_si(k) for k in cols}
+        cols += [k for k in grid if k not in cols]
+        fixed = {k: float(p.get(k)) / key_to_si(k) for k in cols
+                 if k not in ("hours", "revolutions")}
         valid = res.valid.ravel()
         rows = []
         for i in range(total):
