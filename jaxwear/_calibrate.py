@@ -729,6 +729,26 @@ def fit(problem: Problem, u0=None, *, noise_um: float | None = None,
     return summarize(problem, out, evals0 + out.evaluations)
 
 
+def _product_flag(names, vals, cov, unidentified) -> list[str]:
+    """With K_d and load_scale both fitted: only their product is identifiable from depths
+    (the wear rate is K_d p dS and the pressure scales with the load; the load's size moves
+    the contact arc only a little), so say so, with the product and its standard error."""
+    if not ("K_d_per_Pa" in names and "load_scale" in names):
+        return []
+    i, j = names.index("K_d_per_Pa"), names.index("load_scale")
+    prod = vals[i] * vals[j]
+    rel2 = (cov[i, i] / vals[i] ** 2 + cov[j, j] / vals[j] ** 2
+            + 2 * cov[i, j] / (vals[i] * vals[j]))
+    se = "undetermined" if unidentified[i] or unidentified[j] or not rel2 >= 0 else \
+        f"{abs(prod) * np.sqrt(rel2):.3g}"
+    r = cov[i, j] / np.sqrt(max(cov[i, i] * cov[j, j], 1e-300))
+    return [f"K_d_per_Pa and load_scale: only their product K_d x load_scale = {prod:.4g} "
+            f"(standard error {se}) 1/Pa is identifiable from depth data (wear is K_d p dS and "
+            f"p scales with the load); each alone (correlation {r:+.3f}) rests on how the "
+            f"load's size shapes the contact arc: fix one of them (the load from the "
+            f"multibody model, or K_d from a wear test)"]
+
+
 def summarize(problem: Problem, out: lsq.Outcome, evaluations: int) -> FitResult:
     """FitResult at the core's answer: values, standard errors (the core's covariance at the
     answer), correlations, RMSE, flags."""
@@ -772,6 +792,7 @@ def summarize(problem: Problem, out: lsq.Outcome, evaluations: int) -> FitResult
                 if abs(corr[i, j]) > 0.99:
                     flags.append(f"{name} and {problem.names[j]}: correlation "
                                  f"{corr[i, j]:+.3f} (|r| > 0.99, not separately identifiable)")
+        flags += _product_flag(problem.names, vals, cov_u, unidentified)
     else:
         vals, se, corr = np.zeros(0), np.zeros(0), np.zeros((0, 0))
     if out.status != "converged":

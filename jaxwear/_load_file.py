@@ -277,6 +277,13 @@ def load_rows(hist, regime: int, pin_radius: float) -> list[tuple]:
             zip(t, load * np.cos(ang), load * np.sin(ang), phi)]
 
 
+def cycle_rows(cycle: LoadCycle) -> list[tuple]:
+    """The rows (`COLUMNS`) of a `LoadCycle`, as read (times from 0, angles unwrapped)."""
+    deg = np.degrees(cycle.angle[:-1])
+    return [(float(t), float(f[0]), float(f[1]), float(a))
+            for t, f, a in zip(cycle.time, cycle.force, deg)]
+
+
 def write_load_file(out, name: str, rows) -> Path:
     """`rows` (`COLUMNS`) to `name` under the `OutputDir` `out`, at full precision (shortest
     repr that reads back to the same float)."""

@@ -383,7 +383,15 @@ def _toml_value(v):
 
 def synth_outputs(conditions: Study) -> list[str]:
     """Every file name `synthesize(out=...)` writes (for the output guard)."""
-    return ["study.toml", "truth.json", *per_experiment(conditions, "{}.csv")]
+    return ["study.toml", "truth.json", *per_experiment(conditions, "{}.csv"),
+            *_load_names(conditions.config)]
+
+
+def _load_names(cfg: ModelConfig) -> list[str]:
+    """The load files a load_history study written by synth takes along (its own copies)."""
+    if cfg.driver != "load_history":
+        return []
+    return [f"load_history_{k + 1}.csv" for k in range(len(cfg.duty_cycle))]
 
 
 def _write(out: OutputDir, planned: Study, cfg: ModelConfig, exps, truth) -> Path:
@@ -395,6 +403,16 @@ def _write(out: OutputDir, planned: Study, cfg: ModelConfig, exps, truth) -> Pat
         lines.append("effects = [" + ", ".join(_toml_value(e) for e in cfg.effects) + "]")
     if cfg.double_layer and planned.preset != "boom":
         lines.append("double_layer = true")
+    if cfg.driver == "load_history":
+        from ._load_file import cycle_rows, write_load_file
+
+        names = _load_names(cfg)
+        for name, b in zip(names, cfg.duty_cycle):
+            write_load_file(out, name, cycle_rows(b.load))
+        lines.append(f"load_history = {_toml_value(names[0])}" if math.isinf(
+            cfg.duty_cycle[0].duration_h) else "duty_cycle = [" + ", ".join(
+            f"{{load_history = {_toml_value(n)}, duration_h = {b.duration_h!r}}}"
+            for n, b in zip(names, cfg.duty_cycle)) + "]")
     if cfg.driver == "oscillating":
         lines.append("duty_cycle = [" + ", ".join(
             f"{{amplitude_deg = {b.amplitude_deg:g}, duration_h = {b.duration_h:g}}}"
