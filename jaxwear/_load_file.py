@@ -90,7 +90,20 @@ class LoadCycle:
 
 
 def make_cycle(time_s, load_x_N, load_y_N, angle_deg, path: str = "<memory>") -> LoadCycle:
-    """A `LoadCycle` from arrays already checked (`read_load_file` checks a file's)."""
+    """A `LoadCycle` from the columns of a load file as arrays (rows,) in the file's units
+    (s, N, N, deg), checked as a file's rows are (`read_load_file`; row i is "line" i + 2).
+    For a load computed in Python, e.g. by a multibody model, without a file."""
+    a = np.stack([np.asarray(x, np.float64).reshape(-1) for x in
+                  (time_s, load_x_N, load_y_N, angle_deg)], axis=1)
+    if not np.all(np.isfinite(a)):
+        i, j = map(int, np.argwhere(~np.isfinite(a))[0])
+        raise InputError(f"{path}: line {i + 2}, column {j + 1} ({COLUMNS[j]}): {a[i, j]} is "
+                         f"not a finite number")
+    _check(path, a)
+    return _cycle(*a.T, str(path))
+
+
+def _cycle(time_s, load_x_N, load_y_N, angle_deg, path: str) -> LoadCycle:
     t = np.asarray(time_s, np.float64)
     f = np.stack([np.asarray(load_x_N, np.float64), np.asarray(load_y_N, np.float64)], 1)
     a = np.asarray(angle_deg, np.float64)
@@ -117,6 +130,12 @@ def read_load_file(path: Path) -> LoadCycle:
     from ._study import _read_csv
 
     _, a = _read_csv(Path(path), COLUMNS)
+    _check(path, a)
+    return _cycle(*a.T, str(path))
+
+
+def _check(path, a: np.ndarray) -> None:
+    """The checks of `read_load_file` on the rows `a` (rows, 4) of `COLUMNS`."""
     t, fx, fy, ang = a.T
     if len(t) < 2:
         raise InputError(f"{path}: line 2: one row is no period; expected the rows of one "
@@ -170,7 +189,6 @@ def read_load_file(path: Path) -> LoadCycle:
               f"the first row again at the end of the period, leave it out (the period is "
               f"the last time minus the first plus one step: {t[-1] - t[0] + step:g} s as "
               f"the file stands)", file=sys.stderr)
-    return make_cycle(t, fx, fy, ang, str(path))
 
 
 def check_load_magnitude(study_path, where: str, cycle: LoadCycle, params) -> None:
