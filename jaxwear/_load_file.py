@@ -33,18 +33,21 @@ from ._errors import InputError
 
 COLUMNS = ["time_s", "load_x_N", "load_y_N", "angle_deg"]
 # Periodic ends: the closing step (last row -> first row) may change a column by at most
-# CLOSING_FACTOR times the largest change between consecutive rows in the file, plus
-# CLOSING_FLOOR times the column's largest magnitude (a constant column closes exactly).
+# CLOSING_FACTOR times the largest change between consecutive rows among the CLOSING_ROWS
+# rows on either side of the end (what the signal does there: a spike elsewhere in the file
+# must not excuse a jump at the end), plus CLOSING_FLOOR times the column's largest
+# magnitude (a constant column closes exactly).
 CLOSING_FACTOR = 2.0
+CLOSING_ROWS = 3
 CLOSING_FLOOR = 1e-6
 # Plausibility of the units. A peak load whose projected pressure |W|/(2 R_b B) is below
 # KN_PRESSURE_PA (0.05 MPa; loaded joints run at 1-100 MPa) reads like kN under an N header:
-# a warning. An angle that turns by a whole number of 2π (±RADIANS_TURN_TOL) where degrees
+# a warning. An angle that turns by a whole number of 2π (±RADIANS_TURN_TOL turns) where degrees
 # would have it close reads like radians: an error (the file does not close on itself
 # either way). Angles that span less than 2π in all reads like radians too, or a small
 # oscillation: a warning.
 KN_PRESSURE_PA = 5e4
-RADIANS_TURN_TOL = 0.05
+RADIANS_TURN_TOL = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,6 +118,11 @@ def _cycle(time_s, load_x_N, load_y_N, angle_deg, path: str) -> LoadCycle:
     return LoadCycle(str(path), t - t[0], f, angle, period, digest)
 
 
+def _near_end(changes: np.ndarray) -> np.ndarray:
+    """The changes between the `CLOSING_ROWS` first and last rows (the ends' neighbours)."""
+    return np.r_[changes[:CLOSING_ROWS], changes[-CLOSING_ROWS:]]
+
+
 def _wrap_deg(d):
     return (np.asarray(d) + 180.0) % 360.0 - 180.0
 
@@ -123,8 +131,9 @@ def read_load_file(path: Path) -> LoadCycle:
     """Read and check a load file (module docstring). Raises `InputError` naming the file,
     the line and the column, and what was expected: missing columns, a value that is not
     a finite number, one row (no period), time not increasing, ends that do not close on
-    each other (tolerance: `CLOSING_FACTOR` x the largest change between rows, plus
-    `CLOSING_FLOOR` of the column's scale), an angle that turns by whole turns of 2π
+    each other (tolerance: `CLOSING_FACTOR` x the largest change between the
+    `CLOSING_ROWS` rows on either side of the end, plus `CLOSING_FLOOR` of the column's
+    scale), an angle that turns by whole turns of 2π
     (radians). Warns (stderr) on angles that span less than 2π and on a last row equal to
     the first (the first row again at t = period?)."""
     from ._study import _read_csv
@@ -150,21 +159,21 @@ def _check(path, a: np.ndarray) -> None:
     step = float(np.median(dt))
     for j, name in ((1, "load_x_N"), (2, "load_y_N")):
         col = a[:, j]
-        inner = np.abs(np.diff(col))
+        inner = _near_end(np.abs(np.diff(col)))
         closing = abs(col[0] - col[-1])
         tol = CLOSING_FACTOR * float(np.max(inner)) + CLOSING_FLOOR * float(np.max(np.abs(col)))
         if closing > tol:
             raise InputError(
                 f"{path}: line {len(t) + 1}, column {j + 1} ({name}): {col[-1]:g} on the last "
                 f"row and {col[0]:g} on the first differ by {closing:.4g}, more than "
-                f"{CLOSING_FACTOR:g} x the largest change between consecutive rows "
+                f"{CLOSING_FACTOR:g} x the largest change between consecutive rows near the end "
                 f"({float(np.max(inner)):.4g}); expected one period, periodic (the row after "
                 f"the last is the first again, {step:g} s later): the ends do not close")
-    inner = np.abs(_wrap_deg(np.diff(ang)))
+    inner = _near_end(np.abs(_wrap_deg(np.diff(ang))))
     closing = float(np.abs(_wrap_deg(ang[0] - ang[-1])))
     tol = CLOSING_FACTOR * float(np.max(inner)) + CLOSING_FLOOR * max(
         float(np.max(np.abs(ang))), 1.0)
-    turn = float(ang[-1] - ang[0]) + float(np.median(_wrap_deg(np.diff(ang))))
+    turn = float(ang[-1] - ang[0]) * len(t) / (len(t) - 1)  # to one period on, as the rows go
     turns = turn / (2 * math.pi)
     if closing > tol:
         hint = ""
@@ -174,7 +183,7 @@ def _check(path, a: np.ndarray) -> None:
         raise InputError(
             f"{path}: line {len(t) + 1}, column 4 (angle_deg): {ang[-1]:g}° on the last row "
             f"and {ang[0]:g}° on the first are {closing:.4g}° apart (modulo 360°), more than "
-            f"{CLOSING_FACTOR:g} x the largest change between consecutive rows "
+            f"{CLOSING_FACTOR:g} x the largest change between consecutive rows near the end "
             f"({float(np.max(inner)):.4g}°); expected one period, periodic (the pin back where "
             f"it started, or whole turns on): the ends do not close{hint}")
     span = float(np.max(ang) - np.min(ang))

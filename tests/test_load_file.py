@@ -22,8 +22,9 @@ ROWS, PERIOD = 720, 6.0
 
 def fine_cycle(rows=ROWS, sub=1):
     """A loader-pin-like cycle: a swing with a reversal-rich harmonic (six reversals), the
-    load turning with the swing and a narrow inertia peak (0.4 % of the period wide, a third of a 72-step) while
-    the pin slides fast. `sub` keeps every sub-th row (point sampling of the same motion)."""
+    load turning with the swing and a narrow inertia peak (0.4 % of the period wide, a third
+    of a 72-step) while the pin slides fast. `sub` keeps every sub-th row (point sampling
+    of the same motion)."""
     t = np.arange(rows) * (PERIOD / rows)
     w = 2 * np.pi / PERIOD
     phi = 40 * np.sin(w * t) + 12 * np.sin(3 * w * t)
