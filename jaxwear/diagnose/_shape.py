@@ -495,7 +495,8 @@ def _refit_best(smodel: Model, ev, u, free_base, basis: ShapeBasis, best: str, r
 
 # -- words --------------------------------------------------------------------------------
 
-LABELS = {"cycle_phase_deg": "crank angles", "pressure_MPa": "contact pressures",
+# cycle phase: the crank angle, the swing's phase, or the phase within a load file's period
+LABELS = {"cycle_phase_deg": "cycle phases", "pressure_MPa": "contact pressures",
           "sliding_speed_m_per_s": "sliding speeds", "sliding_distance_m": "sliding distances",
           "load_turn_rate_deg_per_s": "load turn rates", "bore_angle_deg": "bore angles"}
 
