@@ -1049,3 +1049,18 @@ def test_cycles_count_periods_through_the_duty_cycle(tmp_path):
     st_ = load_study(study)
     assert st_.experiments[1].hours == pytest.approx(3.0, rel=1e-12)
     assert [b.load.period for b in st_.config.duty_cycle] == pytest.approx([6.0, 12.0])
+
+
+def test_simulate_never_writes_over_a_load_file(tmp_path, engines_stubbed):
+    """`simulate --out` beside the study writes load_EXP.csv: where that is the study's own
+    load file (experiment "a", file load_a.csv), it is refused before any work."""
+    import copy
+
+    doc = copy.deepcopy(BASE_LOAD)
+    doc["model"]["load_history"] = "load_a.csv"
+    study = _load_study(tmp_path, doc=doc)
+    (tmp_path / "load_a.csv").write_text(_csv(LOAD_COLUMNS, LOAD_ROWS))
+    before = (tmp_path / "load_a.csv").read_text()
+    _refused(["simulate", study, "--out", tmp_path], "load_a.csv",
+             "refusing to replace an input")
+    assert (tmp_path / "load_a.csv").read_text() == before

@@ -1,15 +1,20 @@
 """Your own joint (preset "load_history", DESIGN §2): the identity with the presets. The
 rig's and the boom's loads, written by `simulate --out` (`load_EXP.csv`, one file per duty
 block), run back through preset "load_history" give the same profile as the presets, within
-the integration error both runs report (64 x 72; the rig 2000 revolutions, the boom 6 h).
-Run time (2 cores, one process, unloaded): ~40 s; four `simulate` runs, each compiling.
+the integration error both runs report (64 x 72; the rig 2000 revolutions, the boom 5 h:
+both duty blocks). `simulate`'s engine without plots (the CLI path is tested on the
+load-history study in test_load_history.py): four runs, each compiling its wear loop.
+Run time: see test_load_history.py.
 """
 
 import json
 
 import numpy as np
 import pytest
-from test_load_history import RIG, cli, profiles
+from test_load_history import RIG, profiles
+
+import jaxwear as jw
+from jaxwear._simulate_study import simulate_outputs, simulate_study
 
 BOOM = """\
 [model]
@@ -19,7 +24,7 @@ nodes = 64
 steps_per_rev = 72
 [[experiment]]
 name = "b"
-hours = 6
+hours = 5
 """
 BOOM_JOINT = """\
 double_layer = true
@@ -30,6 +35,12 @@ backing_thickness_mm = 2.0
 """
 
 
+def simulate(path, out):
+    """`simulate STUDY --out OUT` without the plots."""
+    st = jw.load_study(path)
+    simulate_study(st, jw.open_outputs(st, out, planned=simulate_outputs(st)), plots=False)
+
+
 def summary(folder):
     return json.loads((folder / "summary.json").read_text())["experiments"]
 
@@ -37,8 +48,7 @@ def summary(folder):
 @pytest.mark.parametrize("preset", ["rig", "boom"])
 def test_presets_loads_written_and_run_back_give_the_same_wear(tmp_path, preset):
     (tmp_path / "p.toml").write_text(RIG if preset == "rig" else BOOM)
-    rc, _, err = cli("simulate", tmp_path / "p.toml", "--out", tmp_path / "p")
-    assert rc == 0, err
+    simulate(tmp_path / "p.toml", tmp_path / "p")
     (name, s), = summary(tmp_path / "p").items()
     files = s["load_history"]["files"]
     assert files == (["load_a.csv"] if preset == "rig" else ["load_b_1.csv", "load_b_2.csv"])
@@ -51,8 +61,7 @@ def test_presets_loads_written_and_run_back_give_the_same_wear(tmp_path, preset)
               f'name = "{name}"', s["load_history"]["experiment"]]
     lines += ["clearance_mm = 0.07"] if preset == "rig" else []
     (tmp_path / "p" / "lh.toml").write_text("\n".join(lines) + "\n")
-    rc, _, err = cli("simulate", tmp_path / "p" / "lh.toml", "--out", tmp_path / "lh")
-    assert rc == 0, err
+    simulate(tmp_path / "p" / "lh.toml", tmp_path / "lh")
     a, b = profiles(tmp_path / "p" / "profiles.csv")[name], profiles(
         tmp_path / "lh" / "profiles.csv")[name]
     err_a = s["integration"]["error_estimate_um"]
