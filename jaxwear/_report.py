@@ -45,8 +45,10 @@ def plt():
     return pyplot
 
 
-def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None):
-    """Final (and snapshot) wear profiles vs bushing angle, with measured points if any."""
+def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None,
+                 frame="from B→D, counter-clockwise"):
+    """Final (and snapshot) wear profiles vs bushing angle, with measured points if any;
+    `frame` says where the angle counts from."""
     pl = plt()
     fig, ax = pl.subplots(figsize=(7, 3.6))
     if snapshots:
@@ -55,7 +57,7 @@ def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None)
     ax.plot(angle_deg, depth_um, "k-", lw=1.6, label="model")
     if measured is not None:
         ax.plot(measured[0], measured[1], "o", ms=3, color="tab:red", label="measured")
-    ax.set_xlabel("bushing angle θ [deg] (from B→D, counter-clockwise)")
+    ax.set_xlabel(f"bushing angle θ [deg] ({frame})")
     ax.set_ylabel("wear depth [µm]")
     ax.set_xlim(0, 360)
     ax.set_xticks(range(0, 361, 45))

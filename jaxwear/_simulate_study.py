@@ -178,8 +178,12 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
                 measured = (np.degrees(exp.profile.angle[last]), exp.profile.depth[last] * 1e6)
             unit = "h" if osc else "rev"
             labels = [(f"{s:g} {unit}", d) for s, d in zip(snaps, snap_um)]
+            frame = {"load_history": "the load file's frame, from its x axis, counter-"
+                                     "clockwise",
+                     "oscillating": "bushing frame, counter-clockwise"}.get(
+                study.config.driver, "from B→D, counter-clockwise")
             rep.plot_profile(out.path(f"profile_{exp.name}.png"), exp.name, angles, depth_um,
-                             measured, labels if len(labels) > 1 else None)
+                             measured, labels if len(labels) > 1 else None, frame=frame)
             hist = res.history
             rep.plot_load(out.path(f"load_{exp.name}.png"), exp.name, np.asarray(hist.fx[0]),
                           np.asarray(hist.fy[0]), np.asarray(hist.angle[0]))

@@ -131,10 +131,10 @@ class Sweep(Verb):
         out.write_csv("sweep.csv", cols + ["peak_depth_um", "worn_volume_mm3",
                                            "peak_angle_deg", f"worn_through_{unit}",
                                            "integration_error_um", "integration_steps"], rows)
-        _sweep._heatmap(out.path("sweep_peak_depth.png"),
-                        f"{exp.name}, {what}: peak wear depth", "peak depth [µm]", res,
-                        res.peak_depth_um)
-        _sweep._heatmap(out.path("sweep_worn_volume.png"), f"{exp.name}, {what}: worn volume",
+        at = exp.name if ("hours" in grid or "revolutions" in grid) else f"{exp.name}, {what}"
+        _sweep._heatmap(out.path("sweep_peak_depth.png"), f"{at}: peak wear depth",
+                        "peak depth [µm]", res, res.peak_depth_um)
+        _sweep._heatmap(out.path("sweep_worn_volume.png"), f"{at}: worn volume",
                         "worn volume [mm³]", res, res.worn_volume_mm3)
         v = res.valid
         print(f"sweep of {total} points in {dt:.1f} s: peak depth "

@@ -8,7 +8,7 @@ instead of the nominal 0.10) is computed at twice the study's nodes and steps wi
 of its integration tolerance, and Gaussian noise of 10 µm is added. Replace service.csv by
 your own inspections (same two columns) and delete this script.
 
-    python calibration/examples/loader_arm/service_data.py   (~2 min on 2 cores)
+    python calibration/examples/loader_arm/service_data.py   (several minutes: 180 x 144)
 """
 
 from pathlib import Path
