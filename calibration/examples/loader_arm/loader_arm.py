@@ -29,8 +29,9 @@ Prescribed motion (the operator's, kinematic driving): cycloidal rises θ = θ0 
 d'Alembert, for the boom with the bucket as one rigid body turning about O, with the inertia
 forces -m a of every mass and the frame's vertical acceleration a_f added to gravity
 (g_eff = g + a_f, the frame's inertia on everything it carries):
-- moments about O: F_c (D x û)_z + Σ m (r x (-g_eff ŷ - a))_z = 0 gives the cylinder force
-  F_c (û the cylinder's direction C→D, a = θ̈ ẑ x r - θ̇² r at each mass's position r);
+- moments about O: F_c (D x û)_z + Σ m (r x (-g_eff ŷ - a))_z - I_G θ̈ = 0 gives the
+  cylinder force F_c (û the cylinder's direction C→D, a = θ̈ ẑ x r - θ̇² r at each mass's
+  position r, I_G = m L²/12 the boom's own inertia about its centre);
 - forces: R + F_c û + Σ m (-g_eff ŷ - a) = 0 gives R, the force of the frame's pin on the
   boom: the load on the bushing in the boom eye.
 Two boom arms share it equally (a pin and a bushing each; the study's joint is one of them),
@@ -110,6 +111,7 @@ def pin_load(th, w, a, payload, frame_acc):
         f = m[:, None] * (np.stack([np.zeros_like(th), -g_eff], 1) - acc)  # weight + inertia
         force += f
         moment += cross(r, f)
+    moment -= M_BOOM * L**2 / 12 * a  # the boom's own inertia couple about its centre
     d = D_ALONG * e - D_BELOW * n
     u = (d - C) / np.linalg.norm(d - C, axis=1)[:, None]
     f_cyl = -moment / cross(d, u)
