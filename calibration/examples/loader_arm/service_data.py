@@ -8,7 +8,7 @@ instead of the nominal 0.10) is computed at twice the study's nodes and steps wi
 of its integration tolerance, and Gaussian noise of 10 µm is added. Replace service.csv by
 your own inspections (same two columns) and delete this script.
 
-    python calibration/examples/loader_arm/service_data.py   (several minutes: 180 x 144)
+    python calibration/examples/loader_arm/service_data.py   (7 min of CPU: 180 x 144)
 """
 
 from pathlib import Path
