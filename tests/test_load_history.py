@@ -9,8 +9,9 @@ steps (128 x 144) with a quarter of its integration tolerance, from a K_d 20 % o
 study's start and a clearance 2.2 µm off nominal. The study runs at 64 x 72: the resampling
 of the 144-row file onto 72 steps and the coarser bore are the discretisation the fits face,
 as real data would be.
-Run time (2 cores, one process): ~4 min unloaded (23 min at load 13 for an earlier, two-
-specimen version); each verb compiles its own model: simulate, two calibrations (K_d +
+Run time: 277 s of CPU with test_load_file.py (one process; 18 min of wall time at load
+~10 on the shared 2 cores), before predict's life was dropped from it; diagnose --shape and
+predict take half. Each verb compiles its own model: simulate, two calibrations (K_d +
 clearance; K_d + load_scale), diagnose --shape, predict, sweep, sensitivity.
 """
 
@@ -209,10 +210,12 @@ def test_diagnose_with_shape(verb_study, tmp_path):
 def test_predict_band_holds_the_held_out_truth(verb_study, tmp_path):
     """Trained on the 0.1 h scan, forecast at 0.2 h: the band holds the truth (the held-out
     scan's deepest row is the truth plus the largest of its noise draws, ~+2σ: not what the
-    band is for); the life to 6 µm lies past 0.2 h with a band around it."""
+    band is for). The life (here: the layer, 500 µm, not reached within 10x the training
+    time) is left to the worked example and the boom's tests: its refinement rounds would
+    compile the forecast three more times."""
     d, truth = verb_study
     rc, _, err = cli("predict", d / "study.toml", "--train-until", 0.1, "--at", 0.2,
-                     "--limit-um", 6, "--fit", "K_d", "--out", tmp_path)
+                     "--fit", "K_d", "--out", tmp_path)
     assert rc == 0, err
     doc = json.loads((tmp_path / "prediction.json").read_text())
     assert doc["predictions"][0]["unit"] == "hours"
@@ -220,8 +223,7 @@ def test_predict_band_holds_the_held_out_truth(verb_study, tmp_path):
         assert p["lower_um"] <= truth[p["experiment"]][-1] <= p["upper_um"], p
         assert p["measured_um"] == pytest.approx(truth[p["experiment"]][-1], abs=4 * NOISE_UM)
     for life in doc["life"]:
-        assert life["unit"] == "hours" and life["lower"] < life["at"] < life["upper"], life
-        assert life["at"] > 0.2
+        assert life["unit"] == "hours" and life["at"] is None and life["reason"], life
 
 
 def test_sweep_clearance_load_scale_and_hours(verb_study, tmp_path):
