@@ -39,6 +39,7 @@ import math
 import os
 from dataclasses import dataclass
 
+from ._config import timed
 from ._errors import InputError
 
 DEFAULT_MAX_WORK = 1e11  # contact node-steps per model evaluation
@@ -94,7 +95,7 @@ def _block_shares(study, exp) -> tuple[list[float], list[float], float]:
 
 
 def _cycles_and_segments(study, exp) -> tuple[float, float]:
-    if not study.config.timed:
+    if not timed(study.config):
         return float(exp.revolutions or 0.0), 1.0
     shares, periods, segments = _block_shares(study, exp)
     seconds_per_cycle = sum(sh * T for sh, T in zip(shares, periods))
@@ -118,7 +119,7 @@ def stiff_rates(study, exp) -> list[tuple[float, float]]:
             p.backing_modulus, p.backing_poisson))
     k = 1.0 / compliance if compliance > 0 else math.inf
     kd, r_pin = float(p.wear_coefficient), float(p.pin_radius)
-    if cfg.timed:
+    if timed(cfg):
         shares, _, _ = _block_shares(study, exp)
         rot = [b.load.rotation if cfg.driver == "load_history"
                else 4.0 * math.radians(b.amplitude_deg) for b in cfg.duty_cycle]
@@ -220,7 +221,7 @@ def check_work(study, *, tangents: int = 0) -> WorkEstimate:
     est = estimate_work(study, tangents=tangents)
     if est is None:
         return est
-    osc = study.config.timed
+    osc = timed(study.config)
     what = "hours" if osc else "revolutions"
     paper = not (ADAPTIVE_LOOP and study.integrator == "adaptive")
     keys = f"lower `{what}`" + (", raise `numerics.revolutions_per_update`" if paper else "")

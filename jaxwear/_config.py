@@ -81,13 +81,14 @@ class ModelConfig:
             if not ok:
                 raise InputError(msg)
 
-    @property
-    def timed(self) -> bool:
-        """Experiments run for hours (oscillating joint, load history), not revolutions."""
-        return self.driver in TIMED_DRIVERS
-
     def replace(self, **kw) -> ModelConfig:
         return replace(self, **kw)
+
+
+def timed(cfg) -> bool:
+    """Experiments of a `ModelConfig` run for hours (oscillating joint, load history), not
+    revolutions (anything with a `driver` will do)."""
+    return cfg.driver in TIMED_DRIVERS
 
 
 def boom_config(**kw) -> ModelConfig:

@@ -9,6 +9,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ._config import timed
 from ._study import Experiment, Study
 from ._wear import (
     WearResult,
@@ -97,7 +98,7 @@ def simulate_outputs(study: Study) -> list[str]:
 def load_file_names(study: Study, exp: Experiment) -> list[str]:
     """The load files `simulate` writes for an experiment (DESIGN §2): `load_EXP.csv`, or
     one per duty block, `load_EXP_1.csv`, ..., for a duty cycle."""
-    n = len(study.config.duty_cycle) if study.config.timed else 1
+    n = len(study.config.duty_cycle) if timed(study.config) else 1
     return [f"load_{exp.name}.csv"] if n == 1 else [f"load_{exp.name}_{k + 1}.csv"
                                                     for k in range(n)]
 
@@ -118,7 +119,7 @@ def write_load_files(out, study: Study, exp: Experiment, res: WearResult) -> dic
         model = "duty_cycle = [" + ", ".join(
             f'{{load_history = "{n}", duration_h = {b.duration_h:g}}}'
             for n, b in zip(names, study.config.duty_cycle)) + "]"
-    run = f"hours = {exp.hours:g}" if study.config.timed else f"cycles = {exp.revolutions:g}"
+    run = f"hours = {exp.hours:g}" if timed(study.config) else f"cycles = {exp.revolutions:g}"
     return {"files": names, "model": model, "experiment": run}
 
 
@@ -138,7 +139,7 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
     n = study.config.nodes
     angles = np.arange(n) * 360.0 / n
     rows, snap_rows, summary = [], [], {}
-    osc = study.config.timed
+    osc = timed(study.config)
     for line in amplification_warnings(study):
         progress(line)
     length = common_length(study)

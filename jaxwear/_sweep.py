@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import ModelConfig
+from ._config import ModelConfig, timed
 from ._errors import InputError
 from ._numbers import MAX_POINTS, parse_range  # noqa: F401  (the CLI range parser)
 from ._parallel import sharded_vmap
@@ -93,7 +93,7 @@ def _check_grid(p: Params, cfg: ModelConfig, grid: dict) -> dict:
     out = {}
     for key, vals in grid.items():
         if key in DURATION_KEYS:
-            want = "hours" if cfg.timed else "revolutions"
+            want = "hours" if timed(cfg) else "revolutions"
             if key != want:
                 raise InputError(f"sweep: this joint runs for {want}, not {key}")
             v = np.atleast_1d(np.asarray(vals, dtype=np.float64))
@@ -234,7 +234,7 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
     dur_key = next((k for k in grid if k in DURATION_KEYS), None)
     durations = grid.pop(dur_key) if dur_key else None
     if durations is not None:  # one run to the longest, a snapshot at each duration
-        if cfg.timed:
+        if timed(cfg):
             hours = float(np.max(durations))
         else:
             revolutions = float(np.max(durations))

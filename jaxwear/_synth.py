@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ._budget import check_work
-from ._config import ModelConfig
+from ._config import ModelConfig, timed
 from ._errors import InputError
 from ._io import OutputDir, open_outputs, per_experiment
 from ._study import Experiment, History, Profile, Study, load_study
@@ -150,7 +150,7 @@ def _measure_points(study: Study, exp: Experiment) -> list[float]:
     """Revolutions (crank) or hours (oscillating) at which the specimen is measured."""
     if exp.profile is not None or exp.history is not None:
         return exp.snapshot_points
-    if study.config.timed:
+    if timed(study.config):
         n = max(1, int(round(exp.hours / HISTORY_EVERY_H)))
         return [exp.hours * (i + 1) / n for i in range(n)]
     pts = [r for r in INTERRUPTIONS if r < exp.revolutions - 1e-9]
@@ -166,7 +166,7 @@ def _with_placeholder_data(study: Study, step_deg: float) -> Study:
     exps = []
     for e in study.experiments:
         pts = _measure_points(study, e)
-        if study.config.timed:
+        if timed(study.config):
             hist = History(np.array(pts), np.zeros(len(pts)), "")
             exps.append(replace(e, profile=None, history=hist, hours=max(pts)))
         else:
@@ -317,7 +317,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     exps = []
     for ei, e in enumerate(planned.experiments):
         pts = e.snapshot_points
-        if planned.config.timed:
+        if timed(planned.config):
             depth = snaps[ei, :len(pts)].max(axis=1)
             if perturb is not None:
                 depth = np.asarray(perturb(e.name, pts, None, depth), float)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._config import ModelConfig
+from ._config import ModelConfig, timed
 from ._contact import interp_periodic, solve_contact, stiffness_per_area
 from ._custom_types import Array, Float, NodeArray, Scalar
 from ._errors import InputError, WornThroughError
@@ -434,7 +434,7 @@ def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
         integrator = "adaptive" if M is None else "paper"
     if integrator not in ("adaptive", "paper"):
         raise InputError(f'integrator must be "adaptive" or "paper", got {integrator!r}')
-    if cfg.timed:
+    if timed(cfg):
         if hours is None or not hours > 0:
             raise InputError(f"an oscillating joint or a load history needs hours > 0, got "
                              f"{hours}")

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
+from jaxwear._config import timed as jw_timed
 from jaxwear.cli import main
 
 NOISE_UM = 0.1
@@ -129,7 +130,7 @@ def test_study_reads_the_file_and_its_period(verb_study):
     d, _ = verb_study
     st = jw.load_study(d / "study.toml")
     (block,) = st.config.duty_cycle
-    assert st.config.driver == "load_history" and st.config.timed
+    assert st.config.driver == "load_history" and jw_timed(st.config)
     assert block.load.period == pytest.approx(60 / 276, rel=1e-12)
     assert block.load.rows == 144
     # the rotation per period: the rig's 10.655 mm of sliding per revolution on its 7.45 mm

@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from .._config import timed
 from .._errors import InputError
 from .._numbers import number, number_list
 from ._pipeline import Verb, fit_columns
@@ -123,7 +124,7 @@ def plot_fans(out, res):
 
 def plot_profiles(out, study, res):
     """profile_<experiment>.png (crank-slider studies): the profile at the last --at point."""
-    if study.config.timed:
+    if timed(study.config):
         return []
     from .._report import plt
 
@@ -255,7 +256,7 @@ class Predict(Verb):
 
         from .._predict import LIFE_HORIZON
 
-        osc = study.config.timed
+        osc = timed(study.config)
         exps = []
         for e in study.experiments:
             pts = e.snapshot_points

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 
+from .._config import timed
 from .._errors import InputError
 from .._numbers import MAX_POINTS, parse_range
 from ._pipeline import Verb
@@ -55,10 +56,10 @@ class Sweep(Verb):
         return {"grid": grid, "total": total}
 
     def resolve(self, study, opts):
-        if "speed_rpm" in opts["grid"] and study.config.timed:
+        if "speed_rpm" in opts["grid"] and timed(study.config):
             raise InputError("--speed-rpm: the study's joint is oscillating or a load history "
                              "(no crank speed); sweep --clearance-mm, --load-scale or --hours")
-        want = "hours" if study.config.timed else "revolutions"
+        want = "hours" if timed(study.config) else "revolutions"
         for key in ("hours", "revolutions"):
             if key in opts["grid"] and key != want:
                 raise InputError(f"--{key}: the study's experiments run for {want}; "
@@ -105,7 +106,7 @@ class Sweep(Verb):
         grid, total = opts["grid"], opts["total"]
         exp = study.experiments[0]
         p = study.params(exp)
-        osc = study.config.timed
+        osc = timed(study.config)
         what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
         print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first "
               f"chunk compiles the model", file=sys.stderr, flush=True)

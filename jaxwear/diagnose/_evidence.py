@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from .._config import timed
 from ._fit import Fit, _objective, _system
 from ._model import Model
 
@@ -82,7 +83,7 @@ def where_it_fails(model: Model, r) -> dict:
                 per_angle.append({"from_deg": a, "to_deg": a + 30, "rows": int(m.sum()),
                                   "mean_um": float(np.mean(r[m])),
                                   "rmse_um": float(np.sqrt(np.mean(r[m] ** 2)))})
-    unit = "hours" if st.config.timed else "revolutions"
+    unit = "hours" if timed(st.config) else "revolutions"
     return {"per_experiment": per_exp, "per_time": per_time, "time_unit": unit,
             "per_angle": per_angle}
 
