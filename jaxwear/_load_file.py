@@ -42,9 +42,9 @@ CLOSING_ROWS = 3
 CLOSING_FLOOR = 1e-6
 # Plausibility of the units. A peak load whose projected pressure |W|/(2 R_b B) is below
 # KN_PRESSURE_PA (0.05 MPa; loaded joints run at 1-100 MPa) reads like kN under an N header:
-# a warning. An angle that turns by a whole number of 2π (±RADIANS_TURN_TOL turns) where degrees
-# would have it close reads like radians: an error (the file does not close on itself
-# either way). Angles that span less than 2π in all reads like radians too, or a small
+# a warning. An angle that turns by a whole number of 2π (±RADIANS_TURN_TOL turns) where
+# degrees would have it close reads like radians: an error (the file does not close on
+# itself either way). Angles that span less than 2π in all reads like radians too, or a small
 # oscillation: a warning.
 KN_PRESSURE_PA = 5e4
 RADIANS_TURN_TOL = 0.1
@@ -133,9 +133,9 @@ def read_load_file(path: Path) -> LoadCycle:
     a finite number, one row (no period), time not increasing, ends that do not close on
     each other (tolerance: `CLOSING_FACTOR` x the largest change between the
     `CLOSING_ROWS` rows on either side of the end, plus `CLOSING_FLOOR` of the column's
-    scale), an angle that turns by whole turns of 2π
-    (radians). Warns (stderr) on angles that span less than 2π and on a last row equal to
-    the first (the first row again at t = period?)."""
+    scale), an angle that turns by whole turns of 2π (radians). Warns (stderr) on angles
+    that span less than 2π and on a last row equal to the first (the first row again at
+    t = period?)."""
     from ._study import _read_csv
 
     _, a = _read_csv(Path(path), COLUMNS)
