@@ -32,6 +32,9 @@ from ._io import input_files as input_files  # noqa: E402
 from ._io import open_outputs as open_outputs  # noqa: E402
 from ._load import LoadHistory as LoadHistory  # noqa: E402
 from ._load import load_history as load_history  # noqa: E402
+from ._load_file import LoadCycle as LoadCycle  # noqa: E402
+from ._load_file import make_cycle as make_cycle  # noqa: E402
+from ._load_file import read_load_file as read_load_file  # noqa: E402
 from ._mechanism import crank_slider_forces as crank_slider_forces  # noqa: E402
 from ._parallel import points_mesh as points_mesh  # noqa: E402
 from ._parallel import sharded_fn as sharded_fn  # noqa: E402
@@ -72,11 +75,12 @@ __version__ = "0.1.0"
 # private (underscore modules) and may change without notice.
 __all__ = [
     "ContactSolution", "DutyBlock", "Effect", "EffectParameter", "Experiment", "FitError",
-    "FitResult", "InputError", "LoadHistory", "ModelConfig", "Params", "PredictResult",
+    "FitResult", "InputError", "LoadCycle", "LoadHistory", "ModelConfig", "Params", "PredictResult",
     "Schedule",
     "Sensitivities", "Study", "SweepResult", "SynthResult", "WearResult", "WorkEstimate",
     "WornThroughError", "build_schedule", "calibrate", "check_work", "crank_slider_forces",
-    "diagnose", "estimate_work", "input_files", "load_history", "load_study", "make_schedule",
+    "diagnose", "estimate_work", "input_files", "load_history", "load_study", "make_cycle",
+    "make_schedule", "read_load_file",
     "open_outputs", "points_mesh", "predict", "preset", "register_effect", "sensitivities",
     "sharded_fn", "sharded_vmap", "simulate", "solve_contact", "stiffness_per_area",
     "study_sensitivities", "sweep", "synthesize", "unregister_effect", "wear_loop",

@@ -44,6 +44,7 @@ import math
 import os
 from dataclasses import dataclass
 
+from ._config import timed
 from ._errors import InputError
 
 DEFAULT_MAX_WORK = 1e11  # contact node-steps per model evaluation
@@ -80,23 +81,38 @@ class WorkEstimate:
         return self.node_steps / NODE_STEPS_PER_S
 
 
-def _cycles_and_segments(study, exp) -> tuple[float, float]:
+def _block_shares(study, exp) -> tuple[list[float], list[float], float]:
+    """Per duty block of a timed study: (share of the cycles, period [s]) and the segments
+    of a run of the experiment's hours, by closed forms (no segment list: 1e15 hours must
+    be refused at once)."""
+    from ._load import block_periods
+
     cfg = study.config
-    if cfg.driver == "oscillating":
-        period = float(study.params(exp).swing_period)
-        hours = float(exp.hours or 0.0)
-        per_block = sum(b.duration_h for b in cfg.duty_cycle)
-        segments = math.ceil(hours / per_block) * len(cfg.duty_cycle) if per_block > 0 else 1
-        return hours * 3600.0 / period, float(segments)
-    return float(exp.revolutions or 0.0), 1.0
+    periods = block_periods(study.params(exp), cfg)
+    hours = float(exp.hours or 0.0)
+    per_block = sum(b.duration_h for b in cfg.duty_cycle)
+    if not math.isfinite(per_block):  # one file for the whole run
+        return [1.0], periods[:1], 1.0
+    segments = math.ceil(hours / per_block) * len(cfg.duty_cycle) if per_block > 0 else 1
+    per_cycle = [b.duration_h / T for b, T in zip(cfg.duty_cycle, periods)]
+    total = sum(per_cycle)
+    return ([c / total if total > 0 else 1.0 for c in per_cycle], periods, float(segments))
+
+
+def _cycles_and_segments(study, exp) -> tuple[float, float]:
+    if not timed(study.config):
+        return float(exp.revolutions or 0.0), 1.0
+    shares, periods, segments = _block_shares(study, exp)
+    seconds_per_cycle = sum(sh * T for sh, T in zip(shares, periods))
+    return float(exp.hours or 0.0) * 3600.0 / seconds_per_cycle, segments
 
 
 def stiff_rates(study, exp) -> list[tuple[float, float]]:
     """[(λ [1/cycle], share of the cycles)] per duty regime of one experiment: λ = K_d k
     S_cycle, the decay rate of the stiff mode that bounds explicit steps (DESIGN §4), by
     closed forms from the parameters (k of the unworn layer, in series with the backing
-    for a double layer; S_cycle from the kinematics), as `_wear._regime_rates` computes it
-    from the load history, without evaluating the model."""
+    for a double layer; S_cycle from the kinematics, or a load file's rotation), as
+    `_wear._regime_rates` computes it from the load history, without evaluating the model."""
     from ._contact import equivalent_modulus
 
     cfg = study.config
@@ -108,10 +124,11 @@ def stiff_rates(study, exp) -> list[tuple[float, float]]:
             p.backing_modulus, p.backing_poisson))
     k = 1.0 / compliance if compliance > 0 else math.inf
     kd, r_pin = float(p.wear_coefficient), float(p.pin_radius)
-    if cfg.driver == "oscillating":
-        per_block = sum(b.duration_h for b in cfg.duty_cycle)
-        return [(kd * k * r_pin * 4.0 * math.radians(b.amplitude_deg),
-                 b.duration_h / per_block if per_block > 0 else 1.0) for b in cfg.duty_cycle]
+    if timed(cfg):
+        shares, _, _ = _block_shares(study, exp)
+        rot = [b.load.rotation if cfg.driver == "load_history"
+               else 4.0 * math.radians(b.amplitude_deg) for b in cfg.duty_cycle]
+        return [(kd * k * r_pin * r, share) for r, share in zip(rot, shares)]
     ratio = min(1.0, float(p.crank_length) / float(p.coupler_length))
     return [(kd * k * r_pin * 4.0 * math.asin(ratio), 1.0)]
 
@@ -216,7 +233,7 @@ def check_work(study, *, tangents: int = 0, length_from: str | None = None) -> W
     est = estimate_work(study, tangents=tangents)
     if est is None:
         return est
-    osc = study.config.driver == "oscillating"
+    osc = timed(study.config)
     what = length_from or f"`{'hours' if osc else 'revolutions'}`"
     paper = not (ADAPTIVE_LOOP and study.integrator == "adaptive")
     keys = f"lower {what}" + (", raise `numerics.revolutions_per_update`" if paper else "")
@@ -229,7 +246,8 @@ def check_work(study, *, tangents: int = 0, length_from: str | None = None) -> W
     if not est.node_steps <= work_limit:
         how = f"{est.updates:.3g} wear updates"
         if not paper:
-            unit = "swing cycles" if osc else "revolutions"
+            unit = {"oscillating": "swing cycles", "load_history": "load cycles"}.get(
+                study.config.driver, "revolutions")
             how = (f"{est.updates:.3g} cycle evaluations of the adaptive integrator (its "
                    f"steps stay stable up to ~{est.stable_cycles:.3g} {unit}, over "
                    f"{est.cycles:.3g} {unit})")

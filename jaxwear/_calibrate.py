@@ -290,6 +290,26 @@ def value_errors(packing, u, cov: lsq.Covariance, free=None):
     return se, corr, und
 
 
+def _product_flag(names, vals, se, corr, und) -> list[str]:
+    """With K_d and load_scale both fitted: only their product is identifiable from depths
+    (the wear rate is K_d p dS and the pressure scales with the load; the load's size moves
+    the contact arc only a little), so say so, with the product and its standard error."""
+    if not ("K_d_per_Pa" in names and "load_scale" in names):
+        return []
+    i, j = names.index("K_d_per_Pa"), names.index("load_scale")
+    prod = vals[i] * vals[j]
+    r = corr[i, j]
+    rel2 = ((se[i] / vals[i]) ** 2 + (se[j] / vals[j]) ** 2
+            + 2 * r * se[i] * se[j] / (vals[i] * vals[j]))
+    se_p = "undetermined" if und[i] or und[j] or not rel2 >= 0 else \
+        f"{abs(prod) * np.sqrt(rel2):.3g}"
+    return [f"K_d_per_Pa and load_scale: only their product K_d x load_scale = {prod:.4g} "
+            f"(standard error {se_p}) 1/Pa is identifiable from depth data (wear is K_d p dS and "
+            f"p scales with the load); each alone (correlation {r:+.3f}) rests on how the "
+            f"load's size shapes the contact arc: fix one of them (the load from the "
+            f"multibody model, or K_d from a wear test)"]
+
+
 def summarize(problem: ResidualModel, out: lsq.Outcome, evaluations: int,
               noise: Noise | None = None) -> FitResult:
     """FitResult at the core's answer: values, standard errors (the core's covariance at
@@ -320,6 +340,7 @@ def summarize(problem: ResidualModel, out: lsq.Outcome, evaluations: int,
                 if abs(corr[i, j]) > 0.99:
                     flags.append(f"{names[i]} and {names[j]}: correlation "
                                  f"{corr[i, j]:+.3f} (|r| > 0.99, not separately identifiable)")
+        flags += _product_flag(names, vals, se, corr, und)
     else:
         vals, se, corr = np.zeros(0), np.zeros(0), np.zeros((0, 0))
     if out.error_scale_um > out.noise_um * (1 + 1e-9) and noise is not None \

@@ -10,22 +10,27 @@ from ._errors import InputError
 ALGORITHMS = ("scla", "ideal", "li")
 CONTACTS = ("unsymmetric", "symmetric")
 BUSHINGS = ("coupler", "slider")
-DRIVERS = ("crank_slider", "oscillating")
+DRIVERS = ("crank_slider", "oscillating", "load_history")
+TIMED_DRIVERS = ("oscillating", "load_history")  # experiments run for hours
 
 
 @dataclass(frozen=True)
 class DutyBlock:
-    """One block of the oscillating joint's duty cycle (DESIGN §2)."""
+    """One block of a duty cycle (DESIGN §2): the oscillating joint's swing of
+    `amplitude_deg`, or (preset "load_history") one period of `load`, a `LoadCycle` from a
+    file, repeated for `duration_h` (inf: a single file, repeated for the whole run)."""
 
     amplitude_deg: float
     duration_h: float
+    load: object = None  # _load_file.LoadCycle (load_history driver)
 
 
 @dataclass(frozen=True)
 class ModelConfig:
     """Choices that are not numbers to fit.
 
-    - `driver`: `"crank_slider"` (§1) or `"oscillating"` (§2).
+    - `driver`: `"crank_slider"` (§1), `"oscillating"` (§2) or `"load_history"` (§2, your
+      own joint: the load and motion of each duty block from a file).
     - `algorithm`: joint-load algorithm, `"scla"` (default), `"ideal"` or `"li"`.
     - `scla_passes`, `gamma0_rad`: SCLA iterations and start angle.
     - `bushing`: `"coupler"` (bushing in the coupler eye at D, default) or `"slider"`.
@@ -33,7 +38,8 @@ class ModelConfig:
     - `double_layer`: series springs of a bimetal bearing (§3).
     - `nodes`, `steps_per_rev`: N and n_steps.
     - `effects`: names of the candidate effects switched on (§5).
-    - `duty_cycle`: oscillating driver's blocks, repeated (boom: 20° 1 h, then 1° 4 h).
+    - `duty_cycle`: oscillating driver's blocks, repeated (boom: 20° 1 h, then 1° 4 h), or
+      the load_history driver's files with their durations.
     - `shape`: a non-parametric correction of the local wear rate (`effects.shape`), used
       by `diagnose --shape`; None (default) is the model as written.
     """
@@ -67,6 +73,9 @@ class ModelConfig:
             (isinstance(self.steps_per_rev, int) and self.steps_per_rev >= 4,
              f"steps_per_rev must be an integer >= 4, got {self.steps_per_rev!r}"),
             (math.isfinite(self.gamma0_rad), "gamma0 must be finite"),
+            ((self.driver == "load_history") == all(b.load is not None
+                                                    for b in self.duty_cycle),
+             "a load_history driver takes a load file per duty block (and only it does)"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -74,6 +83,12 @@ class ModelConfig:
 
     def replace(self, **kw) -> ModelConfig:
         return replace(self, **kw)
+
+
+def timed(cfg) -> bool:
+    """Experiments of a `ModelConfig` run for hours (oscillating joint, load history), not
+    revolutions (anything with a `driver` will do)."""
+    return cfg.driver in TIMED_DRIVERS
 
 
 def boom_config(**kw) -> ModelConfig:

@@ -6,13 +6,13 @@ Every verb opens its outputs with one call before any work,
 
 which refuses (`InputError`, exit 2) an output folder that is a file, and any planned output
 (a file under `--out`, or `--json FILE`) that would replace an input file: the study, its
-effect files, its profile/history CSVs (for `synth`, the conditions study and its data).
-Names not planned are checked again when written. Every file is written to a temporary
-name in its folder and renamed over the final name (`os.replace`, atomic on POSIX and
-Windows), so an interrupted run leaves the previous file or none, never half a file. Each
-output folder is created and probed with a real file (removed at once) before any work, so
-that an output that cannot be written is refused (exit 2) before the computation, not after
-it.
+effect files, its load files and its profile/history CSVs (for `synth`, the conditions
+study and its data). Names not planned are checked again when written. Every file is
+written to a temporary name in its folder and renamed over the final name (`os.replace`,
+atomic on POSIX and Windows), so an interrupted run leaves the previous file or none, never
+half a file. Each output folder is created and probed with a real file (removed at once)
+before any work, so that an output that cannot be written is refused (exit 2) before the
+computation, not after it.
 """
 
 from __future__ import annotations
@@ -30,12 +30,15 @@ from ._errors import InputError
 
 
 def input_files(study) -> list[Path]:
-    """The files a study was read from: the study file, its effect files and its
-    profile/history CSVs (those that exist; a study made in memory, like synth's paper
-    conditions, has none)."""
+    """The files a study was read from: the study file, its effect files, its load files
+    and its profile/history CSVs (those that exist; a study made in memory, like synth's
+    paper conditions, has none)."""
     from .effects._files import effect_file_paths
 
     files = [Path(study.path), *effect_file_paths(study)] if getattr(study, "path", None) else []
+    for block in getattr(getattr(study, "config", None), "duty_cycle", ()):
+        if getattr(block, "load", None) is not None:  # a load_history study's load files
+            files.append(Path(block.load.path))
     for e in study.experiments:
         for d in (e.profile, e.history):
             if d is not None and d.path:

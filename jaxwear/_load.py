@@ -1,17 +1,20 @@
 """Load history of one cycle, in the bushing frame: what the contact and wear need per step.
 
-A cycle is one crank revolution (crank-slider) or one swing (oscillating joint). The history
-has a leading `regimes` axis: the crank-slider has one regime; the oscillating joint has one
-per duty block (each amplitude is its own cycle).
+A cycle is one crank revolution (crank-slider), one swing (oscillating joint) or one period
+of a load file (your own joint). The history has a leading `regimes` axis: the crank-slider
+has one regime; the oscillating joint and the load history have one per duty block (each
+amplitude, each file, is its own cycle). Every driver's load is multiplied by `load_scale`.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import ModelConfig
 from ._custom_types import Array, Float
+from ._load_file import resample
 from ._mechanism import _safe_atan2, crank_slider_forces
 from ._params import Params
 
@@ -76,8 +79,39 @@ def _oscillating(p: Params, cfg: ModelConfig) -> LoadHistory:
                        fx=load * jnp.cos(angle), fy=load * jnp.sin(angle))
 
 
+def _from_files(p: Params, cfg: ModelConfig) -> LoadHistory:
+    # Each duty block's file on the loop's steps (host arrays, cached per resolution: the
+    # file is data, not a parameter); only the pin radius enters from `p`.
+    steps = [resample(b.load, cfg.steps_per_rev) for b in cfg.duty_cycle]
+
+    def stack(name):
+        return jnp.asarray(np.stack([getattr(r, name) for r in steps]))
+
+    load, angle, dt = stack("load"), stack("angle"), stack("dt")
+    zeros = jnp.zeros_like(load)
+    return LoadHistory(load=load, angle=angle, slide=p.pin_radius * stack("rotation"), dt=dt,
+                       sense=jnp.sign(stack("net")),
+                       period=jnp.asarray([r.period for r in steps]), gamma_change=zeros,
+                       fx=load * jnp.cos(angle), fy=load * jnp.sin(angle))
+
+
 def load_history(p: Params, cfg: ModelConfig) -> LoadHistory:
-    """The cycle's load history for the configured driver (DESIGN §1-2)."""
+    """The cycle's load history for the configured driver (DESIGN §1-2), its load times
+    `load_scale`."""
     if cfg.driver == "oscillating":
-        return _oscillating(p, cfg)
-    return _crank_slider(p, cfg)
+        hist = _oscillating(p, cfg)
+    elif cfg.driver == "load_history":
+        hist = _from_files(p, cfg)
+    else:
+        hist = _crank_slider(p, cfg)
+    s = p.load_scale
+    return eqx.tree_at(lambda h: (h.load, h.fx, h.fy), hist,
+                       (s * hist.load, s * hist.fx, s * hist.fy))
+
+
+def block_periods(p: Params, cfg: ModelConfig) -> list[float]:
+    """Duration of one cycle of each duty block [s] (host floats): the swing period of the
+    oscillating joint, each file's period for a load history."""
+    if cfg.driver == "load_history":
+        return [b.load.period for b in cfg.duty_cycle]
+    return [float(p.swing_period)] * len(cfg.duty_cycle)

@@ -57,6 +57,9 @@ class Params(eqx.Module):
     load: Scalar  # |W| [N]
     load_angle: Scalar  # θ_W0 [rad], bushing frame at φ = 0
     swing_period: Scalar  # T_s [s]
+    # every driver: a dimensionless multiplier of the joint load (an uncertain load magnitude
+    # to sweep or fit; with depth data only K_d x load_scale is identifiable)
+    load_scale: Scalar  # [-]
     # candidate effects (§5): strength parameters by study key, SI values, defaults "off"
     effect_params: dict[str, Scalar]
 
@@ -141,6 +144,7 @@ PARAMETER_KEYS: dict[str, Key] = {
     "load_angle_deg": Key("load_angle", math.pi / 180, "oscillating joint: load direction",
                           positive=False),
     "swing_period_s": Key("swing_period", 1.0, "oscillating joint: swing period T_s"),
+    "load_scale": Key("load_scale", 1.0, "multiplier of the joint load (every driver)"),
 }
 # pin_diameter_mm is accepted too: it sets the default clearance (bore - pin)/2.
 DERIVED_KEYS = {"pin_diameter_mm": "sets clearance_mm = (bore_diameter_mm - pin_diameter_mm)/2"}
@@ -154,7 +158,7 @@ _RIG = {
     "layer_thickness_mm": 0.5, "layer_E_GPa": 0.5, "layer_poisson_ratio": 0.3,
     "backing_thickness_mm": 0.0, "backing_E_GPa": 208.0, "backing_poisson_ratio": 0.28,
     "pin_E_GPa": 208.0, "pin_poisson_ratio": 0.28, "K_d_per_Pa": 1.0e-13,
-    "load_N": 0.0, "load_angle_deg": 90.0, "swing_period_s": 10.0,
+    "load_N": 0.0, "load_angle_deg": 90.0, "swing_period_s": 10.0, "load_scale": 1.0,
 }
 # Table 4: bimetal bearing, copper layer 0.5 mm on a 2 mm steel backing, same geometry.
 # The paper gives neither the boom load nor the swing period: 10 kN (≈ 24 MPa projected
@@ -167,7 +171,17 @@ _BOOM.update({
     "load_N": 10000.0, "load_angle_deg": 90.0, "swing_period_s": 10.0,
     "spring_N_per_m": 0.0, "speed_rpm": 0.0,
 })
-PRESETS = {"rig": _RIG, "boom": _BOOM}
+# Your own joint (DESIGN §2): the load and motion come from files, the joint's geometry and
+# materials from [model.parameters]; where a study leaves a key out it is the rig joint's
+# (Table 3: bore 15 mm, width 28 mm, PTFE layer 0.5 mm). The mechanism keys do not enter.
+_LOAD_HISTORY = dict(_RIG)
+_LOAD_HISTORY.update({"spring_N_per_m": 0.0, "speed_rpm": 0.0})
+PRESETS = {"rig": _RIG, "boom": _BOOM, "load_history": _LOAD_HISTORY}
+# Keys that do not enter a load_history joint (the file gives its load and motion).
+MECHANISM_KEYS = ("crank_length_mm", "coupler_length_mm", "crank_mass_kg", "coupler_mass_kg",
+                  "slider_mass_kg", "spring_N_per_m", "spring_free_position_mm",
+                  "gravity_m_per_s2", "speed_rpm", "load_N", "load_angle_deg",
+                  "swing_period_s")
 
 
 def _resolve(values: dict[str, float], effect_values: dict[str, float]) -> Params:
@@ -185,7 +199,9 @@ def preset(name: str = "rig", **overrides: float) -> Params:
     """Parameters of a preset with optional overrides by study key.
 
     **Arguments:**
-    - `name`: `"rig"` (Tables 1 and 3, k = 1009.4 N/m) or `"boom"` (Table 4).
+    - `name`: `"rig"` (Tables 1 and 3, k = 1009.4 N/m), `"boom"` (Table 4) or
+      `"load_history"` (your own joint: the rig's joint until overridden; its load and
+      motion come from files through `ModelConfig.duty_cycle`).
     - `overrides`: study keys with their units, e.g. `clearance_mm=0.1, speed_rpm=148`.
 
     **Returns:** a `Params` in SI units.

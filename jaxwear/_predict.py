@@ -44,6 +44,7 @@ from ._calibrate import (
     fit_study,
     study_fit_keys,
 )
+from ._config import timed
 from ._errors import InputError
 from ._residual import evaluate, integration_report
 from ._resolution import at_level
@@ -201,7 +202,7 @@ def _log(verbose, msg):
 
 
 def unit_of_study(study: Study) -> str:
-    return "hours" if study.config.driver == "oscillating" else "revolutions"
+    return "hours" if timed(study.config) else "revolutions"
 
 
 def training_study(study: Study, train_until: float | None) -> Study:
@@ -250,7 +251,7 @@ def forecast_points(study: Study, e: Experiment, at: list[float], n_dense: int =
     """Snapshot points of one experiment: the `at` points, the measured points, a fan-chart
     grid to max(at) and (with `life`) a life grid to 10x the last measured count (sorted,
     unique)."""
-    crank = study.config.driver != "oscillating"
+    crank = not timed(study.config)
     top = max(at)
     horizon = max(LIFE_HORIZON * _last_count(e), top) if life else top
     grid = np.concatenate([np.linspace(0, top, n_dense // 2 + 1)[1:],
@@ -287,7 +288,7 @@ def forecast_study(study: Study, points: list[np.ndarray]) -> Study:
     for e, pts in zip(study.experiments, points):
         pts = np.asarray(pts, float)
         z = np.zeros(len(pts))
-        if study.config.driver == "oscillating":
+        if timed(study.config):
             exps.append(replace(e, hours=float(pts.max()), profile=None,
                                 history=History(hours=pts, depth=z, path="<forecast>")))
         else:
@@ -427,7 +428,7 @@ def life_of(name, t, depth, lower, upper, limit, unit, horizon) -> Life:
 def refined_points(study: Study, res: PredictResult, points: list[np.ndarray]):
     """`points` with LIFE_REFINE_POINTS more inside every life bracket wider than LIFE_RTOL
     of its crossing (whole revolutions for a crank-slider study); None when none is."""
-    crank = study.config.driver != "oscillating"
+    crank = not timed(study.config)
     out, more = [], False
     for pts, life in zip(points, res.life):
         new = [np.linspace(a, b, LIFE_REFINE_POINTS + 2)[1:-1]

@@ -74,8 +74,10 @@ def thinned_label(label: str, n: int, max_points: int = PLOT_POINTS) -> str:
     return f"{label} ({n} rows: lowest and highest of {max_points // 2} bins)"
 
 
-def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None):
-    """Final (and snapshot) wear profiles vs bushing angle, with measured points if any."""
+def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None,
+                 frame="from B→D, counter-clockwise"):
+    """Final (and snapshot) wear profiles vs bushing angle, with measured points if any;
+    `frame` says where the angle counts from."""
     pl = plt()
     fig, ax = pl.subplots(figsize=(7, 3.6))
     if snapshots:
@@ -86,7 +88,7 @@ def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None)
         k = thinned(*measured)
         ax.plot(np.asarray(measured[0])[k], np.asarray(measured[1])[k], "o", ms=3,
                 color="tab:red", label=thinned_label("measured", len(measured[0])))
-    ax.set_xlabel("bushing angle θ [deg] (from B→D, counter-clockwise)")
+    ax.set_xlabel(f"bushing angle θ [deg] ({frame})")
     ax.set_ylabel("wear depth [µm]")
     ax.set_xlim(0, 360)
     ax.set_xticks(range(0, 361, 45))

@@ -139,20 +139,30 @@ def crank_segments(revolutions: float):
     return [(0, float(revolutions))]
 
 
-def duty_segments(blocks, hours: float, period_s: float):
-    """Repeat the duty-cycle blocks [(amplitude, duration_h)] up to `hours`; cycles per
-    block = duration / swing period. Returns segments and the hours→cycles map."""
+def duty_segments(blocks, hours: float, period_s):
+    """Repeat the duty-cycle blocks [(..., duration_h)] up to `hours` (a block of infinite
+    duration runs for the rest); cycles per block = duration / the block's period
+    (`period_s`: one for all blocks, or one per block). Returns the segments and the map
+    hours → cumulative cycles (a function of a sequence of hours)."""
+    periods = [float(period_s)] * len(blocks) if np.ndim(period_s) == 0 else [
+        float(x) for x in period_s]
+    per_h = [3600.0 / T for T in periods]
     segs = []
     t = 0.0
-    cycles_per_h = 3600.0 / period_s
+    edges_h, edges_c = [0.0], [0.0]
     while t < hours - 1e-12:
         for i, b in enumerate(blocks):
             d = min(b.duration_h, hours - t)
             if d <= 1e-12:
                 break
-            segs.append((i, d * cycles_per_h))
+            segs.append((i, d * per_h[i]))
             t += d
-    return segs, cycles_per_h
+            edges_h.append(t)
+            edges_c.append(edges_c[-1] + segs[-1][1])
+    if len(set(periods)) == 1:
+        return segs, lambda hs: [float(h) * per_h[0] for h in hs]
+    # cycles per hour differ between blocks: piecewise linear in the hours
+    return segs, lambda hs: [float(np.interp(float(h), edges_h, edges_c)) for h in hs]
 
 
 def bucket(n: int) -> int:

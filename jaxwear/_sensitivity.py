@@ -37,6 +37,7 @@ from .effects import effect_parameter_specs, get_effect
 CRANK_KEYS = ("crank_length_mm", "coupler_length_mm", "coupler_mass_kg", "slider_mass_kg",
               "spring_N_per_m", "spring_free_position_mm", "gravity_m_per_s2", "speed_rpm")
 OSCILLATING_KEYS = ("load_N", "load_angle_deg", "swing_period_s")
+LOAD_HISTORY_KEYS = ("load_scale",)  # the file's load and motion are data, not parameters
 JOINT_KEYS = ("bore_diameter_mm", "clearance_mm", "width_mm", "layer_thickness_mm",
               "layer_E_GPa", "layer_poisson_ratio", "K_d_per_Pa")
 BACKING_KEYS = ("backing_thickness_mm", "backing_E_GPa", "backing_poisson_ratio")
@@ -44,8 +45,9 @@ BACKING_KEYS = ("backing_thickness_mm", "backing_E_GPa", "backing_poisson_ratio"
 
 def relevant_keys(p: Params, cfg: ModelConfig) -> list[str]:
     """Study keys that enter the model for this driver and joint, at non-zero values."""
-    keys = list(OSCILLATING_KEYS if cfg.driver == "oscillating" else CRANK_KEYS)
-    if cfg.driver != "oscillating" and float(p.spring_rate) == 0:
+    keys = list({"oscillating": OSCILLATING_KEYS, "load_history": LOAD_HISTORY_KEYS}.get(
+        cfg.driver, CRANK_KEYS))
+    if cfg.driver == "crank_slider" and float(p.spring_rate) == 0:
         keys.remove("spring_free_position_mm")  # no spring, no free position
     keys += JOINT_KEYS
     if cfg.double_layer:

@@ -9,6 +9,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ._config import timed
 from ._study import Experiment, Study
 from ._wear import (
     WearResult,
@@ -90,7 +91,36 @@ def simulate_outputs(study: Study) -> list[str]:
     from ._io import per_experiment
 
     return ["profiles.csv", "snapshots.csv", "summary.json", *per_experiment(
-        study, "profile_{}.png", "load_{}.png", "pressure_{}.png", "history_{}.png")]
+        study, "profile_{}.png", "load_{}.png", "pressure_{}.png", "history_{}.png"),
+        *[n for e in study.experiments for n in load_file_names(study, e)]]
+
+
+def load_file_names(study: Study, exp: Experiment) -> list[str]:
+    """The load files `simulate` writes for an experiment (DESIGN §2): `load_EXP.csv`, or
+    one per duty block, `load_EXP_1.csv`, ..., for a duty cycle."""
+    n = len(study.config.duty_cycle) if timed(study.config) else 1
+    return [f"load_{exp.name}.csv"] if n == 1 else [f"load_{exp.name}_{k + 1}.csv"
+                                                    for k in range(n)]
+
+
+def write_load_files(out, study: Study, exp: Experiment, res: WearResult) -> dict:
+    """Each regime of the experiment's load, as the model used it, in the load-history
+    format (`time_s,load_x_N,load_y_N,angle_deg`); returns the study lines that run them
+    back through preset "load_history" (the rig and the boom as two examples of it)."""
+    from ._load_file import load_rows, write_load_file
+
+    names = load_file_names(study, exp)
+    pin = float(study.params(exp).pin_radius)
+    for k, name in enumerate(names):
+        write_load_file(out, name, load_rows(res.history, k, pin))
+    if len(names) == 1:
+        model = f'load_history = "{names[0]}"'
+    else:
+        model = "duty_cycle = [" + ", ".join(
+            f'{{load_history = "{n}", duration_h = {b.duration_h:g}}}'
+            for n, b in zip(names, study.config.duty_cycle)) + "]"
+    run = f"hours = {exp.hours:g}" if timed(study.config) else f"cycles = {exp.revolutions:g}"
+    return {"files": names, "model": model, "experiment": run}
 
 
 def simulate_study(study: Study, out=None, plots=True) -> dict:
@@ -109,7 +139,7 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
     n = study.config.nodes
     angles = np.arange(n) * 360.0 / n
     rows, snap_rows, summary = [], [], {}
-    osc = study.config.driver == "oscillating"
+    osc = timed(study.config)
     for line in amplification_warnings(study):
         progress(line)
     length = common_length(study)
@@ -136,6 +166,8 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
             "wall_time_s": dt,
             "integration": integration_report(res, study.integrator, study.wear_tolerance_um),
         }
+        if out is not None:
+            summary[exp.name]["load_history"] = write_load_files(out, study, exp, res)
         progress(f"    peak {depth_um[peak]:.3f} µm at {angles[peak]:.0f}°, "
                  f"volume {float(res.worn_volume) * 1e9:.4f} mm³, integration error "
                  f"≈ {float(res.error_estimate) * 1e6:.2g} µm in {int(res.steps)} steps "
@@ -147,8 +179,12 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
                 measured = (np.degrees(exp.profile.angle[last]), exp.profile.depth[last] * 1e6)
             unit = "h" if osc else "rev"
             labels = [(f"{s:g} {unit}", d) for s, d in zip(snaps, snap_um)]
+            frame = {"load_history": "the load file's frame, from its x axis, counter-"
+                                     "clockwise",
+                     "oscillating": "bushing frame, counter-clockwise"}.get(
+                study.config.driver, "from B→D, counter-clockwise")
             rep.plot_profile(out.path(f"profile_{exp.name}.png"), exp.name, angles, depth_um,
-                             measured, labels if len(labels) > 1 else None)
+                             measured, labels if len(labels) > 1 else None, frame=frame)
             hist = res.history
             rep.plot_load(out.path(f"load_{exp.name}.png"), exp.name, np.asarray(hist.fx[0]),
                           np.asarray(hist.fy[0]), np.asarray(hist.angle[0]))

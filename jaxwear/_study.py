@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _load_file
 from ._config import DutyBlock, ModelConfig
 from ._errors import InputError
 from ._noise import profile_noise
@@ -38,6 +39,7 @@ class Profile:
     path: str
     angle_offset_deg: float = 0.0
     depth_column: str = "depth_um"  # the file's depth column(s), for plausibility messages
+    count_column: str = "revolutions"  # or "hours" (timed studies)
 
 
 @dataclass(frozen=True)
@@ -61,7 +63,7 @@ class Experiment:
 
     @property
     def snapshot_points(self) -> list[float]:
-        """Revolutions (crank) or hours (oscillating) at which the data measure the profile."""
+        """Revolutions (crank) or hours (timed) at which the data measure the profile."""
         # np.unique, not a Python set: a 300 000-row profile asks this often
         if self.profile is not None:
             return np.unique(self.profile.revolutions).tolist()
@@ -180,13 +182,23 @@ def _read_csv(path: Path, columns: list[str], optional: list[str] = (),
         try:
             vals = [float(row[j]) for j in idx]
         except ValueError:
-            raise InputError(f"{path}: line {i}: not a number in {row}") from None
+            j = next(j for j in idx if not _is_float(row[j]))
+            raise InputError(f"{path}: line {i}, column {j + 1} ({header[j]}): "
+                             f"{row[j].strip()!r} is not a number") from None
         for name, v in zip(used, vals):
             if not math.isfinite(v):
                 raise InputError(f"{path}: line {i}: {name} is {v} (NaN/inf are not allowed; "
                                  f"leave the row out instead)")
         data.append(vals)
     return used, np.array(data)
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 NOISE_WARN_LEVELS = 5.0  # a depth below -5 noise levels is worth a look at the scan's zero
@@ -247,7 +259,8 @@ def _header(path: Path) -> list[str]:
 def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
     """A profile file (DESIGN §6, docs/measurements.md), one of:
 
-    - `angle_deg,depth_um[,revolutions]` (`depth_mm` may replace `depth_um`);
+    - `angle_deg,depth_um[,revolutions]` (`depth_mm` may replace `depth_um`; `hours` may
+      replace `revolutions`, for a study whose experiments run for hours);
     - `angle_deg,radius_before_um,radius_after_um[,revolutions]`: two raw scans of the bore
       radius, before and after the test, at the same angles; depth = after - before.
 
@@ -256,17 +269,18 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
     one-line warning on stderr. The scan's angle plus `angle_offset_deg` is the
     bushing-frame angle."""
     header = _header(path)
+    count = "hours" if "hours" in header and "revolutions" not in header else "revolutions"
     raw_scans = "radius_before_um" in header or "radius_after_um" in header
     if raw_scans:
         if "depth_um" in header or "depth_mm" in header:
             raise InputError(f"{path}: line 1: give either a depth column (depth_um) or two "
                              f"raw scans (radius_before_um,radius_after_um), not both")
         used, a = _read_csv(path, ["angle_deg", "radius_before_um", "radius_after_um"],
-                            ["revolutions"])
+                            [count])
         depth = (a[:, 2] - a[:, 1]) * 1e-6  # wear opens the bore: the radius grows
         rev_col = 3
     else:
-        used, a = _read_csv(path, ["angle_deg", "depth_um"], ["revolutions"],
+        used, a = _read_csv(path, ["angle_deg", "depth_um"], [count],
                             alternatives={"depth_um": ["depth_mm"]})
         depth = a[:, 1] * (1e-3 if used[1] == "depth_mm" else 1e-6)
         rev_col = 2
@@ -278,7 +292,7 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
     if has_revs:
         for i, r in enumerate(revs, start=2):
             if not r > 0:
-                raise InputError(f"{path}: line {i}: revolutions {r:g} must be > 0")
+                raise InputError(f"{path}: line {i}: {count} {r:g} must be > 0")
     _check_angles_in_degrees(path, a[:, 0])
     if not raw_scans:
         _check_not_tiny(path, depth, used[1])
@@ -293,10 +307,10 @@ def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
                   f"and sign", file=sys.stderr)
     column = "radius_before_um,radius_after_um" if raw_scans else used[1]
     check_repeats(path, np.c_[a[:, 0], np.where(has_revs, revs, 0.0)],
-                  ["angle_deg", "revolutions"][:1 + has_revs], depth, column, sigma,
+                  ["angle_deg", count][:1 + has_revs], depth, column, sigma,
                   PLAUSIBLE_SCAR_UM)
     angle = np.mod(np.deg2rad(a[:, 0] + angle_offset_deg), 2 * np.pi)
-    return Profile(angle, depth, revs, str(path), float(angle_offset_deg), column)
+    return Profile(angle, depth, revs, str(path), float(angle_offset_deg), column, count)
 
 
 def _check_angles_in_degrees(path: Path, angle_deg: np.ndarray) -> None:
@@ -359,11 +373,13 @@ def read_history(path: Path) -> History:
 
 
 _MODEL_KEYS = {"preset", "contact", "effects", "parameters", "algorithm", "scla_passes",
-               "gamma0_deg", "bushing", "double_layer", "duty_cycle", "effect_files"}
+               "gamma0_deg", "bushing", "double_layer", "duty_cycle", "effect_files",
+               "load_history"}
 _NUMERIC_KEYS = {"nodes", "steps_per_rev", "revolutions_per_update", "integrator",
                  "wear_tolerance_um"}
 _FIT_KEYS = {"clearance_tolerance_um", "angle_tolerance_deg", "parameters", "noise_um"}
-_EXP_FIXED = {"name", "revolutions", "hours", "profile", "history", "angle_offset_deg"}
+_EXP_FIXED = {"name", "revolutions", "hours", "cycles", "profile", "history",
+              "angle_offset_deg"}
 
 
 def _validate_params(path, where, values: dict) -> dict:
@@ -429,6 +445,11 @@ def load_study(path) -> Study:
     cfg_kw: dict = {}
     if name == "boom":
         cfg_kw.update(driver="oscillating", double_layer=True)
+    if name == "load_history":  # your own joint: its load and motion from files
+        cfg_kw.update(driver="load_history",
+                      duty_cycle=_load_file.parse_model(path, model, lambda m: _fail(path, m)))
+    elif "load_history" in model:
+        _fail(path, f"model.load_history is for preset \"load_history\", not {name!r}")
     for key, options in (("contact", ("unsymmetric", "symmetric")),
                          ("algorithm", ("scla", "ideal", "li")),
                          ("bushing", ("coupler", "slider"))):
@@ -459,7 +480,7 @@ def load_study(path) -> Study:
     if "double_layer" in effects:
         cfg_kw["double_layer"] = True
     cfg_kw["effects"] = tuple(e for e in effects if e in known)
-    if "duty_cycle" in model:
+    if "duty_cycle" in model and name != "load_history":
         blocks = model["duty_cycle"]
         if not isinstance(blocks, list) or not blocks:
             _fail(path, "model.duty_cycle must be a non-empty array of tables "
@@ -476,6 +497,8 @@ def load_study(path) -> Study:
                                             positive=True)))
         cfg_kw["duty_cycle"] = tuple(parsed)
     params = _validate_params(path, "model.parameters", model.get("parameters", {}))
+    if name == "load_history":
+        _load_file.check_parameters(path, "model.parameters", params)
 
     num = raw.get("numerics", {})
     _check_keys(path, "numerics", num, _NUMERIC_KEYS)
@@ -540,6 +563,8 @@ def load_study(path) -> Study:
         where = f"experiment {ename!r}"
         overrides = _validate_params(path, where, {k: v for k, v in e.items()
                                                    if k not in _EXP_FIXED})
+        if name == "load_history":
+            _load_file.check_parameters(path, where, overrides)
         if config.driver == "crank_slider" and "speed_rpm" in overrides:
             if not overrides["speed_rpm"] > 0:
                 _fail(path, f"{where}.speed_rpm must be > 0, got {e['speed_rpm']!r}")
@@ -564,6 +589,9 @@ def load_study(path) -> Study:
         if config.driver == "crank_slider":
             if "revolutions" not in e:
                 _fail(path, f"{where}: missing key 'revolutions'")
+            if "cycles" in e or (profile is not None and profile.count_column != "revolutions"):
+                _fail(path, f"{where}: a crank-slider experiment counts revolutions (key "
+                            f"'revolutions', profile column 'revolutions'), not cycles or hours")
             revs = _number(path, f"{where}.revolutions", e["revolutions"], positive=True)
             if profile is not None:
                 r = profile.revolutions
@@ -575,14 +603,21 @@ def load_study(path) -> Study:
                     _fail(path, f"{where}: profile {e['profile']} has revolutions up to "
                                 f"{np.max(r):g} > experiment revolutions {revs:g}")
         else:
-            if "hours" in e:
+            if "cycles" in e:
+                hours = _load_file.experiment_hours(path, where, e, config,
+                                                    lambda w, v: _number(path, w, v,
+                                                                         positive=True))
+            elif "hours" in e:
                 hours = _number(path, f"{where}.hours", e["hours"], positive=True)
             elif history is not None:
                 hours = float(np.max(history.hours))
             else:
-                _fail(path, f"{where}: an oscillating joint needs 'hours' or a 'history' file")
+                _fail(path, f"{where}: an oscillating joint or a load history needs 'hours' "
+                            f"(or 'cycles' of a load history) or a 'history' file")
             if history is not None and np.max(history.hours) > hours + 1e-9:
                 _fail(path, f"{where}: history goes to {np.max(history.hours):g} h > hours")
+            if profile is not None:
+                profile = _load_file.timed_profile(path, where, profile, hours, config)
         exp = Experiment(ename, overrides, revs, hours, profile, history)
         st = Study(path, name, config, params, (exp,), M, float(tol), tuple(fit_params),
                    integrator, wear_tol, angle_tol, noise, auto, raw)
@@ -598,6 +633,9 @@ def load_study(path) -> Study:
             _fail(path, f"{where}: speed_rpm must be > 0")
         experiments.append(exp)
     # every number against the ranges the model is valid in (`_plausible`), before any work
-    return check_study(Study(path, name, config, params, tuple(experiments), M, float(tol),
-                             tuple(fit_params), integrator, wear_tol, angle_tol, noise, auto,
-                             raw))
+    study = check_study(Study(path, name, config, params, tuple(experiments), M, float(tol),
+                              tuple(fit_params), integrator, wear_tol, angle_tol, noise, auto,
+                              raw))
+    if config.driver == "load_history":
+        _load_file.check_load_magnitudes(study)
+    return study

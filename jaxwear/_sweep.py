@@ -19,14 +19,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import ModelConfig
+from ._config import ModelConfig, timed
 from ._errors import InputError
 from ._numbers import MAX_POINTS, parse_range  # noqa: F401  (the CLI range parser)
 from ._parallel import sharded_vmap
-from ._params import PARAMETER_KEYS, Params, key_to_si
+from ._params import MECHANISM_KEYS, PARAMETER_KEYS, Params, key_to_si
 from ._schedule import Schedule
 from ._wear import DEFAULT_WEAR_TOLERANCE_UM, build_schedule, node_area, wear_loop
 from .effects import effect_parameter_specs
+
+# Duration axes: the run's length (revolutions of a crank-slider, hours of a timed joint),
+# swept by one run to the longest with a snapshot at each value, not by a run per value.
+DURATION_KEYS = ("revolutions", "hours")
 
 
 @dataclass(frozen=True)
@@ -93,18 +97,33 @@ class SweepResult:
         return {k: m.ravel() for k, m in zip(self.axes, mesh)}
 
 
+
+
+
 def _check_grid(p: Params, cfg: ModelConfig, grid: dict) -> dict:
     if not grid:
         raise InputError("sweep: the grid is empty; give at least one parameter and its values")
     specs = effect_parameter_specs()
     out = {}
     for key, vals in grid.items():
+        if key in DURATION_KEYS:
+            want = "hours" if timed(cfg) else "revolutions"
+            if key != want:
+                raise InputError(f"sweep: this joint runs for {want}, not {key}")
+            v = np.atleast_1d(np.asarray(vals, dtype=np.float64))
+            if v.ndim != 1 or v.size == 0 or not np.all(np.isfinite(v) & (v > 0)):
+                raise InputError(f"sweep: {key} needs a non-empty 1-D list of values > 0")
+            out[key] = v
+            continue
         if key not in PARAMETER_KEYS and key not in specs:
             raise InputError(f"sweep: unknown parameter {key!r}; expected a study key such as "
                              f"speed_rpm or clearance_mm")
         if cfg.driver == "oscillating" and key == "swing_period_s":
             raise InputError("sweep: swing_period_s changes the number of cycles of an "
                              "oscillating joint's schedule; sweep it with separate runs")
+        if cfg.driver == "load_history" and key in MECHANISM_KEYS:
+            raise InputError(f"sweep: {key} does not enter a load_history joint (its load and "
+                             f"motion come from the load file; sweep load_scale instead)")
         if cfg.driver == "oscillating" and key in ("speed_rpm", "crank_length_mm",
                                                    "coupler_length_mm"):
             raise InputError(f"sweep: {key} does not enter an oscillating joint")
@@ -124,7 +143,7 @@ def _outputs(p, cfg, sched, keys, vals):
     q = p.with_values({k: vals[i] for i, k in enumerate(keys)})
     r = wear_loop(q, cfg, sched)
     return (r.depth, r.worn_volume, r.worn_through_cycle, r.max_residual,
-            node_area(q, cfg.nodes), r.error_estimate, r.steps)
+            node_area(q, cfg.nodes), r.error_estimate, r.steps, r.snapshots)
 
 
 @eqx.filter_jit
@@ -182,7 +201,10 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
       or hours and M) or a `Params` (then `cfg` and `revolutions`/`hours` are needed).
     - `grid`: study key → 1-D values in the key's unit, e.g.
       `{"speed_rpm": np.linspace(100, 300, 21), "clearance_mm": [0.05, 0.1]}`; the
-      result's axes follow this order.
+      result's axes follow this order. A duration axis (`"revolutions"` of a crank-slider,
+      `"hours"` of a timed joint) runs once per point of the other axes, to the longest,
+      with a snapshot at each value: its outputs are those snapshots (the integration's
+      error estimate and steps are the whole run's).
     - `chunk`: grid points per batched call; memory grows with it, compilation happens once
       (the last chunk is padded by repeating a point).
     - `method`: `"vmap"` (one batched wear loop per chunk), `"map"` (`lax.map`: the chunk's
@@ -193,7 +215,8 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
       them by the error at the grid's corners (default); False runs at the study's values.
 
     **Returns:** a `SweepResult`. Each point equals `simulate` at that point: same schedule
-    (the bucketed one `simulate` builds), same wear loop.
+    (the bucketed one `simulate` builds; with a duration axis, the snapshots' cuts), same
+    wear loop.
     """
     from ._study import Study
 
@@ -221,7 +244,16 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
     p, cfg, revolutions, hours, M, tol = _base(base, cfg, revolutions, hours, M, experiment)
     method = _method(method)
     grid = _check_grid(p, cfg, dict(grid or {}))
-    sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, M=M, tolerance_um=tol)
+    full_grid = dict(grid)
+    dur_key = next((k for k in grid if k in DURATION_KEYS), None)
+    durations = grid.pop(dur_key) if dur_key else None
+    if durations is not None:  # one run to the longest, a snapshot at each duration
+        if timed(cfg):
+            hours = float(np.max(durations))
+        else:
+            revolutions = float(np.max(durations))
+    sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, M=M, tolerance_um=tol,
+                           snapshots=() if durations is None else list(durations))
     if sched.adaptive:
         # one static attempt count for the whole grid: room for stiffer points (a point that
         # runs out reports an infinite error estimate)
@@ -229,7 +261,8 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
     keys = tuple(grid)
     shape = tuple(len(v) for v in grid.values())
     mesh = np.meshgrid(*grid.values(), indexing="ij")
-    si = np.stack([m.ravel() * key_to_si(k) for k, m in zip(keys, mesh)], axis=1)
+    si = (np.stack([m.ravel() * key_to_si(k) for k, m in zip(keys, mesh)], axis=1) if keys
+          else np.zeros((1, 0)))  # a duration axis alone: one run
     total = si.shape[0]
     chunk = max(1, min(int(chunk), total))
     t0 = time.perf_counter()
@@ -267,7 +300,11 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         again = run(si[short], sched)
         for c, a in zip(cols, again):
             c[short] = a
-    depth, vol, worn, resid, area, err, steps = cols
+    depth, vol, worn, resid, area, err, steps, snaps = cols
+    if durations is not None:
+        depth, vol, worn, resid, err, steps, shape = _at_durations(
+            sched, shape, list(full_grid).index(dur_key), snaps, area, worn, resid, err, steps)
+        grid = full_grid
     depth_um = depth * 1e6
     nodes = cfg.nodes
     peak_idx = np.argmax(depth_um, axis=1)
@@ -284,33 +321,65 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         else None, resolution=resolution)
 
 
+def _at_durations(sched: Schedule, shape, axis, snaps, area, worn, *per_run):
+    """The outputs at each duration of a duration axis (position `axis` in the requested
+    grid) from one run's snapshots, the other axes of shape `shape`: profiles (points,
+    durations, nodes) → (grid points, nodes), the worn volume of each snapshot, the
+    wear-through only where it happened by the snapshot's count, and `per_run` outputs
+    (residual, error estimate, steps: one per run) repeated along the durations. Returns
+    (depth, volume, worn-through, *per_run, the grid's shape)."""
+    ends, snap = np.asarray(sched.cycle_end), np.asarray(sched.snapshot)
+    sorted_cycles = [float(ends[snap == j][0]) for j in range(sched.n_snapshots)]
+    cycles = np.array([sorted_cycles[o] for o in (sched.order or range(sched.n_snapshots))])
+    D = len(cycles)
+    worn_d = np.where((worn[:, None] >= 0) & (worn[:, None] <= cycles * (1 + 1e-12)),
+                      worn[:, None], -1.0)
+
+    def place(a, trailing=()):  # (points, D, ...) → the grid in the requested axis order
+        return np.moveaxis(a.reshape(tuple(shape) + (D,) + trailing), len(shape), axis)
+
+    n = snaps.shape[-1]
+    vol = snaps.sum(axis=2) * area[:, None]
+    outs = [place(snaps, (n,)).reshape(-1, n), place(vol).ravel(), place(worn_d).ravel()]
+    outs += [place(np.repeat(x[:, None], D, axis=1)).ravel() for x in per_run]
+    return (*outs, place(vol).shape)
+
+
 def _heatmap(path, title, label, res: SweepResult, z):
     from ._io import save_figure
     from ._report import plt
 
     pl = plt()
-    names = list(res.axes)
-    fig, ax = pl.subplots(figsize=(6.4, 4.6))
     z = np.where(res.valid, z, np.nan)
-    if len(names) == 2 and min(res.shape) > 1:
+    valid = res.valid
+    # more than two axes with several values: the first two, at the last value of the others
+    varying = [i for i, n in enumerate(res.shape) if n > 1]
+    pick = tuple(slice(None) if i in varying[:2] else (-1 if n > 1 else 0)
+                 for i, n in enumerate(res.shape))
+    z, valid = z[pick], valid[pick]
+    names = [list(res.axes)[i] for i in (varying[:2] or [0])]
+    at = ", ".join(f"{k} = {v[-1]:g}" for i, (k, v) in enumerate(res.axes.items())
+                   if i in varying[2:])
+    title = f"{title} ({at})" if at else title
+    fig, ax = pl.subplots(figsize=(6.4, 4.6))
+    if len(names) == 2:
         x, y = res.axes[names[1]], res.axes[names[0]]
         im = ax.pcolormesh(x, y, z, shading="nearest", cmap="viridis")
         fig.colorbar(im, ax=ax, label=label)
         ax.set_xlabel(names[1])
         ax.set_ylabel(names[0])
-        status = res.status
+        status = np.asarray(res.status)[pick]
         for what, label, mark in (("worn_through", "layer worn through", "x"),
                                   ("contact_failed", "contact solve failed", "s"),
                                   ("integration_failed", "integration failed", "D")):
             if (status == what).any():
                 yy, xx = np.nonzero(status == what)
                 ax.plot(x[xx], y[yy], mark, color="tab:red", mfc="none", label=label)
-        if not res.valid.all():
+        if not valid.all():
             ax.legend(fontsize=8)
     else:  # one axis with several values: a line
-        k = next((i for i, s in enumerate(res.shape) if s > 1), 0)
-        ax.plot(res.axes[names[k]], z.ravel(), "k-o", ms=3)
-        ax.set_xlabel(names[k])
+        ax.plot(res.axes[names[0]], z.ravel(), "k-o", ms=3)
+        ax.set_xlabel(names[0])
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     ax.set_title(title)

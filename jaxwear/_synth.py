@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ._budget import check_work
-from ._config import ModelConfig
+from ._config import ModelConfig, timed
 from ._errors import InputError
 from ._io import OutputDir, open_outputs, per_experiment
 from ._study import Experiment, History, Profile, Study, load_study
@@ -152,7 +152,7 @@ def _measure_points(study: Study, exp: Experiment) -> list[float]:
     """Revolutions (crank) or hours (oscillating) at which the specimen is measured."""
     if exp.profile is not None or exp.history is not None:
         return exp.snapshot_points
-    if study.config.driver == "oscillating":
+    if timed(study.config):
         n = max(1, int(round(exp.hours / HISTORY_EVERY_H)))
         return [exp.hours * (i + 1) / n for i in range(n)]
     pts = [r for r in INTERRUPTIONS if r < exp.revolutions - 1e-9]
@@ -168,7 +168,7 @@ def _with_placeholder_data(study: Study, step_deg: float) -> Study:
     exps = []
     for e in study.experiments:
         pts = _measure_points(study, e)
-        if study.config.driver == "oscillating":
+        if timed(study.config):
             hist = History(np.array(pts), np.zeros(len(pts)), "")
             exps.append(replace(e, profile=None, history=hist, hours=max(pts)))
         else:
@@ -319,7 +319,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     exps = []
     for ei, e in enumerate(planned.experiments):
         pts = e.snapshot_points
-        if planned.config.driver == "oscillating":
+        if timed(planned.config):
             depth = snaps[ei, :len(pts)].max(axis=1)
             if perturb is not None:
                 depth = np.asarray(perturb(e.name, pts, None, depth), float)
@@ -385,7 +385,15 @@ def _toml_value(v):
 
 def synth_outputs(conditions: Study) -> list[str]:
     """Every file name `synthesize(out=...)` writes (for the output guard)."""
-    return ["study.toml", "truth.json", *per_experiment(conditions, "{}.csv")]
+    return ["study.toml", "truth.json", *per_experiment(conditions, "{}.csv"),
+            *_load_names(conditions.config)]
+
+
+def _load_names(cfg: ModelConfig) -> list[str]:
+    """The load files a load_history study written by synth takes along (its own copies)."""
+    if cfg.driver != "load_history":
+        return []
+    return [f"load_history_{k + 1}.csv" for k in range(len(cfg.duty_cycle))]
 
 
 def _relative(path: Path, folder: Path) -> str:
@@ -409,6 +417,16 @@ def _write(out: OutputDir, planned: Study, cfg: ModelConfig, exps, truth) -> Pat
         lines.append("effects = [" + ", ".join(_toml_value(e) for e in cfg.effects) + "]")
     if cfg.double_layer and planned.preset != "boom":
         lines.append("double_layer = true")
+    if cfg.driver == "load_history":
+        from ._load_file import cycle_rows, write_load_file
+
+        names = _load_names(cfg)
+        for name, b in zip(names, cfg.duty_cycle):
+            write_load_file(out, name, cycle_rows(b.load))
+        lines.append(f"load_history = {_toml_value(names[0])}" if math.isinf(
+            cfg.duty_cycle[0].duration_h) else "duty_cycle = [" + ", ".join(
+            f"{{load_history = {_toml_value(n)}, duration_h = {b.duration_h!r}}}"
+            for n, b in zip(names, cfg.duty_cycle)) + "]")
     if cfg.driver == "oscillating":
         lines.append("duty_cycle = [" + ", ".join(
             f"{{amplitude_deg = {b.amplitude_deg:g}, duration_h = {b.duration_h:g}}}"

@@ -17,11 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ._config import ModelConfig
+from ._config import ModelConfig, timed
 from ._contact import interp_periodic, solve_contact, stiffness_per_area
 from ._custom_types import Array, Float, NodeArray, Scalar
 from ._errors import InputError, WornThroughError
-from ._load import LoadHistory, load_history
+from ._load import LoadHistory, block_periods, load_history
 from ._params import Params
 from ._schedule import Schedule, bucket, crank_segments, duty_segments, make_schedule
 from .effects import RateContext, get_effect
@@ -444,8 +444,8 @@ def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
                    pad_to: int | None = None, integrator: str | None = None,
                    tolerance_um: float = DEFAULT_WEAR_TOLERANCE_UM,
                    attempts: int | None = None) -> Schedule:
-    """Schedule for a crank-slider run of `revolutions` or an oscillating run of `hours`;
-    `snapshots` in revolutions (crank) or hours (oscillating).
+    """Schedule for a crank-slider run of `revolutions` or a timed run (oscillating joint,
+    load history) of `hours`; `snapshots` in revolutions (crank) or hours (timed).
 
     `integrator`: "adaptive" (Runge-Kutta 3(2) with error control to `tolerance_um` [µm];
     the default when `M` is None) or "paper" (eq 23, M cycles per update; the default when
@@ -456,11 +456,12 @@ def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
         integrator = "adaptive" if M is None else "paper"
     if integrator not in ("adaptive", "paper"):
         raise InputError(f'integrator must be "adaptive" or "paper", got {integrator!r}')
-    if cfg.driver == "oscillating":
+    if timed(cfg):
         if hours is None or not hours > 0:
-            raise InputError(f"an oscillating joint needs hours > 0, got {hours}")
-        segs, per_h = duty_segments(cfg.duty_cycle, float(hours), float(p.swing_period))
-        snaps = [s * per_h for s in snapshots]
+            raise InputError(f"an oscillating joint or a load history needs hours > 0, got "
+                             f"{hours}")
+        segs, to_cycles = duty_segments(cfg.duty_cycle, float(hours), block_periods(p, cfg))
+        snaps = to_cycles(snapshots)
     else:
         if revolutions is None or not revolutions > 0:
             raise InputError(f"revolutions must be > 0, got {revolutions}")
@@ -536,7 +537,8 @@ def check_result(res: WearResult, cfg: ModelConfig, what: str = "simulation", p=
     (`_plausible.contact_failure`: exit 2 naming the keys when the load strains the layer
     beyond the model's range, given the parameters `p`) or a layer worn through."""
     worn = float(jnp.max(res.worn_through_cycle))
-    unit = "swing cycle" if cfg.driver == "oscillating" else "revolution"
+    unit = {"oscillating": "swing cycle", "load_history": "load cycle"}.get(cfg.driver,
+                                                                            "revolution")
     residual = float(jnp.max(res.max_residual))
     if not residual < 1e-9:
         from ._plausible import contact_failure

@@ -25,6 +25,7 @@ from .._calibrate import (
     study_fit_keys,
     unit_of,
 )
+from .._config import timed
 from .._errors import InputError
 from .._resolution import at_level
 from ._pipeline import Verb, fit_columns
@@ -93,7 +94,7 @@ def summary_text(result: FitResult, study_name: str) -> str:
 def write_tables(out, study, result: FitResult):
     """fit_residuals.csv (measured rows) and fitted_profiles.csv (model at every node)."""
     prob = result.problem
-    osc = study.config.driver == "oscillating"
+    osc = timed(study.config)
     d = prob.data
     exp_idx, snap = np.asarray(d.exp), np.asarray(d.snap)
     x, is_max = np.asarray(d.x), np.asarray(d.is_max)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .._config import TIMED_DRIVERS
 from .._errors import InputError
 from ._pipeline import Verb, fit_columns
 
@@ -48,7 +49,7 @@ def residual_table(diag) -> tuple[list[str], list[tuple]]:
     m = diag.model
     after = diag.final.ev.pred
     hist = [bool(x) for x in m.is_max]
-    osc = diag.study.config.driver == "oscillating"
+    osc = diag.study.config.driver in TIMED_DRIVERS
     values = ["measured_um", "base_um", "after_um"]
     data = list(zip(m.measured, diag.base.ev.pred, after))
     names = [m.exp_names[e] for e in m.row_exp]

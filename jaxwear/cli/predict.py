@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from .._config import timed
 from .._errors import InputError
 from .._numbers import number, number_list
 from ._pipeline import Verb, fit_columns
@@ -123,7 +124,7 @@ def plot_fans(out, res):
 
 def plot_profiles(out, study, res):
     """profile_<experiment>.png (crank-slider studies): the profile at the last --at point."""
-    if study.config.driver == "oscillating":
+    if timed(study.config):
         return []
     from .._report import plt, thinned, thinned_label
 
@@ -246,7 +247,7 @@ class Predict(Verb):
         from .._plausible import check_value
 
         # the flags against the ranges of what they stand for (revolutions or hours, noise)
-        osc = study.config.driver == "oscillating"
+        osc = timed(study.config)
         count = "experiment.hours" if osc else "experiment.revolutions"
         kw = opts["kw"]
         for at in kw["at"]:
@@ -270,7 +271,7 @@ class Predict(Verb):
 
         from .._predict import LIFE_HORIZON
 
-        osc = study.config.driver == "oscillating"
+        osc = timed(study.config)
         exps = []
         for e in study.experiments:
             pts = e.snapshot_points
@@ -283,7 +284,7 @@ class Predict(Verb):
         """`--at` when its largest point sets the forecast's length (not the study's)."""
         from .._predict import LIFE_HORIZON
 
-        osc = study.config.driver == "oscillating"
+        osc = timed(study.config)
         at = max(opts["kw"]["at"])
         last = max((max(e.snapshot_points) if e.snapshot_points else
                     float((e.hours if osc else e.revolutions) or 0))

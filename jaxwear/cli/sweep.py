@@ -1,4 +1,5 @@
-"""`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11 [--out DIR]`."""
+"""`jaxwear sweep STUDY.toml --speed-rpm 100:300:21 --clearance-mm 0.05:0.15:11
+[--load-scale A:B:N] [--hours A:B:N | --revolutions A:B:N] [--out DIR]`."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import time
 
 import numpy as np
 
+from .._config import timed
 from .._errors import InputError
 from .._numbers import MAX_POINTS, parse_range
 from ._pipeline import Verb
@@ -32,21 +34,30 @@ def status_counts(status) -> str:
 
 class Sweep(Verb):
     name = "sweep"
-    help = "batched sweep over speed and clearance"
+    help = "batched sweep over speed, clearance, load scale and duration"
 
     def add_arguments(self, p):
         p.add_argument("--speed-rpm", default=None, help="START:STOP:COUNT [r/min]")
         p.add_argument("--clearance-mm", default=None, help="START:STOP:COUNT [mm]")
+        p.add_argument("--load-scale", default=None,
+                       help="START:STOP:COUNT, multiplier of the joint load [-]")
+        p.add_argument("--hours", default=None,
+                       help="START:STOP:COUNT, duration of a timed joint (snapshots) [h]")
+        p.add_argument("--revolutions", default=None,
+                       help="START:STOP:COUNT, duration of a crank-slider (snapshots)")
 
     def options(self, args):
         grid = {}
-        if args.speed_rpm is not None:
-            grid["speed_rpm"] = parse_range("--speed-rpm", args.speed_rpm)
-        if args.clearance_mm is not None:
-            grid["clearance_mm"] = parse_range("--clearance-mm", args.clearance_mm)
+        for key in ("speed_rpm", "clearance_mm", "load_scale", "hours", "revolutions"):
+            text = getattr(args, key)
+            if text is not None:
+                grid[key] = parse_range("--" + key.replace("_", "-"), text)
         if not grid:
-            raise InputError("sweep: give --speed-rpm START:STOP:COUNT and/or "
-                             "--clearance-mm START:STOP:COUNT")
+            raise InputError("sweep: give --speed-rpm START:STOP:COUNT, --clearance-mm, "
+                             "--load-scale, --hours or --revolutions (one or more)")
+        if "hours" in grid and "revolutions" in grid:
+            raise InputError("sweep: give --hours (timed joints) or --revolutions "
+                             "(crank-slider), not both")
         total = math.prod(len(v) for v in grid.values())
         if total > MAX_POINTS:
             raise InputError(f"sweep: {total} grid points; at most {MAX_POINTS} (each is a "
@@ -54,9 +65,14 @@ class Sweep(Verb):
         return {"grid": grid, "total": total}
 
     def resolve(self, study, opts):
-        if "speed_rpm" in opts["grid"] and study.config.driver == "oscillating":
-            raise InputError("--speed-rpm: the study's joint is oscillating (no crank speed); "
-                             "sweep --clearance-mm only")
+        if "speed_rpm" in opts["grid"] and timed(study.config):
+            raise InputError("--speed-rpm: the study's joint is oscillating or a load history "
+                             "(no crank speed); sweep --clearance-mm, --load-scale or --hours")
+        want = "hours" if timed(study.config) else "revolutions"
+        for key in ("hours", "revolutions"):
+            if key in opts["grid"] and key != want:
+                raise InputError(f"--{key}: the study's experiments run for {want}; "
+                                 f"give --{want}")
         # the grid's ends against the geometry of the swept experiment (clearance > 0 and
         # below the bore radius, speed > 0: each check is monotone in its value), now rather
         # than inside the sweep
@@ -69,6 +85,8 @@ class Sweep(Verb):
         ends = {}
         for key, values in opts["grid"].items():
             option = "--" + key.replace("_", "-")
+            if key in ("hours", "revolutions"):
+                continue  # a duration is checked by the engine (> 0)
             ends[key] = (float(np.min(values)), float(np.max(values)))
             for v in ends[key]:
                 if key == "speed_rpm" and not v > 0:
@@ -92,6 +110,18 @@ class Sweep(Verb):
     def outputs(self, study, opts):
         return list(SWEEP_OUTPUTS)
 
+    def work_study(self, study, opts):
+        """The swept experiment run to the longest duration of a duration axis."""
+        from dataclasses import replace
+
+        grid = opts["grid"]
+        e = study.experiments[0]
+        if "hours" in grid:
+            e = replace(e, hours=float(np.max(grid["hours"])))
+        elif "revolutions" in grid:
+            e = replace(e, revolutions=float(np.max(grid["revolutions"])))
+        return study.with_experiments([e])
+
     def run(self, study, out, opts):
         from .. import _sweep  # looked up now: tests stand in for the engine
         from .._params import key_to_si
@@ -99,7 +129,7 @@ class Sweep(Verb):
         grid, total = opts["grid"], opts["total"]
         exp = study.experiments[0]
         p = study.params(exp)
-        osc = study.config.driver == "oscillating"
+        osc = timed(study.config)
         what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
         print(f"sweep: {total} points around experiment {exp.name!r} ({what}); the first "
               f"chunk compiles the model", file=sys.stderr, flush=True)
@@ -108,7 +138,9 @@ class Sweep(Verb):
         dt = time.perf_counter() - t0
         pts = res.points()
         cols = ["clearance_mm"] if osc else ["speed_rpm", "clearance_mm"]
-        fixed = {k: float(p.get(k)) / key_to_si(k) for k in cols}
+        cols += [k for k in grid if k not in cols]
+        fixed = {k: float(p.get(k)) / key_to_si(k) for k in cols
+                 if k not in ("hours", "revolutions")}
         valid = res.valid.ravel()
         status = res.status.ravel()
         rows = []
@@ -127,10 +159,10 @@ class Sweep(Verb):
                                            "peak_angle_deg", f"worn_through_{unit}",
                                            "integration_error_um", "integration_steps",
                                            "status"], rows)
-        _sweep._heatmap(out.path("sweep_peak_depth.png"),
-                        f"{exp.name}, {what}: peak wear depth", "peak depth [µm]", res,
-                        res.peak_depth_um)
-        _sweep._heatmap(out.path("sweep_worn_volume.png"), f"{exp.name}, {what}: worn volume",
+        at = exp.name if ("hours" in grid or "revolutions" in grid) else f"{exp.name}, {what}"
+        _sweep._heatmap(out.path("sweep_peak_depth.png"), f"{at}: peak wear depth",
+                        "peak depth [µm]", res, res.peak_depth_um)
+        _sweep._heatmap(out.path("sweep_worn_volume.png"), f"{at}: worn volume",
                         "worn volume [mm³]", res, res.worn_volume_mm3)
         v = res.valid
         print(f"sweep of {total} points in {dt:.1f} s: peak depth "

@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from .. import lsq
+from .._config import timed
 from ._fit import Fit, whitened_system
 from ._model import Model, objective
 
@@ -84,7 +85,7 @@ def where_it_fails(model: Model, r) -> dict:
                 per_angle.append({"from_deg": a, "to_deg": a + 30, "rows": int(m.sum()),
                                   "mean_um": float(np.mean(r[m])),
                                   "rmse_um": float(np.sqrt(np.mean(r[m] ** 2)))})
-    unit = "hours" if st.config.driver == "oscillating" else "revolutions"
+    unit = "hours" if timed(st.config) else "revolutions"
     return {"per_experiment": per_exp, "per_time": per_time, "time_unit": unit,
             "per_angle": per_angle}
 

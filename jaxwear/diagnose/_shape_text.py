@@ -9,7 +9,8 @@ import numpy as np
 
 from ._stats import ALPHA
 
-LABELS = {"cycle_phase_deg": "crank angles", "pressure_MPa": "contact pressures",
+# cycle phase: the crank angle, the swing's phase, or the phase within a load file's period
+LABELS = {"cycle_phase_deg": "cycle phases", "pressure_MPa": "contact pressures",
           "sliding_speed_m_per_s": "sliding speeds", "sliding_distance_m": "sliding distances",
           "load_turn_rate_deg_per_s": "load turn rates",
           "load_turn_deg_per_deg": "load turns per degree of the cycle",

@@ -21,7 +21,7 @@ State variables (`VARIABLES`), per step i of a cycle and node j of the bore:
 
 | name | unit | what |
 |---|---|---|
-| `cycle_phase_deg` | deg | crank angle (swing phase, load file phase): 360 i / steps |
+| `cycle_phase_deg` | deg | crank angle (swing phase, phase in a load file's period): 360 i/steps |
 | `pressure_MPa` | MPa | contact pressure p_ij |
 | `sliding_speed_m_per_s` | m/s | dS_i / Δt_i |
 | `sliding_distance_m` | m | accumulated sliding distance S (time in the test) |
