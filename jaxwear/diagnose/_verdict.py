@@ -46,12 +46,15 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     t0 = time.perf_counter()
     resolution = None
     start = None
+    defect = None
     if study.auto_resolution or study.angle_tolerance_deg > 0:
         # the base model's fit by calibrate's path: the resolution it needs, checked at its
         # answer (DESIGN §6), and the scans' registration where the study fits it; the
-        # candidates are then compared at that level and that registration (held), and the
-        # base fit starts from that answer (the same residual model and noise rule: it
-        # only re-evaluates there with the candidates' columns)
+        # candidates are then compared at that answer's numerics: the Jacobian's level,
+        # its rows corrected as the answer's are (defect correction to a finer level: the
+        # same fixed correction) and that registration (held); the base fit starts from
+        # that answer (the same residual model and noise rule: it only re-evaluates there
+        # with the candidates' columns)
         from .._calibrate import fit_study, registered, study_fit_keys
         from .._resolution import at_level
 
@@ -60,7 +63,13 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose)
         if study.auto_resolution:
             resolution = r.resolution
-            study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
+            jac = resolution["jacobian"]
+            study = at_level(study, (jac["nodes"], jac["steps_per_rev"]))
+            defect = r.problem.defect
+            if resolution.get("corrected_to"):
+                _log(verbose, f"  rows corrected to {resolution['nodes']} x "
+                              f"{resolution['steps_per_rev']} (defect correction, held "
+                              f"for every candidate)")
         if study.angle_tolerance_deg > 0:
             study = registered(study, r)
             _log(verbose, "  registration held at the fitted offsets: " + ", ".join(
@@ -70,7 +79,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                  if not n.startswith("angle_offset_deg/")}
     evals0 = Model.evaluations
     _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
-    model = Model(study, start=start)
+    model = Model(study, start=start, defect_um=defect)
     if model.n < 3:
         raise InputError(f"{study.path}: diagnose needs at least 3 measured points, "
                          f"got {model.n}")
