@@ -335,7 +335,7 @@ def forecast_layout(study: Study, train: Study, points, refine: bool = True) -> 
     fs = experiment_schedules(forecast_study(study, points), plist)
     ts = experiment_schedules(train, plist)
     room = LIFE_REFINE_ROUNDS * 3 * LIFE_REFINE_POINTS if refine else 0
-    return Layout(updates=bucket(max(fs.updates, ts.updates) + room),
+    return Layout(updates=bucket(max(fs.cycles.shape[-1], ts.cycles.shape[-1]) + room),
                   snapshots=bucket(max(fs.n_snapshots, ts.n_snapshots) + room),
                   attempts=max(fs.attempts, ts.attempts))
 
@@ -354,7 +354,7 @@ def forecast_problem(train: Study, base, points, layout: Layout | None = None):
     fstudy = forecast_study(train, points)
     sched = experiment_schedules(fstudy, plist)
     if layout is None or not layout.holds(sched):
-        layout = Layout(bucket(sched.updates), bucket(sched.n_snapshots),
+        layout = Layout(bucket(sched.cycles.shape[-1]), bucket(sched.n_snapshots),
                         sched.attempts)
     attempts = max(layout.attempts, base.schedule.attempts)
     sched = experiment_schedules(fstudy, plist, replace(layout, attempts=attempts))

@@ -153,8 +153,9 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
         logp_x(jnp.asarray(mean)).block_until_ready()
     t_eval = (time.perf_counter() - t0) / 3
     u_fit = np.asarray(result.u, np.float64)
+    _, _, _, fprob = run_forward(fprob, u_fit)  # compiles, settles the attempt count
     t0 = time.perf_counter()
-    _, _, _, fprob = run_forward(fprob, u_fit)
+    run_forward(fprob, u_fit)
     t_fc = time.perf_counter() - t0
     n = chains * draws
     n_pred = min(n_predictive, n)

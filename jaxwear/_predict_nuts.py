@@ -48,6 +48,7 @@ import numpy as np
 
 from ._errors import InputError
 from ._predict_draws import DrawForecasts, run_forward
+from ._residual import TRACES
 
 LEAPFROG_GUESS = 10  # mean leapfrog steps per NUTS step (measured ~6 on the rig test, dense mass)
 
@@ -120,6 +121,7 @@ def log_density(problem, noise_um=None, white: Whitening | None = None):
     lo_s, hi_s = math.log(1e-3), math.log(1e3)
 
     def logp(z):
+        TRACES["density"] += 1  # runs when traced only
         log_s = jnp.log(noise_um) if given else z["log_noise"]
         if white is None:
             u, jac = z["u"], 0.0

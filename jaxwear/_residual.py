@@ -66,8 +66,11 @@ def traces() -> dict:
 
 
 def traces_since(before: dict) -> dict:
-    """Compilations by kind since `before` (`traces()`), every kind present."""
-    return {k: TRACES.get(k, 0) - before.get(k, 0) for k in ("jacobian", "forward")}
+    """Compilations by kind since `before` (`traces()`): "jacobian" and "forward" always,
+    other kinds ("density": a sampler's log density) where any."""
+    kinds = dict.fromkeys(["jacobian", "forward", *TRACES])
+    out = {k: TRACES.get(k, 0) - before.get(k, 0) for k in kinds}
+    return {k: v for k, v in out.items() if v or k in ("jacobian", "forward")}
 
 
 @dataclass(frozen=True)
@@ -87,7 +90,8 @@ class Layout:
 
     def holds(self, sched: Schedule) -> bool:
         """Whether a batched schedule fits in these capacities."""
-        return (sched.updates <= self.updates and sched.n_snapshots <= self.snapshots)
+        return (sched.cycles.shape[-1] <= self.updates
+                and sched.n_snapshots <= self.snapshots)
 
 
 class Data(eqx.Module):

@@ -6,7 +6,8 @@ Writes under DIR: `prediction.json` (the §7 document plus diagnostics), `predic
 and its bands on a fine grid, for plots of your own), `fan_<experiment>.png` (measured
 points, forecast line and band), `profile_<experiment>.png` (profile studies: the profile at
 the last `--at` point with its band) and, for `--method nuts` and `importance`,
-`posterior.nc` (ArviZ InferenceData). `--json FILE` writes the document to FILE too. Progress goes to stderr.
+`posterior.nc` (ArviZ InferenceData). `--json FILE` writes the document to FILE too.
+Progress goes to stderr.
 Exit codes: 0 done, 2 bad input (the message names the option or key), 1 anything else.
 """
 
