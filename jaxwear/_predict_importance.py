@@ -117,6 +117,49 @@ def systematic_resample(w, n: int, rng) -> np.ndarray:
     return np.minimum(np.searchsorted(np.cumsum(w), pos), len(w) - 1)
 
 
+def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
+                      rounds: int = 2, nu: float = NU, log=None):
+    """PSIS importance sampling of a density from a multivariate-t proposal (module
+    docstring). `log_density`: x (n, d) ↦ log densities (n,) up to a constant (-inf
+    outside the support); `mean` (d,), `chol` (d, d): the proposal's centre and scale.
+    Returns (draws (chains, draws, d), normalised smoothed weights (chains, draws), each
+    batch's normalised on its own, the rounds' history: k̂ and weights' ESS per batch)."""
+    mean, chol = np.asarray(mean, np.float64), np.asarray(chol, np.float64)
+    d = len(mean)
+    n = chains * draws
+    history = []
+    for r in range(max(1, rounds)):
+        t0 = time.perf_counter()
+        x = t_sample(rng, mean, chol, n, nu)
+        lp = np.asarray(log_density(x), np.float64)
+        lw = np.where(np.isfinite(lp), lp - t_logpdf(x, mean, chol, nu), -np.inf)
+        x = x.reshape(chains, draws, d)
+        lw = lw.reshape(chains, draws)
+        per = [psis(lw[c]) for c in range(chains)]
+        w = np.stack([a for a, _ in per])
+        k = [b for _, b in per]
+        history.append({"round": r + 1, "k_hat": [float(v) for v in k],
+                        "ess": [ess_of(w[c]) for c in range(chains)],
+                        "outside_support": int(np.sum(~np.isfinite(lw)))})
+        if log:
+            log(f"predict/importance: round {r + 1}: k̂ " + ", ".join(f"{v:.2f}" for v in k)
+                + "; weights' ESS " + ", ".join(f"{e:.0f}" for e in history[-1]["ess"])
+                + f" of {draws} ({time.perf_counter() - t0:.0f} s)")
+        if max(k) <= K_GOOD or r + 1 >= rounds:
+            break
+        # move the proposal to the draws' weighted moments (t tails kept)
+        wp = (w / chains).reshape(-1)
+        xf = x.reshape(-1, d)
+        mean = wp @ xf
+        c = (xf - mean).T @ ((xf - mean) * wp[:, None])
+        c = 0.5 * (c + c.T) + 1e-12 * np.trace(c) * np.eye(d)
+        try:
+            chol = np.linalg.cholesky(c * (nu - 2) / nu if nu > 2 else c)
+        except np.linalg.LinAlgError:
+            break
+    return x, w, history
+
+
 def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.9,
                    verbose=False, draws: int = 1000, chains: int = 2, seed: int = 0,
                    max_minutes: float = 20.0, n_predictive: int = 200, out=None, cov=None,
@@ -176,38 +219,10 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
             return np.array(list(pool.map(lambda x: float(logp_x(jnp.asarray(x))), xs)))
 
     rng = np.random.default_rng(seed)
-    t_run = 0.0
-    history = []
-    for r in range(max(1, rounds)):
-        t0 = time.perf_counter()
-        x = t_sample(rng, mean, chol, n)
-        lp = evaluate(x)
-        lw = np.where(np.isfinite(lp), lp - t_logpdf(x, mean, chol), -np.inf)
-        t_run += time.perf_counter() - t0
-        x = x.reshape(chains, draws, d)
-        lw = lw.reshape(chains, draws)
-        per = [psis(lw[c]) for c in range(chains)]
-        w = np.stack([a for a, _ in per])  # (chains, draws), each row normalised
-        k = [b for _, b in per]
-        history.append({"round": r + 1, "k_hat": [float(v) for v in k],
-                        "ess": [ess_of(w[c]) for c in range(chains)],
-                        "outside_support": int(np.sum(~np.isfinite(lw)))})
-        _log(verbose, f"predict/importance: round {r + 1}: k̂ "
-                      + ", ".join(f"{v:.2f}" for v in k) + "; weights' ESS "
-                      + ", ".join(f"{e:.0f}" for e in history[-1]["ess"])
-                      + f" of {draws} ({time.perf_counter() - t0:.0f} s)")
-        if max(k) <= K_GOOD or r + 1 >= rounds:
-            break
-        # move the proposal to the draws' weighted moments (t tails kept)
-        wp = (w / chains).reshape(-1)
-        xf = x.reshape(-1, d)
-        mean = wp @ xf
-        c = (xf - mean).T @ ((xf - mean) * wp[:, None])
-        c = 0.5 * (c + c.T) + 1e-9 * np.eye(d)
-        try:
-            chol = np.linalg.cholesky(c * (NU - 2) / NU if NU > 2 else c)
-        except np.linalg.LinAlgError:
-            break
+    t0 = time.perf_counter()
+    x, w, history = importance_sample(evaluate, mean, chol, draws, chains, rng, rounds=rounds,
+                                      log=(lambda m: _log(True, m)) if verbose else None)
+    t_run = time.perf_counter() - t0
     xf = x.reshape(-1, d)
     wp = (w / chains).reshape(-1)  # pooled normalised weights
     u_all = np.asarray(jax.vmap(lambda xx: white.u_of(z_of(xx)))(jnp.asarray(xf)))

@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from .._errors import InputError
+from .._residual import traces, traces_since
 from .._study import Study
 from ._evidence import (
     AMBIGUOUS_LOG_BF,
@@ -44,6 +45,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     if noise_um is None:
         noise_um = study.noise_um
     t0 = time.perf_counter()
+    before = traces()
+    calibrate_evals = 0
     resolution = None
     start = None
     defect = None
@@ -61,6 +64,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         _log(verbose, f"diagnose {study.path}: the base fit by calibrate's path (resolution"
                       f"{', registration' if study.angle_tolerance_deg > 0 else ''})")
         r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose)
+        calibrate_evals = r.iterations
         if study.auto_resolution:
             resolution = r.resolution
             jac = resolution["jacobian"]
@@ -216,8 +220,17 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                    after=" + ".join(effects), seed=seed, verbose=verbose)
         diag = replace(diag, shape=shp, shape_after_effect=after)
         summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else []))
-    diag = replace(diag, summary=summary, wall_s=time.perf_counter() - t0)
+    own = Model.evaluations - evals0
+    cost = {"model_evaluations": calibrate_evals + own,
+            "calibrate_path_evaluations": calibrate_evals, "diagnose_evaluations": own,
+            "base_fit_evaluations": 1 + base.evaluations,  # its start ev0 and the fit
+            "compiles": traces_since(before)}
+    diag = replace(diag, summary=summary, wall_s=time.perf_counter() - t0, cost=cost)
+    comp = cost["compiles"]
     _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
-                  + f" in {diag.wall_s:.1f} s ({Model.evaluations - evals0} model "
-                    f"evaluations)")
+                  + f" in {diag.wall_s:.1f} s ({calibrate_evals + own} model evaluations: "
+                    f"{calibrate_evals} by calibrate's path, {own} by diagnose, of them "
+                    f"{cost['base_fit_evaluations']} for its base fit; "
+                    f"{comp['jacobian']} Jacobian and {comp['forward']} forward "
+                    f"compilations)")
     return diag
