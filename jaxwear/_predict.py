@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
+from . import _resolution
 from ._calibrate import (
     FitResult,
     build_problem,
@@ -63,7 +64,7 @@ from ._residual import (
     traces,
     traces_since,
 )
-from ._resolution import LEVELS, at_level
+from ._resolution import at_level
 from ._study import Experiment, History, Profile, Study
 
 # The forecast's fit stops when the next step would move every parameter by < 0.1 of its
@@ -551,7 +552,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     if noise_um is None:
         noise_um = study.noise_um
     if study.auto_resolution:  # the fit's Jacobian runs at the coarsest level
-        study = at_level(study, LEVELS[0])
+        study = at_level(study, _resolution.LEVELS[0])
     train = training_study(study, train_until)
     problem = build_problem(train, keys)
     # known before any evaluation: σ̂ needs more training rows than fitted parameters
