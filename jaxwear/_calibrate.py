@@ -433,8 +433,10 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
 
     At the answer û, one forward run at the next finer level gives its rows; the
     Gauss-Newton step with those residuals and the fit's own Jacobian, in standard errors,
-    is the check (what a finer grid changes is the residual, by the discretisation error;
-    its effect on the Jacobian changes the step only at second order). Within
+    is the check (what a finer grid changes is mostly the residual, by the discretisation
+    error; its change of the Jacobian moves the answer by that relative change times the
+    residuals, in standard errors about the Jacobian's relative discretisation error,
+    which this check does not see: README, "Resolution chosen by the error"). Within
     `FIT_SE_TOL` (0.1): the answer stands, checked against that level. Else defect
     correction: the difference δ = rows_fine(û) − rows_coarse(û) is held as a fixed
     correction of the rows (`ResidualModel.defect_um`), the coarse model refitted from û
@@ -551,21 +553,6 @@ def _fit_at(study: Study, keys, start, layout=None, *, noise_um, max_evaluations
     return recheck_integration(study, result, noise_um=noise_um,
                                max_evaluations=max_evaluations, verbose=verbose,
                                se_tol=se_tol)
-
-
-def refinement_step(finer: Study, keys, result: FitResult) -> float:
-    """The largest move, in standard errors, of one Gauss-Newton step of the `finer`
-    study's problem from the answer of `result`: its residuals from one forward run there,
-    the fit's own Jacobian (see `correct_to_finer`)."""
-    prob = build_problem(finer, keys, dict(zip(result.problem.names,
-                                               map(float, np.asarray(result.problem.start)))))
-    if not prob.packing.size:
-        return 0.0
-    f = forward_run(prob, result.u)
-    ev = result.evaluation
-    pt = ev.shifted(f.rows - ev.pred).point()
-    lo, hi = prob.packing.bounds_u()
-    return lsq.step_in_standard_errors(pt, result.error_scale_um, lo, hi)[0]
 
 
 def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **fit_kw
