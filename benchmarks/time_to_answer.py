@@ -187,23 +187,25 @@ def main(argv=None) -> int:
 
         cases = [
             ("calibrate the 5-experiment rig study (K_d + 5 clearances)", "calibrate",
-             [str(tmp / "rig" / "study.toml"), "--fit", "K_d,clearance"], "267 s, 29",
+             [str(tmp / "rig" / "study.toml"), "--fit", "K_d,clearance"], "267 s, 29 / 38.3 s, 11",
              "<= 30 s, <= 8", check_calibrate_rig),
             ("calibrate the boom, K_d + clearance", "calibrate",
-             [str(boom / "study.toml"), "--fit", "K_d,clearance"], "292 s, 21", "<= 20 s",
+             [str(boom / "study.toml"), "--fit", "K_d,clearance"], "292 s, 21 / 25.3 s, 7",
+             "<= 20 s",
              check_rmse(16.9)),
             ("calibrate the boom with running_in", "calibrate",
-             [str(boom / "study_ri.toml")], "444 s, 25", "<= 30 s", check_rmse(2.0)),
+             [str(boom / "study_ri.toml")], "444 s, 25 / 80.0 s, 28", "<= 30 s", check_rmse(2.0)),
             ("predict the boom with running_in, --train-until 15 --noise-um 5 --at 20,25",
-             "predict", boom_predict, "730 s", "<= 60 s", check_forecasts),
+             "predict", boom_predict, "730 s / 135.6 s, 28", "<= 60 s", check_forecasts),
             ("diagnose the 5-experiment rig study, null", "diagnose",
-             [str(tmp / "rig" / "study.toml")], "92-109 s", "<= 90 s",
+             [str(tmp / "rig" / "study.toml")], "92-109 s / 74.9 s, 8", "<= 90 s",
              check_verdict("adequate")),
             ("diagnose the 5-experiment rig study, speed effect", "diagnose",
-             [str(tmp / "rig_speed" / "study.toml")], "513 s", "<= 90 s",
+             [str(tmp / "rig_speed" / "study.toml")], "513 s / 175.6 s, 17", "<= 90 s",
              check_verdict("effect_found", "speed_dependence")),
             ("diagnose --shape, the same study (issue 20: <= 60 s more)", "diagnose",
-             [str(tmp / "rig_speed" / "study.toml"), "--shape"], "-", "row above + 60 s",
+             [str(tmp / "rig_speed" / "study.toml"), "--shape"], "- / 339.9 s, 28",
+             "row above + 60 s",
              check_verdict("effect_found", "speed_dependence")),
         ]
         if args.samplers:
@@ -251,8 +253,9 @@ def main(argv=None) -> int:
              f"CLI wall clock per command in a fresh process; cold: an empty persistent "
              f"compilation cache, warm: the second run with that cache; load average "
              f"(1 min) before/after each run in the last column.", "",
-             "| answer (CLI wall, defaults) | before (issue 19) | target | cold | warm | model "
-             "evaluations | compiles | check | load |", "|---|---|---|---|---|---|---|---|---|"]
+             "| answer (CLI wall, defaults) | before: issue 19 / issue 26 (cold, evaluations) "
+             "| target | cold | warm | model evaluations | compiles | check | load |",
+             "|---|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
