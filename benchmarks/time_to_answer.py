@@ -1,16 +1,31 @@
-"""Time to an answer: the CLI as a new user runs it, default numerics, cold compilation cache.
+"""Time to an answer: the CLI as a new user runs it, default numerics, cold and warm.
 
-Each row is one `jaxwear` command in a fresh process (JAX's persistent cache off, so every
-compilation is paid), timed wall-clock, with the model evaluations its JSON reports. The
-studies are the issue-19 cases: a 5-experiment rig study from `jaxwear synth` (full-bore
-scans every 2° at three or four interrupted counts, 0.3 µm noise, truth at finer numerics)
-and the boom joint of the paper (calibration/boom, Table 5), both with their `[numerics]`
-removed so that the defaults decide (adaptive wear integrator, resolution by the error).
+Each row is one `jaxwear` command run twice in fresh processes sharing one persistent
+compilation cache (`JAXWEAR_CACHE_DIR`, a new empty folder per row): the first run is
+**cold** (every compilation paid), the second **warm** (compilations loaded from the
+cache). Wall clock per command, with the model evaluations and compilations its JSON
+reports, and every answer checked against an independent fact:
+- calibrate the rig study: K_d within 5 % of the truth the data were made with
+  (`jaxwear synth`, truth at finer numerics, `truth.json`);
+- calibrate the boom: the RMSE documented in the README (16.9 µm for the base model, 2.0 µm
+  with running-in), within 10 %;
+- predict: every forecast within 5 % of the held-out measurement;
+- diagnose: the verdict the data were made for (null: adequate; speed: effect_found
+  speed_dependence);
+- importance / NUTS: the sampler's own diagnostics (k̂ ≤ 0.7 or R-hat ≤ 1.01, ESS ≥ 400
+  for every parameter) and, on the boom, its bands within 5 % of the Laplace bands.
 
-    python benchmarks/time_to_answer.py [--out benchmarks/TIME_TO_ANSWER.md] [--only ROW]
-    python benchmarks/time_to_answer.py --nuts      # adds NUTS on the boom (~10 min)
+The studies are the issue-19 cases: a 5-experiment rig study from `jaxwear synth`
+(full-bore scans every 2° at three or four interrupted counts, 0.3 µm noise, truth at finer
+numerics), the boom joint of the paper (calibration/boom, Table 5), both with their
+`[numerics]` removed so that the defaults decide (adaptive wear integrator, resolution by
+the error), and a one-experiment rig study at 64 x 72 for the posterior samplers.
 
-Benchmarks are not tests: figures depend on the machine and its load (recorded).
+    python benchmarks/time_to_answer.py [--out benchmarks/TIME_TO_ANSWER.md] [--only TEXT]
+        [--cold-only] [--samplers]
+
+Benchmarks are not tests: figures depend on the machine and its load (recorded before and
+after every command).
 """
 
 from __future__ import annotations
@@ -37,8 +52,19 @@ def strip_numerics(path: Path, effects: list[str] | None = None) -> None:
     path.write_text(text)
 
 
-def run(cmd: list[str], json_path: Path | None) -> tuple[float, dict | None, str]:
-    env = dict(os.environ, JAXWEAR_NO_CACHE="1")
+def run(cmd: list[str], json_path: Path | None, cache: Path | None):
+    """(wall [s], JSON document or None, stderr, load before, load after) of one command in
+    a fresh process; `cache`: the persistent compilation cache folder (None: off)."""
+    env = dict(os.environ)
+    env.pop("JAXWEAR_NO_CACHE", None)
+    if cache is None:
+        env["JAXWEAR_NO_CACHE"] = "1"
+    else:
+        env["JAXWEAR_CACHE_DIR"] = str(cache)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    if json_path is not None and json_path.exists():
+        json_path.unlink()
+    load0 = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "jaxwear", *cmd], capture_output=True,
                           text=True, env=env)
@@ -46,23 +72,97 @@ def run(cmd: list[str], json_path: Path | None) -> tuple[float, dict | None, str
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} exited {proc.returncode}: {proc.stderr[-2000:]}")
     doc = json.loads(json_path.read_text()) if json_path and json_path.exists() else None
-    return wall, doc, proc.stderr
+    return wall, doc, proc.stderr, load0, os.getloadavg()[0]
 
 
 def _f(x) -> str:
     return "null" if x is None else f"{x:.1f}"
 
 
-def evaluations_in(stderr: str) -> str:
-    m = re.findall(r"\((\d+) model evaluations\)", stderr)
-    return m[-1] if m else "?"
+def _compiles(doc) -> str:
+    c = doc.get("compiles")
+    if isinstance(c, dict):
+        return "+".join(f"{v} {k}" for k, v in c.items() if v) or "0"
+    by = doc.get("compiles_by_kind") or (doc.get("cost") or {}).get("compiles") or {}
+    return "+".join(f"{v} {k}" for k, v in by.items() if v) or str(c)
+
+
+def within(a, b, rel) -> bool:
+    return a is not None and b is not None and abs(a - b) <= rel * abs(b)
+
+
+# ---------------------------------------------------------------- checks, one per verb
+
+
+def check_calibrate_rig(doc, truth):
+    kd, ref = doc["parameters"]["K_d_per_Pa"]["value"], truth["K_d_per_Pa"]
+    ok = within(kd, ref, 0.05)
+    return ok, f"K_d {kd:.4g} vs truth {ref:.4g} ({(kd / ref - 1) * 100:+.1f} %)"
+
+
+def check_rmse(ref):
+    def check(doc, _):
+        r = doc["rmse_um"]
+        return within(r, ref, 0.10), f"RMSE {r:.2f} µm (README {ref} µm)"
+    return check
+
+
+def check_forecasts(doc, _):
+    parts, ok = [], True
+    for p in doc["predictions"]:
+        m, d = p["measured_um"], p["depth_um"]
+        good = m is not None and within(d, m, 0.05)
+        ok &= good
+        parts.append(f"{p['at']:g}: {_f(d)} [{_f(p['lower_um'])}, {_f(p['upper_um'])}] "
+                     f"(measured {_f(m)}{'' if good else ', > 5 %'})")
+    return ok, "; ".join(parts)
+
+
+def check_verdict(status, effect=None):
+    def check(doc, _):
+        v = doc["verdict"]
+        ok = v["status"] == status and (effect is None or v["missing_effect"] == effect)
+        text = v["status"] + (f" ({v['missing_effect']})" if v["missing_effect"] else "")
+        if "shape" in doc:
+            text += f"; shape best: {doc['shape']['best']}"
+        return ok, text
+    return check
+
+
+def check_sampler(method, laplace_doc=None):
+    def check(doc, _):
+        block = doc[method]
+        post = block["posterior"]
+        ess_key = "ess" if method == "importance" else "ess_bulk"
+        ess = min(v[ess_key] or 0 for v in post.values())
+        rhat = block.get("max_r_hat")
+        ok = ess >= 400 and rhat is not None and rhat <= 1.01
+        text = f"ESS {ess:.0f}, R-hat {rhat if rhat is None else round(rhat, 4)}"
+        if method == "importance":
+            ok &= block["k_hat"] <= 0.7
+            text += f", k̂ {block['k_hat']:.2f}"
+        ok2, fc = check_forecasts(doc, None)
+        text += "; " + fc
+        if laplace_doc is not None:
+            lap = {(p["experiment"], p["at"]): p for p in laplace_doc["predictions"]}
+            gaps = []
+            for p in doc["predictions"]:
+                q = lap[(p["experiment"], p["at"])]
+                for k in ("lower_um", "depth_um", "upper_um"):
+                    gaps.append(abs(p[k] - q[k]) / abs(q[k]))
+            ok &= max(gaps) <= 0.05
+            text += f"; bands vs Laplace within {max(gaps) * 100:.1f} %"
+        return ok, text
+    return check
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "TIME_TO_ANSWER.md"))
     ap.add_argument("--only", default=None, help="run only rows whose label contains this")
-    ap.add_argument("--nuts", action="store_true", help="also NUTS on the boom (minutes)")
+    ap.add_argument("--cold-only", action="store_true", help="skip the warm runs")
+    ap.add_argument("--samplers", action="store_true",
+                    help="also the posterior samplers (importance, NUTS: minutes each)")
     args = ap.parse_args(argv)
     tmp = Path(tempfile.mkdtemp(prefix="jaxwear-tta-"))
     rows = []
@@ -72,8 +172,9 @@ def main(argv=None) -> int:
             cmd = ["synth", "--noise-um", "0.3", "--seed", "5", "--out", str(tmp / name)]
             if hidden:
                 cmd[1:1] = ["--hidden", hidden]
-            run(cmd, None)
+            run(cmd, None, None)
             strip_numerics(tmp / name / "study.toml")
+        truth = json.loads((tmp / "rig" / "truth.json").read_text())
         boom = tmp / "boom"
         boom.mkdir()
         shutil.copy(ROOT / "calibration" / "boom" / "boom.csv", boom / "boom.csv")
@@ -81,68 +182,106 @@ def main(argv=None) -> int:
         strip_numerics(boom / "study.toml")
         shutil.copy(boom / "study.toml", boom / "study_ri.toml")
         strip_numerics(boom / "study_ri.toml", ["running_in"])
+        boom_predict = [str(boom / "study_ri.toml"), "--train-until", "15", "--noise-um",
+                        "5", "--at", "20,25"]
 
         cases = [
             ("calibrate the 5-experiment rig study (K_d + 5 clearances)", "calibrate",
-             [str(tmp / "rig" / "study.toml"), "--fit", "K_d,clearance"], "267 s, 29",
-             "<= 30 s, <= 8"),
+             [str(tmp / "rig" / "study.toml"), "--fit", "K_d,clearance"], "267 s, 29 / 38.3 s, 11",
+             "<= 30 s, <= 8", check_calibrate_rig),
             ("calibrate the boom, K_d + clearance", "calibrate",
-             [str(boom / "study.toml"), "--fit", "K_d,clearance"], "292 s, 21", "<= 20 s"),
+             [str(boom / "study.toml"), "--fit", "K_d,clearance"], "292 s, 21 / 25.3 s, 7",
+             "<= 20 s",
+             check_rmse(16.9)),
             ("calibrate the boom with running_in", "calibrate",
-             [str(boom / "study_ri.toml")], "444 s, 25", "<= 30 s"),
+             [str(boom / "study_ri.toml")], "444 s, 25 / 80.0 s, 28", "<= 30 s", check_rmse(2.0)),
             ("predict the boom with running_in, --train-until 15 --noise-um 5 --at 20,25",
-             "predict", [str(boom / "study_ri.toml"), "--train-until", "15", "--noise-um",
-                         "5", "--at", "20,25"], "730 s", "<= 60 s"),
+             "predict", boom_predict, "730 s / 135.6 s, 28", "<= 60 s", check_forecasts),
             ("diagnose the 5-experiment rig study, null", "diagnose",
-             [str(tmp / "rig" / "study.toml")], "92-109 s", "<= 90 s"),
+             [str(tmp / "rig" / "study.toml")], "92-109 s / 74.9 s, 8", "<= 90 s",
+             check_verdict("adequate")),
             ("diagnose the 5-experiment rig study, speed effect", "diagnose",
-             [str(tmp / "rig_speed" / "study.toml")], "513 s", "<= 90 s"),
+             [str(tmp / "rig_speed" / "study.toml")], "513 s / 175.6 s, 17", "<= 90 s",
+             check_verdict("effect_found", "speed_dependence")),
             ("diagnose --shape, the same study (issue 20: <= 60 s more)", "diagnose",
-             [str(tmp / "rig_speed" / "study.toml"), "--shape"], "-", "row above + 60 s"),
+             [str(tmp / "rig_speed" / "study.toml"), "--shape"], "- / 339.9 s, 28",
+             "row above + 60 s",
+             check_verdict("effect_found", "speed_dependence")),
         ]
-        if args.nuts:
-            cases.append(("NUTS on the boom, 2 x (100 + 100), --noise-um 5", "predict",
-                          [str(boom / "study.toml"), "--train-until", "15", "--noise-um",
-                           "5", "--at", "20,25", "--method", "nuts", "--chains", "2",
-                           "--warmup", "100", "--samples", "100", "--max-minutes", "60"],
-                          "11.6 min", "<= 3 min"))
-        for i, (label, verb, cmd, before, target) in enumerate(cases):
+        if args.samplers:
+            one = write_one_experiment_rig(tmp / "one")
+            cases += [
+                ("predict --method importance, the boom with running_in (as above)",
+                 "predict", [*boom_predict, "--method", "importance"], "-", "<= 3 min",
+                 "importance-boom"),
+                ("predict --method importance, one rig experiment at 64 x 72", "predict",
+                 [*one, "--method", "importance"], "-", "<= 3 min", check_sampler("importance")),
+                ("predict --method nuts, one rig experiment at 64 x 72, 2 x (300 + 300)",
+                 "predict", [*one, "--method", "nuts", "--draws", "300", "--warmup", "300",
+                             "--max-minutes", "60"], "34 min (estimate)", "<= 3 min",
+                 check_sampler("nuts"))]
+        docs = {}
+        for i, (label, verb, cmd, before, target, check) in enumerate(cases):
             if args.only and args.only not in label:
                 continue
-            out = tmp / f"out{i}"
-            js = out / "answer.json"
-            wall, doc, err = run([verb, *cmd, "--out", str(out), "--json", str(js)], js)
-            if verb == "calibrate":
-                evals = doc.get("model_evaluations", doc.get("iterations"))
-                extra = (f"{doc['status']}; resolution {doc['resolution']['nodes']} x "
-                         f"{doc['resolution']['steps_per_rev']}")
-            elif verb == "diagnose":
-                evals = evaluations_in(err)
-                extra = doc["verdict"]["status"] + (
-                    f" ({doc['verdict']['missing_effect']})"
-                    if doc["verdict"]["missing_effect"] else "")
-                if "shape" in doc:
-                    extra += f"; shape best: {doc['shape']['best']}"
-            else:
-                evals = (doc.get("fit") or {}).get("model_evaluations") or "?"
-                p = doc["predictions"]
-                extra = "; ".join(f"{x['at']:g} h: {_f(x['depth_um'])} [{_f(x['lower_um'])}, "
-                                  f"{_f(x['upper_um'])}] µm (measured {_f(x['measured_um'])})"
-                                  for x in p)
-            rows.append((label, before, target, f"{wall:.1f} s", str(evals), extra))
-            print(f"{label}: {wall:.1f} s, {evals} evaluations, {extra}", flush=True)
+            cache = tmp / f"cache{i}"
+            cache.mkdir()
+            walls, loads = [], []
+            for which in ("cold",) if args.cold_only else ("cold", "warm"):
+                out = tmp / f"out{i}-{which}"
+                js = out / "answer.json"
+                wall, doc, err, l0, l1 = run([verb, *cmd, "--out", str(out), "--json", str(js)],
+                                             js, cache)
+                walls.append(wall)
+                loads.append(f"{l0:.1f}/{l1:.1f}")
+            docs[label] = doc
+            if check == "importance-boom":
+                lap = docs.get(cases[3][0])
+                check = check_sampler("importance", lap)
+            ok, text = check(doc, truth)
+            evals = (doc.get("model_evaluations") or (doc.get("fit") or {}).get(
+                "model_evaluations") or "?")
+            row = (label, before, target, f"{walls[0]:.1f} s",
+                   f"{walls[1]:.1f} s" if len(walls) > 1 else "-", str(evals),
+                   _compiles(doc), ("ok: " if ok else "FAILED: ") + text, " ".join(loads))
+            rows.append(row)
+            print(" | ".join(row), flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     lines = ["# Time to an answer (benchmarks/time_to_answer.py)", "",
-             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-             f"load {os.getloadavg()[0]:.1f} at the end; JAX persistent cache off (cold); "
-             f"CLI wall clock per command in a fresh process.", "",
-             "| answer (CLI wall, defaults) | before (issue 19) | target | now | model "
-             "evaluations | result |", "|---|---|---|---|---|---|"]
-    lines += [f"| {a} | {b} | {c} | {d} | {e} | {f} |" for a, b, c, d, e, f in rows]
+             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+             f"CLI wall clock per command in a fresh process; cold: an empty persistent "
+             f"compilation cache, warm: the second run with that cache; load average "
+             f"(1 min) before/after each run in the last column.", "",
+             "| answer (CLI wall, defaults) | before: issue 19 / issue 26 (cold, evaluations) "
+             "| target | cold | warm | model evaluations | compiles | check | load |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
     return 0
+
+
+def write_one_experiment_rig(root: Path) -> list[str]:
+    """A one-experiment rig study at 64 x 72 (adaptive integrator), data by `jaxwear synth`
+    (truth at finer numerics, interrupted counts, 0.3 µm noise); the predict arguments:
+    trained until its second-to-last count, forecast at its last."""
+    root.mkdir(parents=True, exist_ok=True)
+    cond = root / "conditions.toml"
+    cond.write_text('[model]\npreset = "rig"\n[model.parameters]\nK_d_per_Pa = 1.0e-13\n'
+                    '[numerics]\nnodes = 64\nsteps_per_rev = 72\n[fit]\n'
+                    'clearance_tolerance_um = 5\n[[experiment]]\nname = "n276"\n'
+                    'speed_rpm = 276\nclearance_mm = 0.05\nrevolutions = 10000\n')
+    run(["synth", "--conditions", str(cond), "--noise-um", "0.3", "--seed", "2", "--out",
+         str(root / "s")],
+        None, None)
+    sys.path.insert(0, str(ROOT))
+    from jaxwear._study import load_study
+
+    st = load_study(root / "s" / "study.toml")
+    pts = st.experiments[0].snapshot_points
+    return [str(root / "s" / "study.toml"), "--train-until", f"{pts[-2]:g}", "--at",
+            f"{pts[-1]:g}"]
 
 
 if __name__ == "__main__":

@@ -30,13 +30,16 @@ from ._noise import Noise, stated_noise
 from ._packing import parse_fit, study_fit_keys, unit_of, with_registration
 from ._residual import (
     Evaluation,
+    Forward,
+    Layout,
     ResidualModel,
     build_model,
     evaluate,
-    experiment_schedules,
-    forward,
+    forward_run,
     integration_report,
     needs_more_attempts,
+    traces,
+    traces_since,
     unusable_point,
 )
 from ._study import Study
@@ -52,9 +55,11 @@ class FitError(RuntimeError):
     """The fit could not start: the model cannot be evaluated at any usable start."""
 
 
-def build_problem(study: Study, keys: list[str], start: dict | None = None) -> ResidualModel:
-    """The residual model of `study` fitting `keys` (`_residual.build_model`)."""
-    return build_model(study, keys, start)
+def build_problem(study: Study, keys: list[str], start: dict | None = None,
+                  layout: Layout | None = None) -> ResidualModel:
+    """The residual model of `study` fitting `keys` (`_residual.build_model`; `layout`:
+    shared schedule capacities)."""
+    return build_model(study, keys, start, layout=layout)
 
 
 def registered(study: Study, result) -> Study:
@@ -115,6 +120,8 @@ class FitResult:
     step_se: float = 0.0  # the next Gauss-Newton step at the answer, in standard errors
     resolution: dict | None = None  # the spatial resolution and its check (`calibrate`)
     clearance_tolerance_um: float = 5.0
+    forward_runs: int = 0  # of `iterations`, those without a Jacobian (finer levels)
+    compiles: dict | None = None  # compilations for this answer by kind (`fit_study`)
 
     @property
     def converged(self) -> bool:
@@ -152,6 +159,11 @@ class FitResult:
             "status": self.status,
             "iterations": int(self.iterations),
             "model_evaluations": int(self.iterations),
+            "evaluations": {"jacobian": int(self.iterations - self.forward_runs),
+                            "forward": int(self.forward_runs)},
+            "compiles": (None if self.compiles is None
+                         else int(sum(self.compiles.values()))),
+            "compiles_by_kind": self.compiles,
             "next_step_standard_errors": _jf(self.step_se),
             "message": self.message,
             "flags": list(self.flags),
@@ -204,7 +216,8 @@ def check_noise_determined(problem: ResidualModel, noise_um: float | None, *, hi
 
 def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
-        label: str = "fit", se_tol: float = lsq.SE_TOL) -> FitResult:
+        label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None
+        ) -> FitResult:
     """Least-squares fit through the one core (`jaxwear.lsq.solve`), then standard errors,
     correlations and flags.
 
@@ -217,6 +230,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
       top; all are counted in `iterations`).
     - `verbose`: one line per evaluation on stderr. `robust`: rescale K_d first.
     - `se_tol`: the stop, as a fraction of a standard error (`lsq.solve`).
+    - `ev0`: the problem's evaluation at `u0` when known (no start evaluation, no robust
+      start: a refit from an answer).
 
     Raises `InputError` before any evaluation when σ is not given and the data rows do not
     outnumber the fitted parameters; `FitError` when no start can be evaluated.
@@ -232,6 +247,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
     def run(v, doublings):
         ev, used = evaluate(held[0], v, doublings=doublings)
         if used.schedule.attempts > held[0].schedule.attempts:
+            _log(verbose, f"    {label}: integration attempts raised {held[0].schedule.attempts}"
+                          f" -> {used.schedule.attempts} for these values (a recompilation)")
             held[0] = used  # the largest attempt count any evaluation needed is kept
         return ev.point()
 
@@ -249,7 +266,9 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         return run(v, 1)
 
     k = next((i for i, c in enumerate(problem.columns) if c.key == "K_d_per_Pa"), None)
-    if robust and P:
+    if ev0 is not None:
+        pt, evals0 = ev0.point(), 0
+    elif robust and P:
         u, pt, evals0, why = lsq.robust_start(lambda v: run(v, 3), u, k,
                                               measured=problem.measured, log=log)
         if why:
@@ -400,80 +419,161 @@ def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=Fal
 
 def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | None = None,
               max_evaluations: int = 30, verbose: bool = False,
-              se_tol: float = lsq.SE_TOL) -> FitResult:
+              se_tol: float = lsq.SE_TOL, layout: Layout | None = None) -> FitResult:
     """The whole fit of a study: build the problem, refuse what is known before any
     evaluation, fit, re-check the integration error at the answer and, where the study
     leaves the resolution to the error (DESIGN §6), fit at the coarsest level of
-    `_resolution.LEVELS` and check the answer against the next finer level (one
-    Gauss-Newton step there must move no parameter by more than 0.1 standard error; else
-    refit at the finer level from the answer). `result.resolution` reports it, and
-    `result.iterations` counts every model evaluation of all levels (checks included)."""
+    `_resolution.LEVELS` and consult the finer levels by forward runs only
+    (`correct_to_finer`): one Jacobian compilation per answer. `result.resolution` reports
+    it, `result.iterations` counts every model evaluation (forward runs and checks
+    included, `result.forward_runs` of them without a Jacobian) and `result.compiles` the
+    compilations by kind. `layout`: shared schedule capacities (a forecast's)."""
     from . import _resolution as res
 
+    before = traces()
     noise_um = study.noise_um if noise_um is None else noise_um
     kw = dict(noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
               se_tol=se_tol)
     if not study.auto_resolution:
-        result = _fit_at(study, keys, start, **kw)
+        result = _fit_at(study, keys, start, layout, **kw)
         result.resolution = res.given(study)
-        return result
-    levels = res.LEVELS
-    result = _fit_at(res.at_level(study, levels[0]), keys, start, **kw)
-    spent = 0  # evaluations of the coarser levels' fits and of the checks
-    for i, level in enumerate(levels):
-        if i + 1 == len(levels):
-            result.resolution = res.report(level, None, kind="fit", value=None, ok=False)
-            result.flags.append(f"resolution: the fit needed the finest level {level[0]} x "
-                                f"{level[1]}, which is not checked against a finer one")
-            break
-        finer = levels[i + 1]
-        ratio = refinement_step(res.at_level(study, finer), keys, result)
-        spent += 1
-        ok = ratio <= res.FIT_SE_TOL
-        _log(verbose, f"  resolution {level[0]} x {level[1]}: a Gauss-Newton step at "
-                      f"{finer[0]} x {finer[1]} moves the answer by {ratio:.2g} standard "
-                      f"errors" + ("" if ok else f" (> {res.FIT_SE_TOL:g}): refit there"))
-        if ok:
-            result.resolution = res.report(level, finer, kind="fit", value=ratio, ok=True)
-            break
-        spent += result.iterations
-        result = _fit_at(res.at_level(study, finer), keys,
-                         dict(zip(result.names, map(float, result.values))), **kw)
-    result.iterations += spent
+    else:
+        result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
+        result = correct_to_finer(study, keys, result, layout, **kw)
+    result.compiles = traces_since(before)
     return result
 
 
-def _fit_at(study: Study, keys, start, *, noise_um, max_evaluations, verbose,
+MAX_CORRECTIONS = 4  # defect corrections towards one level before it is called unsettled
+
+
+def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | None = None,
+                     **fit_kw) -> FitResult:
+    """`result` (a fit at the coarsest level) checked against the finer levels, and
+    corrected to them where needed, by forward runs there only (DESIGN §6).
+
+    At the answer û, one forward run at the next finer level gives its rows; the
+    Gauss-Newton step with those residuals and the fit's own Jacobian, in standard errors,
+    is the check (what a finer grid changes is mostly the residual, by the discretisation
+    error; its change of the Jacobian moves the answer by that relative change times the
+    residuals, in standard errors about the Jacobian's relative discretisation error,
+    which this check does not see: README, "Resolution chosen by the error"). Within
+    `FIT_SE_TOL` (0.1): the answer stands, checked against that level. Else defect
+    correction: the difference δ = rows_fine(û) − rows_coarse(û) is held as a fixed
+    correction of the rows (`ResidualModel.defect_um`), the coarse model refitted from û
+    with its Jacobian (no recompilation), δ recomputed at the new answer, until the finer
+    level moves no parameter by 0.1 SE; the answer is then that level's (its residuals,
+    fitted rows and snapshots), and it is checked against the next finer level the same
+    way. The finest level is not checked against a finer one (flagged)."""
+    from . import _resolution as res
+
+    verbose = fit_kw.get("verbose")
+    levels = res.LEVELS
+    coarse = result.problem
+    tol = (result.integration or {}).get("tolerance_um")
+    base = study if tol is None else dataclasses.replace(study, wear_tolerance_um=tol)
+    start = dict(zip(coarse.names, map(float, np.asarray(coarse.start))))
+    lo, hi = coarse.packing.bounds_u()
+    at, corrections, correction_step = 0, 0, None
+    spent = result.iterations  # every evaluation of the answer, the first fit's on
+    forward = 0  # of them, forward runs
+    report = None
+    for i in range(1, len(levels)):
+        fine = build_problem(res.at_level(base, levels[i]), keys, start, layout=layout)
+        ratio, tries = math.inf, 0
+        while True:
+            f = forward_run(fine, result.u)
+            fine = f.model
+            spent, forward = spent + 1, forward + 1
+            if not f.usable:
+                result.flags.append(f"resolution: the model at {_lv(levels[i])} is not "
+                                    f"usable at the answer (worn through or not finite): "
+                                    f"the answer is not checked against it")
+                break
+            ev = result.evaluation
+            shift = f.rows - ev.pred  # the change of the correction that gives its rows
+            pt = ev.shifted(shift).point()
+            ratio = lsq.step_in_standard_errors(pt, result.error_scale_um, lo, hi)[0]
+            ok = ratio <= res.FIT_SE_TOL
+            _log(verbose, f"  resolution: a Gauss-Newton step with the rows of "
+                          f"{_lv(levels[i])} (forward run) moves the answer at "
+                          f"{_lv(levels[at])} by {ratio:.2g} standard errors"
+                          + ("" if ok else f" (> {res.FIT_SE_TOL:g}): defect correction"))
+            if ok or tries >= MAX_CORRECTIONS or not result.converged:
+                break
+            tries += 1
+            corrections += 1
+            refit = fit(coarse.with_defect(coarse.defect + shift), result.u,
+                        ev0=ev.shifted(shift), label=f"corrected to {_lv(levels[i])}",
+                        **fit_kw)
+            spent += refit.iterations
+            coarse, result, at = refit.problem, _carry(refit, result), i
+        if not f.usable:
+            report = res.report(levels[at], None, kind="fit", value=None, ok=False)
+            break
+        if at < i:  # the answer stands at its level, checked against this one
+            report = res.report(levels[at], levels[i], kind="fit", value=ratio,
+                                ok=ratio <= res.FIT_SE_TOL)
+            break
+        # corrected to this level: the answer is this level's, to within `ratio`
+        coarse = coarse.with_defect(coarse.defect + shift)
+        result = at_corrected(result, coarse, shift, f, ratio)
+        correction_step = ratio
+        if ratio > res.FIT_SE_TOL or not result.converged:
+            result.flags.append(f"resolution: the defect correction to {_lv(levels[i])} did "
+                                f"not settle ({tries} corrections; the last step is "
+                                f"{ratio:.2g} standard errors)")
+            report = res.report(levels[i], None, kind="fit", value=ratio, ok=False)
+            break
+        if i + 1 == len(levels):
+            result.flags.append(f"resolution: the fit needed the finest level "
+                                f"{_lv(levels[i])}, which is not checked against a finer "
+                                f"one")
+            report = res.report(levels[i], None, kind="fit", value=None, ok=False)
+    report.update(res.correction_report(levels[0], levels[at] if at else None, corrections,
+                                        correction_step))
+    result.resolution = report
+    result.iterations = spent
+    result.forward_runs = forward
+    return result
+
+
+def _lv(level) -> str:
+    return f"{level[0]} x {level[1]}"
+
+
+def _carry(refit: FitResult, before: FitResult) -> FitResult:
+    """A corrected refit keeps the flags of what came before it (integration notes)."""
+    refit.flags = list(dict.fromkeys(before.flags + refit.flags))
+    return refit
+
+
+def at_corrected(result: FitResult, problem: ResidualModel, shift, f: Forward,
+                 step_se: float) -> FitResult:
+    """`result` reported at the level its correction reaches: `problem` carries the
+    correction recomputed at the answer, so its rows there are the finer level's (`f`, its
+    forward run): fitted rows, residuals and RMSE are that level's, the snapshots its
+    `f.snaps`; standard errors stay those of the last corrected fit (its residuals differ
+    from these by less than the check's `step_se` standard errors)."""
+    ev = result.evaluation.shifted(shift)
+    r = ev.r
+    exp_idx = np.asarray(problem.data.exp)
+    per = {name: float(np.sqrt(np.mean(r[exp_idx == i] ** 2)))
+           for i, name in enumerate(problem.exp_names) if np.any(exp_idx == i)}
+    return dataclasses.replace(result, problem=problem, evaluation=ev, residuals_um=r,
+                               predicted_um=ev.pred, rmse_um=float(np.sqrt(np.mean(r ** 2))),
+                               rmse_per_experiment=per, snapshots_um=f.snaps,
+                               step_se=float(step_se))
+
+
+def _fit_at(study: Study, keys, start, layout=None, *, noise_um, max_evaluations, verbose,
             se_tol) -> FitResult:
-    problem = build_problem(study, keys, start)
+    problem = build_problem(study, keys, start, layout)
     result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
                  se_tol=se_tol)
     return recheck_integration(study, result, noise_um=noise_um,
                                max_evaluations=max_evaluations, verbose=verbose,
                                se_tol=se_tol)
-
-
-def refinement_step(finer: Study, keys, result: FitResult) -> float:
-    """The largest move, in standard errors, of one Gauss-Newton step of the `finer`
-    study's problem from the fitted values of `result`.
-
-    The step takes the finer level's residuals (one forward run there) and the fit's own
-    Jacobian: what a finer grid changes is the residual, by the discretisation error; its
-    effect on the Jacobian changes the step only at second order. This keeps the check to
-    one forward compilation and run at the finer level (the Jacobian there would cost ~3x
-    the compilation and ~7x the run, measured on the rig at 180 x 144)."""
-    prob = build_problem(finer, keys, dict(zip(result.names, map(float, result.values))))
-    P = prob.packing.size
-    if not P:
-        return 0.0
-    u0 = np.zeros(P)
-    rows, _, _, _ = forward(prob, u0)
-    ev = result.evaluation
-    r_prior, J_prior = prob.prior_rows(u0)
-    pt = lsq.Point(u=u0, r=rows - prob.measured, predicted=rows, J=ev.J, r_prior=r_prior,
-                   J_prior=J_prior, usable=bool(np.all(np.isfinite(rows))))
-    lo, hi = prob.packing.bounds_u()
-    return lsq.step_in_standard_errors(pt, result.error_scale_um, lo, hi)[0]
 
 
 def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **fit_kw
@@ -502,9 +602,9 @@ def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **f
     tol = study.wear_tolerance_um
     checks = 0  # evaluations of the check itself (counted with the fit's)
     for k in range(refits + 1):
-        # schedules (and attempt counts) at the fitted values
-        fitted = problem.with_schedule(experiment_schedules(
-            dataclasses.replace(study, wear_tolerance_um=tol), per_exp(result.u)))
+        # the attempt count at the fitted values (`evaluate` raises it where they need
+        # more; never lowered: the same shapes, no recompilation)
+        fitted = at_tolerance(problem, tol)
         ev, fitted = evaluate(fitted, result.u)
         checks += 1
         err = float(ev.error_um)
@@ -513,9 +613,8 @@ def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **f
         tol /= 4
         _log(fit_kw.get("verbose"), f"  integration error {err:.3g} µm above tolerance at "
                                     f"the fitted values: refit at {tol:.3g} µm")
-        result = fit(problem.with_schedule(experiment_schedules(
-            dataclasses.replace(study, wear_tolerance_um=tol), per_exp(result.u))),
-            result.u, **fit_kw)
+        result = fit(fitted.with_schedule(at_tolerance(fitted, tol).schedule), result.u,
+                     **fit_kw)
         problem = result.problem
     result.integration = integration_report(fitted, ev)
     result.iterations += checks
@@ -527,3 +626,15 @@ def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **f
     result.flags.append(note)
     result.message += "; " + note
     return result
+
+
+def at_tolerance(problem: ResidualModel, tol_um: float) -> ResidualModel:
+    """`problem` with its adaptive schedules' error tolerance set to `tol_um` [µm] (a traced
+    value: no recompilation; the attempt count follows in `evaluate`)."""
+    sched = problem.schedule
+    if not sched.adaptive:
+        return problem
+    import jax.numpy as jnp
+
+    return problem.with_schedule(dataclasses.replace(
+        sched, tolerance=jnp.full_like(sched.tolerance, tol_um * 1e-6)))

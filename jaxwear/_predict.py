@@ -23,7 +23,16 @@ forecast stops, past the last `--at` point, once its depth passes 2x the layer (
 draw: the layer; `stop_past_layer`); later points hold the last computed depth, so a band
 edge that had not reached the limit by then is reported as not reached, not guessed.
 
-`nuts` (`_predict_nuts.py`): a posterior by NUTS through the same differentiable model.
+`nuts` (`_predict_nuts.py`): a posterior by NUTS through the same differentiable model;
+`importance` (`_predict_importance.py`): the same posterior by Pareto-smoothed importance
+sampling from the Laplace fit (forward runs only); both forecast their draws with
+`_predict_draws`.
+
+One compile per answer: the forecast's points are known before the fit, so the training
+problem is laid out (`forecast_layout`) to hold them and the life's refinements, and the
+forecast runs in the fit's compiled Jacobian (`forecast_problem`: the same packing, rows
+and correction, another schedule of the same shapes); where the fit's answer is corrected
+to a finer level, the forecast's depths come from a forward run there.
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
+from . import _resolution
 from ._calibrate import (
     FitResult,
     build_problem,
@@ -46,7 +56,15 @@ from ._calibrate import (
 )
 from ._config import timed
 from ._errors import InputError
-from ._residual import evaluate, integration_report
+from ._residual import (
+    Layout,
+    evaluate,
+    experiment_schedules,
+    forward_run,
+    integration_report,
+    traces,
+    traces_since,
+)
 from ._resolution import at_level
 from ._study import Experiment, History, Profile, Study
 
@@ -57,7 +75,7 @@ from ._study import Experiment, History, Profile, Study
 FORECAST_SE_TOL = 0.1
 LIFE_HORIZON = 10.0  # life is searched up to this multiple of the last measured count
 LAPLACE_STOP_LAYERS = 2.0  # Laplace forecasts stop past this multiple of the layer (life tail)
-METHODS = ("laplace", "nuts")
+METHODS = ("laplace", "nuts", "importance")
 # Life crossings are searched on the forecast grid. Maximum depth never decreases in time, so
 # each crossing lies inside its grid bracket: the bracket's width bounds the life's numerical
 # error (reported). The forecast is refined (LIFE_REFINE_POINTS new points inside each
@@ -307,14 +325,53 @@ def forecast_snapshots(problem, u):
     return ev.snaps, ev.J_snaps, integration_report(used, ev)
 
 
-def forecast_problem(study: Study, result: FitResult, keys, points):
-    """A problem over the forecast points whose u = 0 is the fitted parameter vector."""
-    start = dict(zip(result.names, (float(v) for v in result.values)))
-    prob = build_problem(forecast_study(study, points), keys, start)
-    if list(prob.names) != list(result.names):  # same study keys → same parameters
-        raise RuntimeError(f"forecast parameters {prob.names} differ from the fit's "
-                           f"{result.names}")
-    return prob
+def forecast_layout(study: Study, train: Study, points, refine: bool = True) -> Layout:
+    """Capacities (`_residual.Layout`) that hold the training problem and the forecast over
+    `points` with room for the life's refinement rounds (`LIFE_REFINE_ROUNDS` x 3
+    brackets x `LIFE_REFINE_POINTS` more points per experiment), rounded up to buckets:
+    the fit and every forecast then share one compiled function. Attempts: the forecast's
+    at the study's values (a fit raises them where its values need more)."""
+    from ._schedule import bucket
+
+    plist = [study.params(e) for e in study.experiments]
+    fs = experiment_schedules(forecast_study(study, points), plist)
+    ts = experiment_schedules(train, plist)
+    room = LIFE_REFINE_ROUNDS * 3 * LIFE_REFINE_POINTS if refine else 0
+    return Layout(updates=bucket(max(fs.cycles.shape[-1], ts.cycles.shape[-1]) + room),
+                  snapshots=bucket(max(fs.n_snapshots, ts.n_snapshots) + room),
+                  attempts=max(fs.attempts, ts.attempts))
+
+
+def forecast_problem(train: Study, base, points, layout: Layout | None = None):
+    """The problem `base` (a training problem, or a `FitResult` whose problem it is) over
+    the forecast `points` (one array per experiment): the same packing, parameters, rows
+    and row correction, its rows read from the forecast's snapshots (`train`: the training
+    study whose snapshot points the rows index), the schedule to max(points) padded to
+    `layout` (when it holds it; else bucketed capacities, so that refinement rounds share
+    a compilation). Its u is the training problem's: u = `result.u` is the fit."""
+    from ._schedule import bucket
+
+    base = getattr(base, "problem", base)
+    plist = [train.params(e) for e in train.experiments]
+    fstudy = forecast_study(train, points)
+    sched = experiment_schedules(fstudy, plist)
+    if layout is None or not layout.holds(sched):
+        layout = Layout(bucket(sched.cycles.shape[-1]), bucket(sched.n_snapshots),
+                        sched.attempts)
+    attempts = max(layout.attempts, base.schedule.attempts)
+    sched = experiment_schedules(fstudy, plist, replace(layout, attempts=attempts))
+    d = base.data
+    exp, snap = np.asarray(d.exp), np.asarray(d.snap)
+    new = np.empty_like(snap)
+    for i, (e, s) in enumerate(zip(exp, snap)):
+        t = train.experiments[e].snapshot_points[s]
+        j = int(np.argmin(np.abs(np.asarray(points[e]) - t)))
+        if not math.isclose(float(points[e][j]), float(t), rel_tol=1e-9, abs_tol=1e-9):
+            raise RuntimeError(f"forecast points of experiment {e} miss the training point "
+                               f"{t:g}")
+        new[i] = j
+    data = replace(d, snap=jnp.asarray(new, jnp.int32))
+    return replace(base, schedule=sched, data=data)
 
 
 def stop_past_layer(study: Study, fprob, points, at, factor: float = 1.0):
@@ -478,11 +535,13 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     - `train_until`: fit only the measurements at or before it (same unit); None: all.
     - `level`: central probability of the bands. `limit_um`: depth limit for the life
       estimate (default: the layer thickness).
-    - `method`: "laplace" (linearised, default) or "nuts" (posterior by NUTS).
+    - `method`: "laplace" (linearised, default), "nuts" (posterior by NUTS) or
+      "importance" (posterior by PSIS importance sampling from the Laplace fit).
     - `fit_spec`: parameters to fit (as `calibrate`; default the study's [fit] parameters,
       else K_d,clearance; enabled effects' strengths are always added).
     - `noise_um`: measurement noise σ [µm] if known; default: estimated from the residuals.
-    - `nuts_options`: dict for method "nuts" (see `_predict_nuts.run_nuts`).
+    - `nuts_options`: dict for the sampling methods (`_predict_nuts.run_nuts`,
+      `_predict_importance.run_importance`).
     - `n_dense`: points of the forecast grid (fan chart, life search); `life=False` skips
       the life estimate (and the forecast to 10x the last measured count).
 
@@ -490,29 +549,42 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     """
     at, limit_um = _check_args(study, at, train_until, level, limit_um, method, noise_um)
     unit = unit_of_study(study)
-    train = training_study(study, train_until)
     keys = study_fit_keys(study, fit_spec)
     if noise_um is None:
         noise_um = study.noise_um
+    if study.auto_resolution:  # the fit's Jacobian runs at the coarsest level
+        study = at_level(study, _resolution.LEVELS[0])
+    train = training_study(study, train_until)
     problem = build_problem(train, keys)
     # known before any evaluation: σ̂ needs more training rows than fitted parameters
     check_noise_determined(problem, noise_um, hint="--noise-um (or [fit] noise_um)")
+    # the forecast's points are known before the fit: the training problem is laid out to
+    # hold them (and the life's refinements), so the forecast runs in the fit's compiled
+    # function
+    points = [forecast_points(study, e, at, n_dense, life) for e in study.experiments]
+    layout = forecast_layout(study, train, points, refine=life)
     _log(verbose, f"predict: fitting {', '.join(problem.names)} to {problem.n_data} rows "
-                  f"(first call compiles the model)")
+                  f"(first call compiles the model, laid out for {layout.snapshots} forecast "
+                  f"points)")
+    before = traces()
     # the fit re-checks its integration error at the answer (refitting at a tighter
-    # tolerance if above it) and chooses its resolution where the study leaves it open;
-    # the forecast runs at the tolerance and resolution the fit ended with
+    # tolerance if above it) and chooses its resolution where the study leaves it open
+    # (its Jacobian at the coarsest level, its rows corrected to the level it needs); the
+    # forecast runs at the tolerance the fit ended with, its Jacobian at the fit's level
+    # and its depths at the level the answer is corrected to
     result = fit_study(train, keys, noise_um=noise_um, verbose=verbose,
-                       se_tol=FORECAST_SE_TOL)
+                       se_tol=FORECAST_SE_TOL, layout=layout)
     problem = result.problem
     flags = []
     resolution = result.resolution
-    if study.auto_resolution:
-        study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
-        train = training_study(study, train_until)
+    fine_level = None
+    if resolution.get("auto") and resolution.get("corrected_to"):
+        c = resolution["corrected_to"]
+        fine_level = (c["nodes"], c["steps_per_rev"])
     tol = (result.integration or {}).get("tolerance_um")
     if study.integrator != "paper" and tol is not None and tol < study.wear_tolerance_um:
         study = replace(study, wear_tolerance_um=tol)
+        train = training_study(study, train_until)
     m_stable = stable_update(study, result) if study.integrator == "paper" else math.inf
     if study.revolutions_per_update > m_stable:
         # The explicit update is near its stability limit at the fitted K_d: the depth may
@@ -525,10 +597,13 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         _log(verbose, f"predict: {flags[-1]}")
         study = replace(study, revolutions_per_update=m_new)
         train = training_study(study, train_until)
-        problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))))
-        result = fit(problem, noise_um=noise_um, verbose=verbose, se_tol=FORECAST_SE_TOL)
-        result.resolution = resolution
-    p = problem.packing.size
+        layout = forecast_layout(study, train, points, refine=life)
+        problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))),
+                                layout)
+        problem = problem.with_defect(result.problem.defect)
+        result = replace(fit(problem, noise_um=noise_um, verbose=verbose,
+                             se_tol=FORECAST_SE_TOL), resolution=resolution)
+        problem = result.problem
     flags += result.flags  # a fit that did not converge says so there
     # the errors the data support (`_noise`, `lsq.error_scale`): the noise level, or the
     # training misfit where it is larger, with its degrees of freedom (inf: σ given)
@@ -538,42 +613,61 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     if null_dirs.shape[1]:
         flags.append(f"{null_dirs.shape[1]} parameter direction(s) not determined by the "
                      f"training data and prior: forecasts that depend on them have no band")
-    points = [forecast_points(study, e, at, n_dense, life) for e in study.experiments]
+    fine_train = fine_base = None
+    if fine_level is not None:
+        fine_train = at_level(train, fine_level)
+        fine_base = build_problem(fine_train, keys, dict(zip(
+            problem.names, map(float, np.asarray(problem.start)))), layout)
+
+    def forecast_at(points, factor):
+        """(Jacobian-level forecast problem, the corrected level's or None) at `points`,
+        each stopping past `factor` x the layer after the last `--at` point."""
+        fp = stop_past_layer(train, forecast_problem(train, problem, points, layout), points,
+                             at, factor)
+        ff = None if fine_base is None else stop_past_layer(
+            fine_train, forecast_problem(fine_train, fine_base, points, layout), points, at,
+            factor)
+        return fp, ff
 
     def assemble(points, flags, snaps, J, draws, extra):
         return _assemble(study, train, at, points, limit_um, level, method, unit, train_until,
                          result, cov, null_dirs, noise, result.noise_given, dof, q,
                          list(flags), snaps, J, draws, extra, life)
 
-    draws = extra = forecast_draws = None  # NUTS: posterior draws' forecasts, sampler's JSON
-    if method == "nuts":
-        from ._predict_nuts import run_nuts
+    draws = extra = forecast_draws = None  # sampled posteriors: draws' forecasts, JSON
+    sampled = method in ("nuts", "importance")
+    if sampled:
+        if method == "nuts":
+            from ._predict_nuts import run_nuts as run_sampler
+        else:
+            from ._predict_importance import run_importance as run_sampler
 
-        _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points (compiles "
-                      f"the forecast model)")
-        fprob = forecast_problem(study, result, keys, points)
-        draws, extra, forecast_draws = run_nuts(
-            problem, result, stop_past_layer(study, fprob, points, at), noise_um=noise_um,
+        _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points")
+        draws, extra, forecast_draws = run_sampler(
+            problem, result, *forecast_at(points, 1.0), noise_um=noise_um,
             level=level, verbose=verbose, cov=cov, **(nuts_options or {}))
 
     def evaluate(points, rnd):
         """The result with the forecast at `points` (round `rnd` of the life refinement)."""
         nonlocal draws
-        if method == "nuts":
+        if sampled:
             if rnd:  # the same posterior draws, forecast at the refined points
-                _log(verbose, f"predict/nuts: life refinement {rnd}: forecasting the draws "
-                              f"at {sum(len(x) for x in points)} points")
-                draws = forecast_draws(stop_past_layer(
-                    study, forecast_problem(study, result, keys, points), points, at))
+                _log(verbose, f"predict/{method}: life refinement {rnd}: forecasting the "
+                              f"draws at {sum(len(x) for x in points)} points")
+                draws = forecast_draws(*forecast_at(points, 1.0))
             return assemble(points, flags, None, None, draws, extra)
-        _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points (compiles "
-                      f"the forecast model)" + (f"; life refinement {rnd}" if rnd else ""))
+        _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points"
+                      + (f"; life refinement {rnd}" if rnd else ""))
         # past 2x the layer the lower band's crossing of the limit is not looked for
         # (a relative band over 50 %): "no upper bound" there
-        snaps, J, integ = forecast_snapshots(
-            stop_past_layer(study, forecast_problem(study, result, keys, points), points, at,
-                            LAPLACE_STOP_LAYERS), jnp.zeros(p))
+        fp, ff = forecast_at(points, LAPLACE_STOP_LAYERS)
+        snaps, J, integ = forecast_snapshots(fp, result.u)
         snaps, J = fill_past_stop(snaps, J)
+        if ff is not None:
+            # the answer is corrected to a finer level: its depths are that level's (a
+            # forward run), their Jacobian the fit's, read at its nodes
+            snaps = fill_past_stop(forward_run(ff, result.u, worn_ok=True).snaps)[0]
+            J = on_nodes(J, snaps.shape[2])
         run_flags = list(flags)
         err_um = float(integ["error_estimate_um"]) if integ["integrator"] == "adaptive" else 0
         if not math.isfinite(err_um):
@@ -597,7 +691,22 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         f"life of {x.experiment}: after {rnd} refinements the crossings are placed only to "
         f"±{x.numerical_error_bound:.3g} {unit}" for x in res.life
         if any(b - a > LIFE_RTOL * abs(c) for a, b, c in x.brackets))
+    # compilations of the whole answer (fit, checks and every forecast), by kind
+    res.extra["compiles"] = traces_since(before)
     return res
+
+
+def on_nodes(a, nodes: int):
+    """`a` (E, S, N, ...) periodic-linearly interpolated along its node axis to `nodes`
+    equally spaced nodes (a Jacobian at the fit's nodes read at a finer level's)."""
+    a = np.asarray(a)
+    n = a.shape[2]
+    if n == nodes:
+        return a
+    x = np.arange(nodes) * n / nodes
+    i0 = np.floor(x).astype(int) % n
+    w = (x - np.floor(x)).reshape((1, 1, nodes) + (1,) * (a.ndim - 3))
+    return a[:, :, i0] * (1 - w) + a[:, :, (i0 + 1) % n] * w
 
 
 def stable_update(study: Study, result: FitResult) -> float:

@@ -47,7 +47,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._errors import InputError
-from ._predict import fill_past_stop
+from ._predict_draws import DrawForecasts, run_forward
+from ._residual import TRACES
 
 LEAPFROG_GUESS = 10  # mean leapfrog steps per NUTS step (measured ~6 on the rig test, dense mass)
 
@@ -120,6 +121,7 @@ def log_density(problem, noise_um=None, white: Whitening | None = None):
     lo_s, hi_s = math.log(1e-3), math.log(1e3)
 
     def logp(z):
+        TRACES["density"] += 1  # runs when traced only
         log_s = jnp.log(noise_um) if given else z["log_noise"]
         if white is None:
             u, jac = z["u"], 0.0
@@ -194,16 +196,18 @@ def sampling_setup(problem, result, noise_um=None, cov=None):
     return problem, white, logp, z_fit
 
 
-def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
-             draws: int = 500, warmup: int = 300, chains: int = 2, seed: int = 0,
-             max_minutes: float = 20.0, n_predictive: int = 200, out=None,
-             forward_mode: bool = True, cov=None):
+def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.9,
+             verbose=False, draws: int = 500, warmup: int = 300, chains: int = 2,
+             seed: int = 0, max_minutes: float = 20.0, n_predictive: int = 200, out=None,
+             forward_mode: bool = True, cov=None, workers: int = 2):
     """NUTS posterior of the training problem's parameters and the forecast's predictive.
 
     Returns (draws dict: `max_um` (D, E, S), `new_um` (D, E, S), `snapshots_um`
     (D, E, S, N), `noise` (D,); extra JSON dict with the sampler's diagnostics: R-hat and
-    bulk ESS per parameter, divergences, time, netCDF path; `forecast_draws(fprob)`, the
-    same draws' dict at another forecast problem's points, for the life's refinement).
+    bulk ESS per parameter, divergences, time, netCDF path; `forecast_draws(fprob,
+    fprob_fine)`, the same draws' dict at another forecast problem's points, for the life's
+    refinement; `_predict_draws.DrawForecasts`). `fprob_fine`: the forecast problem at the
+    level the fit's answer is corrected to (None: none).
     `forward_mode`: gradients by forward mode (p tangents through the wear loop: measured
     faster than reverse mode, which re-runs the checkpointed loop, for p ≤ ~6).
     `cov`: the fit's Laplace covariance of u (p, p) for the whitening (None: L = I).
@@ -237,40 +241,12 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
     for _ in range(3):
         jax.block_until_ready(grad(z0))
     t_grad = (time.perf_counter() - t0) / 3
-    @eqx.filter_jit
-    def fcs(fp, u):
-        snaps, res = fp.snapshots(u)
-        return snaps, jnp.max(res.error_estimate), jnp.max(res.steps)
-
-    # the forecasts' integration, over every draw: the largest error estimate [m] and step
-    # count (the "integration" block of the JSON, as laplace's for its one forecast)
-    integ = {"error": 0.0, "steps": 0}
-
-    def forecast(fp, u):
-        """Snapshots (E, S, N) [µm] at u, raising the static attempt count (a compilation)
-        where a draw needs more integration steps; returns the problem it ran with."""
-        first = fp.schedule.attempts
-        for i in range(4):
-            snaps, err, steps = fcs(fp, u)
-            if np.isfinite(float(err)) or not fp.schedule.adaptive or i == 3:
-                break
-            fp = _more_attempts(fp, 2)
-        if not np.isfinite(float(err)):
-            # the last run's attempt count, as a multiple of the first (not a doubling
-            # that was never run)
-            raise RuntimeError(f"predict/nuts: a posterior draw's forecast ran out of "
-                               f"integration attempts: {fp.schedule.attempts} attempted steps "
-                               f"({fp.schedule.attempts / max(first, 1):g}x the first "
-                               f"estimate, {first}) did not reach its end")
-        integ["error"] = max(integ["error"], float(err))
-        integ["steps"] = max(integ["steps"], int(steps))
-        return np.asarray(snaps), fp
-
+    u_fit = np.asarray(result.u, np.float64)
     t0 = time.perf_counter()
-    _, fprob = forecast(fprob, jnp.zeros(p))  # u = 0: the fit
+    _, _, _, fprob = run_forward(fprob, u_fit)  # compiles, settles the attempt count
     t_fc_compile = time.perf_counter() - t0
     t0 = time.perf_counter()
-    forecast(fprob, jnp.zeros(p))
+    run_forward(fprob, u_fit)
     t_fc = time.perf_counter() - t0
     n_grad = chains * (warmup + draws) * LEAPFROG_GUESS
     n_pred = min(n_predictive, chains * draws)
@@ -328,40 +304,20 @@ def run_nuts(problem, result, fprob, *, noise_um=None, level=0.9, verbose=False,
                    "upper": float(np.quantile(post[k], (1 + level) / 2))}
     n_div = int(np.sum(np.asarray(extra["diverging"])))
     mean_steps = float(np.mean(np.asarray(extra["num_steps"])))
-    # posterior predictive at evenly thinned draws
-    # the forecast problem's u = 0 is the LM fit: map each draw by its parameter values
-    flat_u = np.array([fprob.packing.u_of(v) for v in vals.reshape(-1, p)]).reshape(-1, p)
+    # posterior predictive at evenly thinned draws (u in the training problem's coordinates,
+    # which the forecast problems share)
+    flat_u = u_s.reshape(-1, p)
     flat_s = noise.reshape(-1)
     idx = np.linspace(0, len(flat_u) - 1, n_pred).round().astype(int)
     _log(verbose, f"predict/nuts: sampled in {t_run:.0f} s ({n_div} divergences, "
                   f"{mean_steps:.1f} leapfrog steps per step); forecasting {n_pred} draws")
-
-    def forecast_draws(fprob):
-        """The thinned draws' forecasts at `fprob`'s points: the draws dict (see above)."""
-        integ.update(error=0.0, steps=0)
-        mx, prof, past = [], [], []
-        t0 = last = time.perf_counter()
-        for n_done, j in enumerate(idx, 1):
-            s, fprob = forecast(fprob, jnp.asarray(flat_u[j]))  # (E, S, N)
-            past.append(np.isinf(s).any(axis=-1))  # (E, S): after the draw's early stop
-            s = fill_past_stop(s)[0]
-            mx.append(s.max(axis=-1))
-            prof.append(s)
-            if time.perf_counter() - last > 30:
-                last = time.perf_counter()
-                _log(verbose, f"predict/nuts: forecast {n_done}/{len(idx)} draws "
-                              f"({last - t0:.0f} s)")
-        mx = np.stack(mx)
-        new = new_measurements(mx, np.stack(past), flat_s[idx], np.random.default_rng(seed))
-        # the same dict object each time: a refined forecast updates the JSON's block
-        extra_json["integration"].update(integration_block(fprob.schedule, integ))
-        return {"max_um": mx, "new_um": new, "snapshots_um": np.stack(prof),  # (D, E, S, N)
-                "noise": flat_s[idx]}
-
-    extra_json = {"integration": {}}
+    forecast_draws = DrawForecasts(flat_u[idx], flat_s[idx], u_fit, seed=seed,
+                                   workers=workers, verbose=verbose, label="predict/nuts")
     t0 = time.perf_counter()
-    draws_out = forecast_draws(fprob)
+    draws_out = forecast_draws(fprob, fprob_fine)
     t_pred = time.perf_counter() - t0
+    # the same dict object each time: a refined forecast updates the JSON's block
+    extra_json = {"integration": forecast_draws.integration}
     path = None
     if out is not None:  # through a temporary name, like every other output
         path = out.write_with("posterior.nc",
@@ -404,30 +360,6 @@ def r_hat_warnings(diag: dict, chains: int) -> list[str]:
            "a chain did not move (constant draws) or gave non-finite values")
     return [f"nuts: R-hat is not finite for {', '.join(bad)} ({why}): convergence is not "
             f"checked; max_r_hat is null"]
-
-
-def integration_block(schedule, integ: dict) -> dict:
-    """The JSON "integration" block of the posterior draws' forecasts (the form of
-    laplace's): the largest error estimate [µm] and step count over the draws."""
-    adaptive = schedule.adaptive
-    err = integ["error"] * 1e6
-    return {"integrator": "adaptive" if adaptive else "paper",
-            "error_estimate_um": (err if math.isfinite(err) else "inf") if adaptive else None,
-            "steps": int(integ["steps"]),
-            "tolerance_um": float(np.max(np.asarray(schedule.tolerance))) * 1e6
-            if adaptive else None}
-
-
-def new_measurements(max_um, past, noise_um, rng):
-    """Posterior-predictive new measurements of the maximum depth (D, E, S) [µm]: each
-    draw's depth `max_um` plus its noise `noise_um` (D,). Where `past` (D, E, S) the draw had
-    stopped, worn through the layer (≥ every allowed limit), before that point: a new
-    measurement there is past the limit (+inf), not the depth the draw stopped at plus noise,
-    which, being only a lower bound, kept the band's lower edge under the limit for good
-    (measured on the boom: "no upper bound" for the life once the grid was fine enough to
-    stop the draws within a micrometre of the layer)."""
-    new = max_um + noise_um[:, None, None] * rng.standard_normal(max_um.shape)
-    return np.where(past, np.inf, new)
 
 
 def _f(x):

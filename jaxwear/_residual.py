@@ -16,10 +16,19 @@ are analytic in u), so changing a prior never recompiles.
 
 Diagnose's candidates are columns of a group (`Column.group`) in the same model, switched
 off by masks; the configuration then carries every candidate effect, held at `off`.
+
+One compile per answer: a fit compiles its Jacobian once, at the coarsest resolution, and
+consults finer resolutions by forward runs only. The residual difference between a finer
+level and this one at the answer is held as a fixed correction of the rows (`defect_um`, a
+traced array: changing it never recompiles) while the coarse Jacobian steps (defect
+correction, `_calibrate.fit_study`). A `Layout` pads every schedule to shared capacities
+(pieces, snapshots, attempts, the early-stop arrays), so that a forecast over other points
+runs in the fit's own compiled function. `TRACES` counts the compilations.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -45,6 +54,45 @@ from ._study import Study
 from ._wear import adaptive_attempts, build_schedule, schedule_numerics, wear_loop
 from .effects import STRUCTURAL_CANDIDATES
 
+# Compilations of the residual model's functions, by kind ("jacobian", "forward"), counted
+# when JAX traces them (a trace is a compilation, or a load from the persistent cache):
+# a fit reports the difference over its run as its `compiles`.
+TRACES: collections.Counter = collections.Counter()
+
+
+def traces() -> dict:
+    """A copy of `TRACES` (to difference around an answer)."""
+    return dict(TRACES)
+
+
+def traces_since(before: dict) -> dict:
+    """Compilations by kind since `before` (`traces()`): "jacobian" and "forward" always,
+    other kinds ("density": a sampler's log density) where any."""
+    kinds = dict.fromkeys(["jacobian", "forward", *TRACES])
+    out = {k: TRACES.get(k, 0) - before.get(k, 0) for k in kinds}
+    return {k: v for k, v in out.items() if v or k in ("jacobian", "forward")}
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Shared capacities of a model's batched schedule, so that problems over other points
+    (a forecast, its refinements) share one compiled function with the fit: `updates`
+    pieces, `snapshots` snapshot slots, at least `attempts` attempted steps (adaptive), and
+    the early-stop arrays present (`stop`: a fit never stops early, its arrays are +inf;
+    a forecast sets them, `_predict.stop_past_layer`). Unused capacity costs little: a
+    padded piece or attempt skips all work (measured on the boom at 90 x 72: 8x the
+    attempts, 0.35 s against 0.21 s a forward run)."""
+
+    updates: int
+    snapshots: int
+    attempts: int = 0
+    stop: bool = True
+
+    def holds(self, sched: Schedule) -> bool:
+        """Whether a batched schedule fits in these capacities."""
+        return (sched.cycles.shape[-1] <= self.updates
+                and sched.n_snapshots <= self.snapshots)
+
 
 class Data(eqx.Module):
     """Measured rows, flattened over experiments: where each lives in the model output."""
@@ -69,8 +117,11 @@ def _stack(trees):
     return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
 
 
-def experiment_schedules(study: Study, plist: list[Params]) -> Schedule:
-    """Every experiment's schedule (to its data's snapshot points), padded and batched."""
+def experiment_schedules(study: Study, plist: list[Params], layout: Layout | None = None
+                         ) -> Schedule:
+    """Every experiment's schedule (to its data's snapshot points), padded and batched;
+    with a `layout`, padded to its capacities (which must hold it) with the early-stop
+    arrays at +inf (never stops)."""
     scheds = [build_schedule(p, study.config, revolutions=e.revolutions, hours=e.hours,
                              snapshots=e.snapshot_points or [e.hours or e.revolutions],
                              pad=False, **schedule_numerics(study))
@@ -78,7 +129,16 @@ def experiment_schedules(study: Study, plist: list[Params]) -> Schedule:
     U = max(s.updates for s in scheds)
     S = max(s.n_snapshots for s in scheds)
     A = max(s.attempts for s in scheds)
-    return _stack([pad_schedule(s, U, S, A) for s in scheds])
+    if layout is not None:
+        if U > layout.updates or S > layout.snapshots:
+            raise ValueError(f"schedule of {U} pieces and {S} snapshots exceeds the layout "
+                             f"{layout}")
+        U, S = layout.updates, layout.snapshots
+        A = max(A, layout.attempts) if A else 0
+    batched = _stack([pad_schedule(s, U, S, A) for s in scheds])
+    if layout is not None and layout.stop and batched.adaptive:
+        batched = batched.stopping_at(math.inf, math.inf)
+    return batched
 
 
 def measured_data(study: Study, packing: Packing) -> Data:
@@ -138,6 +198,9 @@ class ResidualModel(eqx.Module):
     data: Data
     nominal_angle_deg: jax.Array  # the given registration offsets (experiments,)
     noise_um: float | None = eqx.field(static=True, default=None)  # the study's, if given
+    # a fixed correction of every row [µm] (rows,): the residual difference between a
+    # finer resolution and this one at the answer (defect correction); zeros: none
+    defect_um: jax.Array | None = None
 
     # ------------------------------------------------------------ the parameter vector
     @property
@@ -169,6 +232,16 @@ class ResidualModel(eqx.Module):
 
     def with_schedule(self, schedule: Schedule) -> ResidualModel:
         return dataclasses.replace(self, schedule=schedule)
+
+    def with_defect(self, defect_um) -> ResidualModel:
+        """The same model with its rows corrected by `defect_um` (rows,) [µm]."""
+        return dataclasses.replace(self, defect_um=jnp.asarray(defect_um, jnp.float64))
+
+    @property
+    def defect(self) -> np.ndarray:
+        """The rows' correction (rows,) [µm] (zeros: none)."""
+        return (np.zeros(self.n_data) if self.defect_um is None
+                else np.asarray(self.defect_um, np.float64))
 
     # ------------------------------------------------------------ the model
     def batched_params(self, u) -> Params:
@@ -226,7 +299,8 @@ class ResidualModel(eqx.Module):
             i0, i1, w = d.i0, d.i1, d.w
         at = jnp.take_along_axis(prof, i0[:, None], 1)[:, 0] * (1 - w) + \
             jnp.take_along_axis(prof, i1[:, None], 1)[:, 0] * w
-        return jnp.where(d.is_max, jnp.max(prof, axis=1), at)
+        rows = jnp.where(d.is_max, jnp.max(prof, axis=1), at)
+        return rows if self.defect_um is None else rows + self.defect_um
 
     def predict(self, u):
         """Model depth at every row [µm] at u (traceable)."""
@@ -238,13 +312,16 @@ class ResidualModel(eqx.Module):
 
 
 def build_model(study: Study, keys: list[str], start: dict | None = None, *,
-                candidates=(), contact: str | None = None, shape=None) -> ResidualModel:
+                candidates=(), contact: str | None = None, shape=None,
+                layout: Layout | None = None) -> ResidualModel:
     """The residual model of `study` fitting the study keys `keys` (`_packing.parse_fit`).
 
     - `start`: start values by output name (key units), else the study's values.
     - `candidates`: diagnose candidates added as columns of their own group (at `off`),
       the configuration extended with them; `contact`: another contact model; `shape`: the
       shape correction's basis (`effects.shape.ShapeBasis`), its coefficients at 0.
+    - `layout`: the schedule's capacities (`Layout`), shared with other problems.
+    The rows' correction (`defect_um`) starts at zero.
     """
     plist = [study.params(e) for e in study.experiments]
     cols = study_columns(study, keys, plist)
@@ -270,10 +347,11 @@ def build_model(study: Study, keys: list[str], start: dict | None = None, *,
                      for e in study.experiments]
     model = ResidualModel(cfg=cfg, exp_names=tuple(e.name for e in study.experiments),
                           packing=packing, params=params,
-                          schedule=experiment_schedules(study, plist),
+                          schedule=experiment_schedules(study, plist, layout),
                           data=measured_data(study, packing),
                           nominal_angle_deg=jnp.asarray(nominal_angle, jnp.float64),
                           noise_um=study.noise_um)
+    model = model.with_defect(np.zeros(model.n_data))
     if candidates or shape is not None:
         # candidate strengths at `off` in the batched parameters too (a study may set a
         # value for an effect it does not switch on; the structural strength maps to the
@@ -322,6 +400,12 @@ class Evaluation:
     def rms_um(self) -> float:
         return float(np.sqrt(np.mean(self.r ** 2))) if self.r.size else 0.0
 
+    def shifted(self, shift) -> Evaluation:
+        """The evaluation with every row moved by `shift` (rows,) [µm] (a change of the
+        rows' correction: the Jacobian is unchanged, the correction being fixed)."""
+        shift = np.asarray(shift, np.float64)
+        return dataclasses.replace(self, pred=self.pred + shift, r=self.r + shift)
+
     def point(self) -> lsq.Point:
         """The least-squares core's view: the integrator's error sets the floor of a
         meaningful decrease only where its steps adapt (their choice makes the error jump
@@ -334,6 +418,7 @@ class Evaluation:
 
 @eqx.filter_jit
 def _evaluate_jit(model: ResidualModel, u):
+    TRACES["jacobian"] += 1  # runs when traced only
     def g(v):
         snaps, res = model.snapshots(v)
         rows = model.predict_from(snaps, v)
@@ -349,27 +434,45 @@ def _evaluate_jit(model: ResidualModel, u):
 def _forward_jit(model: ResidualModel, u):
     """Rows [µm], snapshots [µm], worn-through cycle, error estimate [µm], steps: no
     Jacobian (a check of a linearised answer costs one plain run)."""
+    TRACES["forward"] += 1  # runs when traced only
     snaps, res = model.snapshots(u)
     return (model.predict_from(snaps, u), snaps, jnp.max(res.worn_through_cycle),
             jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
 
 
-def enough_attempts(model: ResidualModel, u) -> ResidualModel:
-    """`model` with the adaptive loop's static attempt count raised (to a power of 2, so
-    that few compilations arise) where the parameters at u need more than it has (the
-    stiffness-limited step count grows with K_d, which a fit moves by orders)."""
+# Headroom of a raised attempt count: a fit's first rescale of K_d sets the stiffness to
+# within a small factor, and each raise is a recompilation of the whole Jacobian (measured
+# on the boom with running-in: three compilations for K_d x 15, then x 1.8, without it);
+# an unused attempt skips all work.
+RAISE_HEADROOM = 2.0
+
+
+def attempts_needed(model: ResidualModel, u) -> int:
+    """The adaptive loop's estimated attempt count at u (`adaptive_attempts`, the largest
+    over the experiments); 0 for eq-23 schedules."""
     sched = model.schedule
     if not sched.adaptive:
-        return model
+        return 0
     pb = model.batched_params(jnp.asarray(u, jnp.float64))
     need = 0
     for i in range(sched.cycles.shape[0]):
         p_i = jax.tree.map(lambda x: x[i], pb)
         one = dataclasses.replace(jax.tree.map(lambda x: x[i], sched), attempts=1)
         need = max(need, adaptive_attempts(p_i, model.cfg, one))
+    return need
+
+
+def enough_attempts(model: ResidualModel, u, headroom: float = RAISE_HEADROOM
+                    ) -> ResidualModel:
+    """`model` with the adaptive loop's static attempt count raised (to a power of 2 at
+    `headroom` x the need, so that few compilations arise) where the parameters at u need
+    more than it has (the stiffness-limited step count grows with K_d, which a fit moves by
+    orders)."""
+    sched = model.schedule
+    need = attempts_needed(model, u)
     if need <= sched.attempts:
         return model
-    more = 2 ** math.ceil(math.log2(need))
+    more = 2 ** math.ceil(math.log2(headroom * need))
     return model.with_schedule(dataclasses.replace(sched, attempts=more))
 
 
@@ -377,8 +480,8 @@ def needs_more_attempts(model: ResidualModel, u, factor: float = 4.0) -> bool:
     """True where u needs over `factor` times the model's attempt count: a trial at a
     stiff corner (running-in over a millimetre, K_d 100x) that would make the integrator
     crawl."""
-    return (model.schedule.adaptive
-            and enough_attempts(model, u).schedule.attempts > factor * model.schedule.attempts)
+    return model.schedule.adaptive and attempts_needed(model, u) > factor * \
+        model.schedule.attempts
 
 
 def evaluate(model: ResidualModel, u, *, doublings: int = 3
@@ -409,9 +512,28 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3
                       adaptive=model.schedule.adaptive), model
 
 
-def forward(model: ResidualModel, u, *, doublings: int = 3):
-    """Rows [µm] and snapshots [µm] at u without the Jacobian, NaN where the model wore
-    through or its integration did not reach the end; and the model it ran."""
+@dataclass(frozen=True)
+class Forward:
+    """A forward run (no Jacobian): `rows` (rows,) and `snaps` (E, S, N) [µm], NaN where the
+    model wore through or its integration did not reach the end; `error_um` the worst
+    experiment's integration error estimate, `steps` the longest one's accepted steps,
+    `model` the model it ran (its attempt count raised where needed)."""
+
+    rows: np.ndarray
+    snaps: np.ndarray
+    error_um: float
+    steps: int
+    model: ResidualModel
+
+    @property
+    def usable(self) -> bool:
+        return bool(np.all(np.isfinite(self.rows)))
+
+
+def forward_run(model: ResidualModel, u, *, doublings: int = 3, worn_ok: bool = False
+                ) -> Forward:
+    """The model at u without the Jacobian (`Forward`); `worn_ok`: keep the rows and
+    snapshots of a run that wore through (a forecast past the layer)."""
     model = enough_attempts(model, u)
     uj = jnp.asarray(u, jnp.float64)
     out = _forward_jit(model, uj)
@@ -420,10 +542,17 @@ def forward(model: ResidualModel, u, *, doublings: int = 3):
             break
         model = model.with_schedule(model.schedule.more_attempts())
         out = _forward_jit(model, uj)
-    rows, snaps, worn, err, _ = (np.asarray(x) for x in out)
-    if float(worn) >= 0 or not np.isfinite(float(err)):
+    rows, snaps, worn, err, steps = (np.asarray(x) for x in out)
+    if (float(worn) >= 0 and not worn_ok) or not np.isfinite(float(err)):
         rows, snaps = np.full(rows.shape, np.nan), np.full(snaps.shape, np.nan)
-    return rows, snaps, float(err), model
+    return Forward(rows, snaps, float(err), int(steps), model)
+
+
+def forward(model: ResidualModel, u, *, doublings: int = 3):
+    """Rows [µm] and snapshots [µm] at u without the Jacobian, NaN where the model wore
+    through or its integration did not reach the end; and the model it ran."""
+    f = forward_run(model, u, doublings=doublings)
+    return f.rows, f.snaps, f.error_um, f.model
 
 
 def unusable_point(model: ResidualModel, u) -> lsq.Point:

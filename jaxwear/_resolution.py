@@ -6,9 +6,11 @@ level of `LEVELS` whose discretisation error is small enough, checked against th
 finer level:
 - forward runs (`simulate`): every experiment's peak depth within `PEAK_RTOL` (0.1 %) of the
   finer level's; the reported error estimate is the largest peak difference [µm];
-- fits: one Gauss-Newton step at the finer level, from the fitted values, moves no fitted
-  parameter by more than `FIT_SE_TOL` (0.1) of its standard error, checked **at the
-  answer** (a fit that fails it is refitted at the finer level, from its answer).
+- fits: one Gauss-Newton step with the finer level's rows (a forward run) and the fit's
+  own Jacobian moves no fitted parameter by more than `FIT_SE_TOL` (0.1) of its standard
+  error, checked **at the answer**; a fit that fails it is corrected to the finer level by
+  defect correction (its residual difference held fixed while the coarse Jacobian steps,
+  `_calibrate.correct_to_finer`), so a fit compiles one Jacobian, at the coarsest level.
 
 Why these levels: measured on the rig (276 r/min, 10 000 rev) and the boom (25 h), the peak
 depth at 90 × 72 is 0.02 µm and 0.35 µm from 360 × 360, ten times below the data's noise,
@@ -54,6 +56,17 @@ def report(level, finer, *, kind: str, value, ok: bool) -> dict:
         out["refinement_step_standard_errors"] = None if value is None else float(value)
         out["tolerance"] = f"{FIT_SE_TOL:g} standard errors"
     return out
+
+
+def correction_report(jacobian, corrected_to, corrections: int, step) -> dict:
+    """The defect correction's part of a fit's `resolution` block: the level the Jacobian
+    was at, the level whose residuals the answer is corrected to (None: none needed),
+    how many corrected refits it took and the last correction's step [SE]."""
+    return {"jacobian": {"nodes": jacobian[0], "steps_per_rev": jacobian[1]},
+            "corrected_to": None if corrected_to is None else {
+                "nodes": corrected_to[0], "steps_per_rev": corrected_to[1]},
+            "defect_corrections": int(corrections),
+            "correction_step_standard_errors": None if step is None else float(step)}
 
 
 def for_forward(study: Study, peaks: Callable[[Study], np.ndarray],

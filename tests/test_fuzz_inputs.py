@@ -723,7 +723,7 @@ def test_non_finite_r_hat_is_null_and_flagged():
 def test_nuts_integration_block_has_laplaces_form():
     from types import SimpleNamespace as NS
 
-    from jaxwear._predict_nuts import integration_block
+    from jaxwear._predict_draws import integration_block
 
     sched = NS(adaptive=True, tolerance=np.asarray(2e-9))
     block = integration_block(sched, {"error": 1.5e-9, "steps": 40})

@@ -137,11 +137,12 @@ def test_propagated_variance_matches_finite_differences(study_path):
 
     study = load_study(study_path)
     keys = parse_fit(study, "K_d,clearance")
-    res = fit(build_problem(training_study(study, 2000), keys))
+    train = training_study(study, 2000)
+    res = fit(build_problem(train, keys))
     pts = [forecast_points(study, e, list(AT), n_dense=4) for e in study.experiments]
-    fprob = forecast_problem(study, res, keys, pts)
+    fprob = forecast_problem(train, res, pts)  # u: the fit's own coordinates
     p = len(res.names)
-    snaps, J, _ = forecast_snapshots(fprob, np.zeros(p))
+    snaps, J, _ = forecast_snapshots(fprob, res.u)
     cov, null = res.covariance.cov, res.covariance.null_directions
     assert null.shape[1] == 0
     for ei in range(len(EXPERIMENTS)):
@@ -153,8 +154,9 @@ def test_propagated_variance_matches_finite_differences(study_path):
             # u is a log-multiplier (relative steps). The contact solves converge to ~1e-10
             # relative, so steps of 1e-4 keep their noise and the truncation both ~1e-6.
             h = 1e-4
-            up, dn = np.zeros(p), np.zeros(p)
-            up[i], dn[i] = h, -h
+            up, dn = np.array(res.u), np.array(res.u)
+            up[i] += h
+            dn[i] -= h
             fu = forward(fprob, up)[1][ei, s, k]
             fd = forward(fprob, dn)[1][ei, s, k]
             g_fd[i] = (fu - fd) / (2 * h)

@@ -214,7 +214,7 @@ def test_worn_through_draws_take_the_prediction_band_past_the_limit():
     under the limit for good and the life had no upper end. By hand: the lower edge is
     past the limit once over 95 % of the draws have stopped."""
     from jaxwear._predict import draw_quantile, life_of
-    from jaxwear._predict_nuts import new_measurements
+    from jaxwear._predict_draws import new_measurements
 
     rng = np.random.default_rng(0)
     t = np.arange(1.0, 101.0)  # hours

@@ -73,6 +73,11 @@ def summary_text(result: FitResult, study_name: str) -> str:
         line = f"resolution: {res['nodes']} nodes x {res['steps_per_rev']} steps"
         if res.get("auto"):
             chk = res.get("checked_against")
+            jac = res.get("jacobian")
+            if res.get("corrected_to") and jac:
+                line += (f" (Jacobian at {jac['nodes']} x {jac['steps_per_rev']}, residuals "
+                         f"corrected to this level by {res['defect_corrections']} defect "
+                         f"correction(s))")
             line += (f", chosen by the error: one Gauss-Newton step at {chk['nodes']} x "
                      f"{chk['steps_per_rev']} moves the answer by "
                      f"{res['refinement_step_standard_errors']:.2g} standard errors"
@@ -231,8 +236,11 @@ class Calibrate(Verb):
         res = result.resolution or {}
         if res.get("auto"):  # tables and plots at the nodes the answer was computed on
             study = at_level(study, (res["nodes"], res["steps_per_rev"]))
-        print(f"calibrate: fit took {time.perf_counter() - t0:.1f} s", file=sys.stderr,
-              flush=True)
+        comp = result.compiles or {}
+        print(f"calibrate: fit took {time.perf_counter() - t0:.1f} s ({result.iterations} "
+              f"model evaluations, {result.forward_runs} of them forward runs; "
+              f"{comp.get('jacobian', '?')} Jacobian and {comp.get('forward', '?')} forward "
+              f"compilations)", file=sys.stderr, flush=True)
         doc = result.to_json()
         written = [out.write_json("calibration.json", doc)]
         if out.json_file is not None:

@@ -1,12 +1,13 @@
 """`jaxwear predict STUDY.toml --at LIST [--train-until X] [--level 0.9] [--limit-um D]
-[--method laplace|nuts] [--out DIR] [--json FILE]` (DESIGN §7).
+[--method laplace|nuts|importance] [--out DIR] [--json FILE]` (DESIGN §7).
 
 Writes under DIR: `prediction.json` (the §7 document plus diagnostics), `predictions.csv`
 (one row per experiment and `--at` point, both bands), `forecast_curves.csv` (the forecast
 and its bands on a fine grid, for plots of your own), `fan_<experiment>.png` (measured
 points, forecast line and band), `profile_<experiment>.png` (profile studies: the profile at
-the last `--at` point with its band) and, for `--method nuts`, `posterior.nc` (ArviZ
-InferenceData). `--json FILE` writes the document to FILE too. Progress goes to stderr.
+the last `--at` point with its band) and, for `--method nuts` and `importance`,
+`posterior.nc` (ArviZ InferenceData). `--json FILE` writes the document to FILE too.
+Progress goes to stderr.
 Exit codes: 0 done, 2 bad input (the message names the option or key), 1 anything else.
 """
 
@@ -34,7 +35,7 @@ def predict_outputs(study, method: str) -> list[str]:
 
     names = ["prediction.json", "predictions.csv", "forecast_curves.csv",
              *per_experiment(study, "fan_{}.png", "profile_{}.png")]
-    return names + (["posterior.nc"] if method == "nuts" else [])
+    return names + (["posterior.nc"] if method in ("nuts", "importance") else [])
 
 
 def write_outputs(out, study, res):
@@ -209,19 +210,27 @@ class Predict(Verb):
         r.add_argument("--limit-um", default=None,
                        help="depth limit for the life estimate [µm] (default: layer "
                             "thickness)")
-        r.add_argument("--method", default="laplace", help="laplace (default) or nuts")
+        r.add_argument("--method", default="laplace",
+                       help="laplace (default), nuts, or importance (PSIS importance sampling "
+                            "from the Laplace fit: forward runs only, k-hat says when to "
+                            "prefer nuts)")
         r.add_argument("--fit", default=None, help="parameters to fit, as for calibrate")
         r.add_argument("--noise-um", default=None,
                        help="measurement noise σ [µm] if known (default: from the residuals)")
-        r.add_argument("--draws", default="500", help="nuts: posterior draws per chain")
+        r.add_argument("--draws", default=None,
+                       help="nuts: posterior draws per chain (default 500); importance: "
+                            "draws per batch (default 1000)")
         r.add_argument("--warmup", default="300", help="nuts: warm-up steps per chain")
-        r.add_argument("--chains", default="2", help="nuts: chains (run one after another)")
-        r.add_argument("--seed", default="0", help="nuts: random seed")
+        r.add_argument("--chains", default="2",
+                       help="nuts: chains; importance: independent batches (R-hat between "
+                            "them)")
+        r.add_argument("--seed", default="0", help="nuts, importance: random seed")
         r.add_argument("--predictive-draws", default="200",
-                       help="nuts: posterior draws the forecast is run at (each a full "
-                            "forecast)")
+                       help="nuts, importance: posterior draws the forecast is run at (each "
+                            "a full forecast)")
         r.add_argument("--max-minutes", default="20",
-                       help="nuts: refuse when the estimated run time exceeds this")
+                       help="nuts, importance: refuse when the estimated run time exceeds "
+                            "this")
 
     def options(self, args):
         opts = {"at": parse_at(args.at),
@@ -229,17 +238,21 @@ class Predict(Verb):
                 "level": number("--level", args.level, lo=0, hi=1),
                 "limit_um": number("--limit-um", args.limit_um, positive=True),
                 "noise_um": number("--noise-um", args.noise_um, positive=True)}
-        if args.method not in ("laplace", "nuts"):
-            raise InputError(f"--method: expected laplace or nuts, got {args.method!r}")
+        if args.method not in ("laplace", "nuts", "importance"):
+            raise InputError(f"--method: expected laplace, nuts or importance, got "
+                             f"{args.method!r}")
         nuts = None
-        if args.method == "nuts":
-            nuts = dict(draws=number("--draws", args.draws, positive=True, integer=True),
-                        warmup=number("--warmup", args.warmup, positive=True, integer=True),
+        if args.method in ("nuts", "importance"):
+            default = "500" if args.method == "nuts" else "1000"
+            nuts = dict(draws=number("--draws", args.draws or default, positive=True,
+                                     integer=True),
                         chains=number("--chains", args.chains, positive=True, integer=True),
                         seed=number("--seed", args.seed, integer=True),
                         max_minutes=number("--max-minutes", args.max_minutes, positive=True),
                         n_predictive=number("--predictive-draws", args.predictive_draws,
                                             positive=True, integer=True))
+            if args.method == "nuts":
+                nuts["warmup"] = number("--warmup", args.warmup, positive=True, integer=True)
         return {"kw": opts, "nuts": nuts, "method": args.method, "fit": args.fit}
 
     def resolve(self, study, opts):
@@ -311,7 +324,8 @@ class Predict(Verb):
         res = _predict.predict(study, kw.pop("at"), method=opts["method"], fit_spec=args.fit,
                                verbose=True, nuts_options=nuts, **kw)
         print(f"predict: took {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
-        nuts_block = res.extra.get("nuts") if isinstance(res.extra, dict) else None
+        nuts_block = (res.extra.get(opts["method"]) if isinstance(res.extra, dict)
+                      else None)
         for flag in (nuts_block or {}).get("flags", []):
             if flag not in res.flags:  # the sampler's own warnings (a non-finite R-hat)
                 res.flags.append(flag)

@@ -31,6 +31,10 @@ class Model:
       model first and holds them, `_calibrate.registered`); `start`: start values by name.
     - `candidates`: the candidate groups (default: every one the study can be missing);
       `contact`: another contact model; `shape`: the shape correction's basis.
+    - `defect_um` (rows,) [µm]: a fixed correction of the rows, the residual difference
+      between the finer resolution calibrate's answer is corrected to and this study's
+      (`_calibrate.correct_to_finer`): the base fit then meets that answer, and every
+      candidate is compared at the same correction (the same compiled function).
     """
 
     # process-wide counters of compiled-model evaluations (progress, benchmarks)
@@ -39,7 +43,7 @@ class Model:
     first_evaluation_s = 0.0  # the last evaluation that compiled (the first of its shape)
 
     def __init__(self, study: Study, *, keys=None, start: dict | None = None,
-                 candidates=None, contact=None, shape=None):
+                 candidates=None, contact=None, shape=None, defect_um=None):
         self.study = study
         self.keys = list(keys) if keys is not None else parse_fit(
             study, list(study.fit) if study.fit else "K_d,clearance")
@@ -51,6 +55,8 @@ class Model:
         self.base_cfg = study.config
         self.ext = build_model(study, self.keys, self.start, candidates=self.candidates,
                                contact=contact, shape=shape)
+        if defect_um is not None:
+            self.ext = self.ext.with_defect(defect_um)
         self.columns = self.ext.columns
         self.names = list(self.ext.names)
         self.index = {n: i for i, n in enumerate(self.names)}
@@ -95,7 +101,8 @@ class Model:
         return Model(self.study, keys=self.keys, start=self.start,
                      candidates=self.candidates if candidates is None else candidates,
                      contact=self.contact if contact == "same" else contact,
-                     shape=self.shape if shape == "same" else shape)
+                     shape=self.shape if shape == "same" else shape,
+                     defect_um=self.ext.defect)
 
     def with_contact(self, contact: str | None) -> Model:
         """The same model with another contact choice (None: the study's)."""

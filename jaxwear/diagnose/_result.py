@@ -56,6 +56,9 @@ class Diagnosis:
     resolution: dict | None = None  # the spatial resolution used and its check (DESIGN §6)
     shape: object = None  # _shape.ShapeResult on top of the base fit (--shape, unexplained)
     shape_after_effect: object = None  # the same on top of the effect found
+    # what the answer cost: model evaluations (calibrate's path, then diagnose's own) and
+    # compilations by kind (`_residual.traces_since`)
+    cost: dict = field(default_factory=dict)
 
     @property
     def missing_effect(self):
@@ -125,6 +128,10 @@ class Diagnosis:
                if self.shape_after_effect is not None else {}),
             "study": str(self.study.path),
             "wall_time_s": self.wall_s,
+            "model_evaluations": self.cost.get("model_evaluations"),
+            "compiles": (None if "compiles" not in self.cost
+                         else int(sum(self.cost["compiles"].values()))),
+            "cost": self.cost,
             "method": METHOD_NOTE,
         }
 

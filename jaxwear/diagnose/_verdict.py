@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from .._errors import InputError
+from .._residual import traces, traces_since
 from .._study import Study
 from ._evidence import (
     AMBIGUOUS_LOG_BF,
@@ -44,23 +45,35 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     if noise_um is None:
         noise_um = study.noise_um
     t0 = time.perf_counter()
+    before = traces()
+    calibrate_evals = 0
     resolution = None
     start = None
+    defect = None
     if study.auto_resolution or study.angle_tolerance_deg > 0:
         # the base model's fit by calibrate's path: the resolution it needs, checked at its
         # answer (DESIGN §6), and the scans' registration where the study fits it; the
-        # candidates are then compared at that level and that registration (held), and the
-        # base fit starts from that answer (the same residual model and noise rule: it
-        # only re-evaluates there with the candidates' columns)
+        # candidates are then compared at that answer's numerics: the Jacobian's level,
+        # its rows corrected as the answer's are (defect correction to a finer level: the
+        # same fixed correction) and that registration (held); the base fit starts from
+        # that answer (the same residual model and noise rule: it only re-evaluates there
+        # with the candidates' columns)
         from .._calibrate import fit_study, registered, study_fit_keys
         from .._resolution import at_level
 
         _log(verbose, f"diagnose {study.path}: the base fit by calibrate's path (resolution"
                       f"{', registration' if study.angle_tolerance_deg > 0 else ''})")
         r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose)
+        calibrate_evals = r.iterations
         if study.auto_resolution:
             resolution = r.resolution
-            study = at_level(study, (resolution["nodes"], resolution["steps_per_rev"]))
+            jac = resolution["jacobian"]
+            study = at_level(study, (jac["nodes"], jac["steps_per_rev"]))
+            defect = r.problem.defect
+            if resolution.get("corrected_to"):
+                _log(verbose, f"  rows corrected to {resolution['nodes']} x "
+                              f"{resolution['steps_per_rev']} (defect correction, held "
+                              f"for every candidate)")
         if study.angle_tolerance_deg > 0:
             study = registered(study, r)
             _log(verbose, "  registration held at the fitted offsets: " + ", ".join(
@@ -70,7 +83,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                  if not n.startswith("angle_offset_deg/")}
     evals0 = Model.evaluations
     _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
-    model = Model(study, start=start)
+    model = Model(study, start=start, defect_um=defect)
     if model.n < 3:
         raise InputError(f"{study.path}: diagnose needs at least 3 measured points, "
                          f"got {model.n}")
@@ -207,8 +220,17 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                    after=" + ".join(effects), seed=seed, verbose=verbose)
         diag = replace(diag, shape=shp, shape_after_effect=after)
         summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else []))
-    diag = replace(diag, summary=summary, wall_s=time.perf_counter() - t0)
+    own = Model.evaluations - evals0
+    cost = {"model_evaluations": calibrate_evals + own,
+            "calibrate_path_evaluations": calibrate_evals, "diagnose_evaluations": own,
+            "base_fit_evaluations": 1 + base.evaluations,  # its start ev0 and the fit
+            "compiles": traces_since(before)}
+    diag = replace(diag, summary=summary, wall_s=time.perf_counter() - t0, cost=cost)
+    comp = cost["compiles"]
     _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
-                  + f" in {diag.wall_s:.1f} s ({Model.evaluations - evals0} model "
-                    f"evaluations)")
+                  + f" in {diag.wall_s:.1f} s ({calibrate_evals + own} model evaluations: "
+                    f"{calibrate_evals} by calibrate's path, {own} by diagnose, of them "
+                    f"{cost['base_fit_evaluations']} for its base fit; "
+                    f"{comp['jacobian']} Jacobian and {comp['forward']} forward "
+                    f"compilations)")
     return diag
