@@ -38,6 +38,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ._errors import InputError
+from ._params import MECHANISM_KEYS
 
 STRAIN_LIMIT = 0.25  # peak elastic strain p/E_w of the wearing layer, unworn bore
 
@@ -97,6 +98,8 @@ RANGES: dict[str, Range | None] = {
                                      "faster than abrasion"),
     # oscillating joint (DESIGN §2)
     "load_N": Range(0.0, 1e8, "up to 10 000 t"),
+    "load_scale": Range(0.0, 1e4, "a factor on the driver's load, from none to 10 000x "
+                                  "(a load in kN under an N header is 1000x)", lo_open=True),
     "load_angle_deg": Range(-360.0, 360.0, "an angle within one turn either way"),
     "swing_period_s": Range(1e-2, 1e5, "a swing from 10 ms to a day"),
     "model.duty_cycle.amplitude_deg": Range(0.0, 180.0, "a swing of at most half a turn each "
@@ -129,6 +132,8 @@ RANGES: dict[str, Range | None] = {
 # Per preset: entries that replace RANGES' (None: the preset does not use the key).
 PRESET_RANGES: dict[str, dict[str, Range | None]] = {
     "boom": {"speed_rpm": None},  # the oscillating joint has no crank speed
+    # your own joint: its load and motion come from its load files, not from a mechanism
+    "load_history": {k: None for k in MECHANISM_KEYS},
 }
 
 
@@ -230,7 +235,7 @@ def crank_slider_peak_load(p, cfg=None) -> float:
     t = np.arange(720) * (2 * math.pi / host.speed / 720)
     kin = kinematics_by_hand(host, t, 0.0, 0.0, xp=np)
     fx, fy = forces_from_kinematics(host, kin, xp=np)
-    return float(np.max(np.hypot(fx, fy)))
+    return float(np.max(np.hypot(fx, fy))) * float(getattr(p, "load_scale", 1.0))
 
 
 # driver -> its load bound; a new driver (a preset with its own load) adds one here
@@ -238,7 +243,11 @@ LOAD_BOUNDS: dict[str, LoadBound] = {
     "crank_slider": LoadBound(crank_slider_peak_load, "speed_rpm",
                               ("speed_rpm", "slider_mass_kg", "coupler_mass_kg",
                                "spring_N_per_m", "crank_length_mm")),
-    "oscillating": LoadBound(lambda p, cfg=None: abs(float(p.load)), "load_N", ("load_N",)),
+    "oscillating": LoadBound(lambda p, cfg=None: abs(float(p.load)) * float(p.load_scale),
+                             "load_N", ("load_N", "load_scale")),
+    "load_history": LoadBound(lambda p, cfg: float(p.load_scale) * max(
+        (b.load.peak_load for b in cfg.duty_cycle), default=0.0), "load_scale",
+        ("load_scale",)),
 }
 
 
@@ -452,7 +461,10 @@ def check_study(study):
             if k in table:
                 check(f"{section}.{k}", table[k], f"{section}.{k}")
     for i, block in enumerate(study.config.duty_cycle if "duty_cycle" in model else ()):
-        for k in ("amplitude_deg", "duration_h"):
+        # a load file's block swings as its file says (no amplitude of its own)
+        keys = ("duration_h",) if getattr(block, "load", None) is not None else (
+            "amplitude_deg", "duration_h")
+        for k in keys:
             check(f"model.duty_cycle.{k}", getattr(block, k), f"model.duty_cycle[{i}].{k}")
     if math.isfinite(study.clearance_tolerance_um):
         check("fit.clearance_tolerance_um", study.clearance_tolerance_um,

@@ -4,6 +4,7 @@
 array is made; every tolerance in these tests assumes 64-bit floats.
 """
 
+import importlib
 import os
 import sys
 from pathlib import Path
@@ -24,6 +25,8 @@ os.environ["JAXWEAR_NO_CACHE"] = "1"
 # tests/ on the path so that `import helpers` works whatever the import mode.
 sys.path.insert(0, str(Path(__file__).parent))
 
+from helpers import Loaded  # noqa: E402
+
 
 def pytest_configure(config):
     import jax
@@ -35,3 +38,21 @@ def pytest_configure(config):
 def rig():
     """Rig preset: Tables 1 and 3, 276 r/min, k = 1009.4 N/m, x0 = L2 - L1 (DESIGN §8)."""
     return jaxwear.preset("rig")
+
+
+@pytest.fixture
+def engines_stubbed(monkeypatch):
+    import jaxwear._predict as pre
+    import jaxwear.cli.calibrate as cal
+    dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
+    import jaxwear._sensitivity as sen
+    import jaxwear._simulate_study as sim
+    import jaxwear._sweep as swe
+
+    def loaded(*a, **k):
+        raise Loaded
+
+    for mod, name in ((sim, "simulate_study"), (cal, "build_problem"), (dia, "diagnose"),
+                      (dia, "Model"), (swe, "sweep"), (sen, "study_sensitivities"),
+                      (pre, "predict")):
+        monkeypatch.setattr(mod, name, loaded)

@@ -195,7 +195,10 @@ def test_boom_calibration_right_by_default(tmp_path):
         path.write_text(BOOM_STUDY.format(extra=extra))
         study = load_study(path)
         assert study.integrator == ("adaptive" if name == "default" else "paper")
-        fits[name] = calibrate(study, "K_d")
+        # 3 parameters on 5 rows, running-in's pair nearly degenerate (only a·S_r is
+        # determined): eq 23's fit at M = 10 walks that valley for ~50 cheap evaluations
+        # (30 left it 2 SE short of the minimum, RMSE 2.17 against 1.97 µm)
+        fits[name] = calibrate(study, "K_d", max_evaluations=80)
     a, b = fits["default"], fits["tuned"]
     assert a.names == b.names and "running_in_amplitude" in a.names
     for i, n in enumerate(a.names):
