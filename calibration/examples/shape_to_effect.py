@@ -96,10 +96,17 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="keep the studies, reports and plots here")
     ap.add_argument("--full", action="store_true", help="the paper's five experiments")
     args = ap.parse_args(argv)
-    tmp = tempfile.TemporaryDirectory()
-    work = Path(args.out or tmp.name)
+    tmp = None if args.out else tempfile.TemporaryDirectory()
+    try:
+        return _run(Path(args.out or tmp.name), args.full)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def _run(work: Path, full: bool):
     work.mkdir(parents=True, exist_ok=True)
-    study = make_study(work / "impact", args.full)
+    study = make_study(work / "impact", full)
     # 2. what is missing, and its shape
     d = jw.diagnose(jw.load_study(study), shape=True, verbose=True)
     jw.write_diagnosis(d, work / "diagnose")
