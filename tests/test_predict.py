@@ -215,7 +215,7 @@ def test_cli_nuts_writes_posterior_and_diagnostics(study_path, tmp_path, capsys)
 
     out = tmp_path / "nuts"
     code = main(["predict", str(study_path), "--at", "3000", "--train-until", "2000",
-                 "--method", "nuts", "--draws", "40", "--warmup", "40", "--chains", "2",
+                 "--method", "nuts", "--draws", "80", "--warmup", "40", "--chains", "2",
                  "--predictive-draws", "30",
                  "--out", str(out), "--json", str(tmp_path / "p.json")])
     assert code == 0, capsys.readouterr().err
@@ -240,7 +240,7 @@ def test_cli_nuts_writes_posterior_and_diagnostics(study_path, tmp_path, capsys)
     idata = _arviz().from_netcdf(str(out / "posterior.nc"))
     assert set(idata.posterior.data_vars) == {"K_d_per_Pa", "clearance_mm:i276",
                                               "clearance_mm:b148", "noise_um"}
-    assert idata.posterior["K_d_per_Pa"].shape == (2, 40)
+    assert idata.posterior["K_d_per_Pa"].shape == (2, 80)
     for p in doc["predictions"]:
         assert p["lower_um"] < p["depth_um"] < p["upper_um"]
 
