@@ -198,14 +198,15 @@ def sampling_setup(problem, result, noise_um=None, cov=None):
     return problem, white, logp, z_fit
 
 
-def _start_inverse_mass(z0, n_rows: int):
+def _start_inverse_mass(z0, dof: int):
     """The warm-up's first mass matrix, in NumPyro's flattening of z (dict keys sorted):
     v is whitened by the Laplace covariance (variance 1), while ln σ's posterior variance is
-    about 1/(2 n) for n rows. Started from the identity, the step size must first shrink to
-    ln σ's scale (~0.05 for 240 rows): measured on the rig test (2 x 40 warm-up steps),
-    deep trees until the mass matrix adapted took most of the sampling time."""
+    about 1/(2 dof) for dof = rows - parameters. Started from the identity, the step size
+    must first shrink to ln σ's scale (~0.05 for 240 rows): measured on the rig test (2 x 40
+    warm-up steps), deep trees until the mass matrix adapted took most of the sampling
+    time."""
     flat, _ = jax.flatten_util.ravel_pytree(
-        {k: (jnp.full(jnp.shape(a), 1.0 / (2.0 * max(n_rows, 1))) if k == "log_noise"
+        {k: (jnp.full(jnp.shape(a), 1.0 / (2.0 * max(dof, 1))) if k == "log_noise"
              else jnp.ones(jnp.shape(a))) for k, a in z0.items()})
     return jnp.diag(flat)
 
@@ -277,7 +278,7 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
                          f"--method laplace")
     kernel = NUTS(potential_fn=potential, dense_mass=True, target_accept_prob=0.85,
                   forward_mode_differentiation=forward_mode, max_tree_depth=8,
-                  inverse_mass_matrix=_start_inverse_mass(z0, problem.n_data),
+                  inverse_mass_matrix=_start_inverse_mass(z0, problem.n_data - p),
                   adapt_mass_matrix=warmup >= ADAPT_MASS_FROM_WARMUP)
     # NumPyro's progress bar steps the chain from Python, a dispatch per NUTS step: nothing
     # next to the gradients of a run long enough to need it (estimated over a minute)

@@ -43,25 +43,12 @@ def _release_compiled_programs():
     XLA (twice at the same test of a full run, in `backend_compile_and_load`). A module's
     own fixtures are torn down before this runs, so nothing it still needs is dropped."""
     yield
-    if os.environ.get("JAXWEAR_TEST_CLEAR", "maps") == "maps" and _maps() < MAPS_BEFORE_CLEAR:
-        return
     import gc
 
     import jax
 
     jax.clear_caches()
     gc.collect()
-
-
-MAPS_BEFORE_CLEAR = 20_000
-
-
-def _maps() -> int:
-    try:
-        with open("/proc/self/maps") as f:
-            return sum(1 for _ in f)
-    except OSError:  # not Linux: clear after every module
-        return MAPS_BEFORE_CLEAR
 
 
 @pytest.fixture(scope="session")
