@@ -19,6 +19,7 @@ Not a test (tens of seconds a seed).
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import shutil
@@ -64,6 +65,8 @@ def main(argv=None):
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "benchmarks"))
+    import jax
+
     import jaxwear as jw
     from jaxwear.diagnose import diagnose
 
@@ -98,6 +101,10 @@ def main(argv=None):
               f"{min(ps):.2e}; false alarms {fa}/{len(rows)} "
               f"({time.perf_counter() - t_all:.0f} s)", flush=True)
         shutil.rmtree(out)
+        # free the seed's compiled programs: each keeps ~18 memory maps, and a long run
+        # died past the process's map limit (LLVM: "Unable to allocate section memory")
+        jax.clear_caches()
+        gc.collect()
     fa = sum(r["best"] is not None for r in rows)
     lo, hi = clopper_pearson(fa, len(rows))
     summary = {"numerics": a.numerics, "generator": a.generator, "experiments": a.experiments,

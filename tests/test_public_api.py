@@ -41,7 +41,18 @@ def test_readme_and_examples_import_no_private_module():
         assert not hits, f"{f.relative_to(ROOT)} imports private jaxwear modules: {hits}"
 
 
-def test_readme_python_block_runs():
+def _small_boom(folder):
+    """calibration/boom's study at 48 nodes x 36 steps (its data file beside it)."""
+    src = ROOT / "calibration" / "boom"
+    text = (src / "study.toml").read_text()
+    text, n = re.subn(r"nodes = 90\nsteps_per_rev = 72", "nodes = 48\nsteps_per_rev = 36", text)
+    assert n == 1, "calibration/boom/study.toml changed: update this test's grid substitution"
+    (folder / "study.toml").write_text(text)
+    (folder / "boom.csv").write_text((src / "boom.csv").read_text())
+    return folder / "study.toml"
+
+
+def test_readme_python_block_runs(tmp_path):
     blocks = _python_blocks((ROOT / "README.md").read_text())
     assert blocks, "the README has no ```python block"
     code = blocks[0]
@@ -49,6 +60,10 @@ def test_readme_python_block_runs():
     # keeps the test fast (every line still runs, the gradient included).
     small, n = re.subn(r"nodes=360, steps_per_rev=360", "nodes=48, steps_per_rev=48", code)
     assert n == 1, "the README block changed: update this test's grid substitution"
+    # likewise the boom study's 90 x 72 grid (a copy at 48 x 36 in a temporary folder)
+    small, n = re.subn(r'"calibration/boom/study.toml"', repr(str(_small_boom(tmp_path))),
+                       small)
+    assert n == 1, "the README block changed: update this test's boom substitution"
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         exec(compile(small, "README.md", "exec"), {})  # noqa: S102

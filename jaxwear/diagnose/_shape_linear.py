@@ -91,7 +91,11 @@ class Smoother:
         scale = np.trace(AtA) / max(np.trace(S), 1e-300)
         self.lambdas = lambdas * scale
         ridge = 1e-12 * max(np.trace(AtA), 1e-300) * np.eye(len(S))
-        self.inv = [np.linalg.inv(AtA + lam * S + ridge) for lam in self.lambdas]
+        # pinv: a variable whose columns the base fit's projection left (numerically) null
+        # makes AtA + λS singular to working precision, whatever the ridge (a 3-experiment
+        # study with its registration held made np.linalg.inv raise)
+        self.inv = [np.linalg.pinv(AtA + lam * S + ridge, hermitian=True)
+                    for lam in self.lambdas]
         B = self.Vt.T * self.s  # A'U = V Σ
         self.M = np.stack([B.T @ inv @ B for inv in self.inv])  # (L, m, m)
         self.trace = np.einsum("lii->l", self.M)
