@@ -173,9 +173,12 @@ def initial_position(result, noise_um=None, white: Whitening | None = None) -> d
     return z0
 
 
-def sampling_setup(problem, result, noise_um=None, cov=None):
+def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None):
     """(problem with room for the draws, `Whitening`, log density, start position): what
-    `run_nuts` samples, and the benchmark's samplers with it."""
+    `run_nuts` samples, and the benchmark's samplers with it. `compiled(logp)`: the
+    compiled function whose first output is checked for a finite value at the start
+    (default `jax.jit(logp)`); a sampler passes the program it will time, so that the check
+    costs no compilation of its own (12 s of the boom's 200 s NUTS answer)."""
     # Room for the draws: the training problem's attempt count was estimated at the start
     # values, so first raise it to what the fitted values need (K_d moves by orders), then
     # leave 4x headroom for the posterior's tails (larger K_d: more steps on a stiff layer).
@@ -188,7 +191,9 @@ def sampling_setup(problem, result, noise_um=None, cov=None):
     z_fit = initial_position(result, noise_um, white)
     for i in range(4):  # the estimate may still fall short at the fit itself
         logp = log_density(problem, noise_um, white)
-        finite = math.isfinite(float(jax.jit(logp)(z_fit)))  # one compile per try
+        f = jax.jit(logp) if compiled is None else compiled(logp)
+        out = f(z_fit)  # one compile per try
+        finite = math.isfinite(float(out if compiled is None else out[0]))
         if finite or not problem.schedule.adaptive or i == 3:
             break
         problem = _more_attempts(problem, 2)
@@ -234,24 +239,38 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
     names = list(problem.names)
     p = len(names)
     given = noise_um is not None
-    problem, white, logp, z_fit = sampling_setup(problem, result, noise_um, cov)
+    built = {}
 
-    def potential(z):
-        return -logp(z)
+    def value_and_gradient(logp):
+        # the potential's value and gradient, computed as NumPyro does (forward mode: the
+        # value as jacfwd's aux, one pass; a separate value pass made the run-time estimate
+        # ~2x long on the boom); compiled once, for the start's check and the timing
+        def potential(z):
+            return -logp(z)
 
+        def with_value(z):
+            v = potential(z)
+            return v, v
+
+        if forward_mode:
+            jac = jax.jit(jax.jacfwd(with_value, has_aux=True))
+            f = jax.jit(lambda z: jac(z)[::-1])
+        else:
+            f = jax.jit(jax.value_and_grad(potential))
+        built.update(grad=f, potential=potential)
+
+        def first_call(z):  # compiles; the check reads the log density
+            t0 = time.perf_counter()
+            out = jax.block_until_ready(f(z))
+            built["t_compile"] = time.perf_counter() - t0
+            return (-out[0],)
+
+        return first_call
+
+    problem, white, logp, z_fit = sampling_setup(problem, result, noise_um, cov,
+                                                 compiled=value_and_gradient)
+    grad, potential, t_compile = built["grad"], built["potential"], built["t_compile"]
     z0 = z_fit
-    # time the gradient (compile first) for the run-time estimate, computed as NumPyro
-    # does (forward mode: value as jacfwd's aux, one pass; a separate value pass made the
-    # estimate ~2x long on the boom)
-    def _with_value(z):
-        v = potential(z)
-        return v, v
-
-    grad = jax.jit(jax.value_and_grad(potential)) if not forward_mode else jax.jit(
-        jax.jacfwd(_with_value, has_aux=True))
-    t0 = time.perf_counter()
-    jax.block_until_ready(grad(z0))
-    t_compile = time.perf_counter() - t0
     t0 = time.perf_counter()
     for _ in range(3):
         jax.block_until_ready(grad(z0))
