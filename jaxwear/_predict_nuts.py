@@ -176,7 +176,7 @@ def initial_position(result, noise_um=None, white: Whitening | None = None) -> d
 def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None):
     """(problem with room for the draws, `Whitening`, log density, start position): what
     `run_nuts` samples, and the benchmark's samplers with it. `compiled(logp)`: the
-    compiled function whose first output is checked for a finite value at the start
+    compiled function of the log density checked for a finite value at the start
     (default `jax.jit(logp)`); a sampler passes the program it will time, so that the check
     costs no compilation of its own (12 s of the boom's 200 s NUTS answer)."""
     # Room for the draws: the training problem's attempt count was estimated at the start
@@ -191,9 +191,8 @@ def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None):
     z_fit = initial_position(result, noise_um, white)
     for i in range(4):  # the estimate may still fall short at the fit itself
         logp = log_density(problem, noise_um, white)
-        f = jax.jit(logp) if compiled is None else compiled(logp)
-        out = f(z_fit)  # one compile per try
-        finite = math.isfinite(float(out if compiled is None else out[0]))
+        f = (jax.jit if compiled is None else compiled)(logp)
+        finite = math.isfinite(float(f(z_fit)))  # one compile per try
         if finite or not problem.schedule.adaptive or i == 3:
             break
         problem = _more_attempts(problem, 2)
@@ -253,8 +252,7 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
             return v, v
 
         if forward_mode:
-            jac = jax.jit(jax.jacfwd(with_value, has_aux=True))
-            f = jax.jit(lambda z: jac(z)[::-1])
+            f = jax.jit(lambda z: jax.jacfwd(with_value, has_aux=True)(z)[::-1])
         else:
             f = jax.jit(jax.value_and_grad(potential))
         built.update(grad=f, potential=potential)
@@ -263,7 +261,7 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
             t0 = time.perf_counter()
             out = jax.block_until_ready(f(z))
             built["t_compile"] = time.perf_counter() - t0
-            return (-out[0],)
+            return -out[0]
 
         return first_call
 

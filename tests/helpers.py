@@ -86,3 +86,17 @@ def conforming_groove(nodes: int, centre: float, clearance: float, depth: float)
 class Loaded(BaseException):
     """Raised by the stand-in engines of `engines_stubbed` (conftest): the verb got past its
     input checks (a BaseException, so that no `except Exception` of a verb catches it)."""
+
+
+THREE_EXPERIMENTS = ("n276-r10000", "n148-r10000", "n230-r10000-c010")
+
+
+def paper_three(numerics):
+    """The paper's rig matrix cut to three experiments (10⁴ revolutions each: 276 and
+    148 r/min at 0.05 mm, 230 r/min at 0.10 mm) as conditions for `synthesize`: speed and
+    clearance still vary, at about a third of the fits' cost. `numerics`: nodes,
+    steps_per_rev, revolutions_per_update."""
+    from jaxwear._synth import paper_conditions
+
+    st = paper_conditions(numerics)
+    return st.with_experiments([e for e in st.experiments if e.name in THREE_EXPERIMENTS])

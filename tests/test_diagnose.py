@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import THREE_EXPERIMENTS, paper_three
 
 import jaxwear as jw
 from jaxwear._config import ModelConfig
@@ -98,18 +99,10 @@ def _synth(hidden, seed, **kw):
     return synthesize(hidden, "paper", noise_um=NOISE, seed=seed, numerics=SMALL, **kw)
 
 
-THREE = ("n276-r10000", "n148-r10000", "n230-r10000-c010")
-
-
 def _synth_three(hidden, seed, **kw):
-    """As `_synth` on three of the paper's experiments (two speeds at 0.05 mm, one at
-    0.10 mm; 10⁴ revolutions each): the tests that need no effect's full matrix, at a third
-    of the cost of the fits."""
-    from jaxwear._synth import paper_conditions
-
-    st = paper_conditions(SMALL)
-    st = st.with_experiments([e for e in st.experiments if e.name in THREE])
-    return synthesize(hidden, st, noise_um=NOISE, seed=seed, **kw)
+    """As `_synth` on three of the paper's experiments (`helpers.paper_three`): the tests
+    that need no effect's full matrix."""
+    return synthesize(hidden, paper_three(SMALL), noise_um=NOISE, seed=seed, **kw)
 
 
 @pytest.mark.parametrize("name", CANDIDATES)
@@ -185,7 +178,8 @@ def _landing_angles(speed_rpm):
 def test_physics_outside_the_library_is_unexplained():
     """Impact wear where the load reverses: a narrow bump at each landing angle growing
     with revolutions (1 µm per 10⁴ rev). No candidate makes narrow bumps there."""
-    land = {name: _landing_angles(speed) for name, speed, *_ in PAPER_MATRIX if name in THREE}
+    land = {name: _landing_angles(speed) for name, speed, *_ in PAPER_MATRIX
+            if name in THREE_EXPERIMENTS}
     assert land["n276-r10000"] and not land["n148-r10000"]
 
     def impact(exp, revs, angle_deg, depth_um):

@@ -24,6 +24,7 @@ from jaxwear.diagnose import diagnose
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import numpy_reference as ref  # noqa: E402
+from helpers import paper_three  # noqa: E402
 
 SMALL = dict(nodes=64, steps_per_rev=72, revolutions_per_update=500)
 NOISE = 0.3
@@ -41,22 +42,11 @@ def _check_base_recovery(fit, truth, kd_rel):
         assert err_um < 3 * se[f"clearance_mm/{name}"] * 1e3 + 1.5, (name, err_um)
 
 
-def _three(numerics=SMALL):
-    """The paper's matrix cut to three experiments (10⁴ revolutions each: two speeds at
-    0.05 mm and one at 0.10 mm), a third of the fits' cost with speed and clearance still
-    varied; registration is per experiment, so three offsets are fitted."""
-    from jaxwear._synth import paper_conditions
-
-    st = paper_conditions(numerics)
-    keep = ("n276-r10000", "n148-r10000", "n230-r10000-c010")
-    return st.with_experiments([e for e in st.experiments if e.name in keep])
-
-
 def test_registration_offset_is_fitted_and_recovered():
     """Scans registered 3° off, the study saying 0° with a 5° prior: every fitted
     `angle_offset_deg/EXP` comes back within 0.4° (a fourteenth of the node spacing), the
     misfit falls to the noise level, and without the fitted offset it does not."""
-    res = synthesize([], _three(), noise_um=NOISE, seed=3, angle_offset_deg=3.0)
+    res = synthesize([], paper_three(SMALL), noise_um=NOISE, seed=3, angle_offset_deg=3.0)
     assert res.study.angle_tolerance_deg == 0
     fixed = calibrate(res.study)
     assert not any(n.startswith("angle_offset_deg/") for n in fixed.names)
@@ -80,7 +70,7 @@ def test_diagnose_honours_the_registration():
     first half can fail)."""
     from jaxwear.diagnose import diagnose
 
-    res = synthesize([], _three(), noise_um=NOISE, seed=3, angle_offset_deg=3.0)
+    res = synthesize([], paper_three(SMALL), noise_um=NOISE, seed=3, angle_offset_deg=3.0)
     held = diagnose(res.study)
     assert held.base_tests.systematic, held.summary
     d = diagnose(replace(res.study, angle_tolerance_deg=5.0))
