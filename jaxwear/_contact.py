@@ -216,15 +216,28 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
         e0 = sg(start)
         gap = jnp.max(e0[:, 0:1] * nx + e0[:, 1:2] * ny - sg(g), axis=1)
         e0 = e0 - jnp.minimum(gap, 0.0)[:, None] * jnp.stack([sg(ux), sg(uy)], 1)
-        e_star, r_star, its = newton(e0, min(iterations, 12))
-        bad = jnp.linalg.norm(r_star, axis=1) > tol * jnp.maximum(sg(load), 1e-300)
+        limit = tol * jnp.maximum(sg(load), 1e-300)
 
-        def redo():  # rare: the warm start failed somewhere; redo those steps cold
-            ec, rc, ic = newton(cold(), iterations)
-            return (jnp.where(bad[:, None], ec, e_star), jnp.where(bad[:, None], rc, r_star),
-                    its + ic)
+        # Two tries in one loop, so that a program holds one Newton solve, not three (compile
+        # time is most of a cold answer): first from the warm start (<= 12 iterations; rows
+        # of NaN, each regime's first solve in the wear loops, from the cold start); then,
+        # rarely, the steps that did not converge again from the cold start.
+        def attempt(carry, k):
+            e, r, its, todo = carry
 
-        e_star, r_star, its = lax.cond(jnp.any(bad), redo, lambda: (e_star, r_star, its))
+            def run(_):
+                init = lax.cond(jnp.any(todo), lambda: jnp.where(todo[:, None], cold(), e),
+                                lambda: e)
+                e1, r1, i1 = newton(init, jnp.where(k == 0, min(iterations, 12), iterations))
+                take = (k == 0) | todo
+                e1 = jnp.where(take[:, None], e1, e)
+                r1 = jnp.where(take[:, None], r1, r)
+                return e1, r1, its + i1, jnp.linalg.norm(r1, axis=1) > limit
+
+            return lax.cond((k == 0) | jnp.any(todo), run, lambda c: c, carry), None
+
+        first = (e0, jnp.zeros_like(e0), jnp.zeros((), jnp.int32), jnp.isnan(e0[:, 0]))
+        (e_star, r_star, its, _), _ = lax.scan(attempt, first, jnp.arange(2))
     e_star = sg(e_star)
     r, d, _ = _forces(e_star, nx, ny, g, kA, W)  # differentiable in g, k, W
     e = e_star - _solve2(tuple(map(sg, _hessian(sg(d), nx, ny, kA))), r)
@@ -246,7 +259,8 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
     - `friction`: None, or μ·s per step (steps,): Coulomb friction adds μ s t_j to each
       node's force direction (DESIGN §5), solved as the rotated, reduced load (see above).
     - `start`: optional warm start for the offsets (steps, 2) [m], e.g. the previous wear
-      update's solution; by default the exact 1-D solution along the load.
+      update's solution; by default (and for the rows that are NaN) the exact 1-D solution
+      along the load.
 
     - `tol`: Newton stops when every step's relative force residual is below it; 1e-10 is a
       tenth of the 1e-9 that DESIGN §3 requires (and the implicit-gradient correction is one

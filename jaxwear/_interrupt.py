@@ -5,14 +5,19 @@
 three documented codes). Before `main` runs, the package itself is being imported (JAX takes
 seconds), and an interrupt there printed Python's traceback. `guard_import` is called first
 thing in `jaxwear/__init__.py`: when this process is the command line (`jaxwear ...` or
-`python -m jaxwear ...`, never a user's own program importing jaxwear), an interrupt that
-nothing catches prints the same one line and exits 1. Outputs are written atomically
-(`_io`), so an interrupted run leaves the previous file or none.
+`python -m jaxwear ...`, never a user's own program importing jaxwear), an interrupt before
+`main` prints the same one line and exits 1. It does so from the signal handler itself, not
+by raising: a `KeyboardInterrupt` raised while a compiled extension is initialising (jaxlib's
+MLIR bindings call back into Python) cannot unwind through C++ and aborted the process with
+exit -6 and a C++ trace (seen once in CI). `main` hands SIGINT back to Python
+(`release`) once it can catch the exception itself. Outputs are written atomically (`_io`),
+so an interrupted run leaves the previous file or none.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -45,3 +50,20 @@ def guard_import() -> None:
         previous(kind, value, tb)
 
     sys.excepthook = hook
+
+    def on_sigint(signum, frame):
+        os.write(2, (MESSAGE + "\n").encode())
+        os._exit(EXIT_CODE)  # nothing to clean up: no output is open yet
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored
+        signal.signal(signal.SIGINT, on_sigint)
+        _GUARD.append(on_sigint)
+
+
+_GUARD: list = []
+
+
+def release() -> None:
+    """From here on Ctrl-C raises `KeyboardInterrupt` again (caught by `cli.main`)."""
+    if _GUARD and signal.getsignal(signal.SIGINT) is _GUARD[0]:
+        signal.signal(signal.SIGINT, signal.default_int_handler)

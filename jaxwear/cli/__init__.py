@@ -53,7 +53,9 @@ def build_parser() -> Parser:
 
 def main(argv=None) -> int:
     from .._errors import InputError
+    from .._interrupt import release
 
+    release()  # Ctrl-C from here on is caught below
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         ap = build_parser()
