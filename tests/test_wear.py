@@ -387,3 +387,30 @@ def test_design_wear_vectors_symmetric(section8):
     h = um(section8["symmetric"].depth)
     assert h.max() == pytest.approx(15.59, **printed(2))
     assert int(np.argmax(h)) == 179
+
+
+@pytest.mark.parametrize("contact", ["unsymmetric", "symmetric"])
+def test_a_wear_loop_program_holds_one_contact_solve(rig, contact):
+    """Compile time is most of a cold answer and grows with the program. The adaptive pair's
+    four stages, each regime's first solve and the warm solve's retry are loops around one
+    contact solve, not inlined copies of it (five copies before: the loop's lowered program
+    then had 16 while-loops against 6, and compiled in 6.4 s against 2.6 s). Counted on the
+    lowered program: the loops' own scans (outer, inner; adaptive: and the stages) plus
+    whatever one warm-started cycle of contact solves needs, nothing more."""
+    from jaxwear._wear import _cold_starts, cycle_increment, run_history
+
+    cfg = jw.ModelConfig(nodes=16, steps_per_rev=12, contact=contact)
+
+    def whiles(f):
+        return jax.jit(f).lower(rig).as_text().count("stablehlo.while")
+
+    def one_cycle(p):
+        hist = run_history(p, cfg)
+        return cycle_increment(p, cfg, hist, 0, jnp.zeros(16), jnp.zeros(()),
+                               _cold_starts(hist)[0])[0]
+
+    solve = whiles(one_cycle)
+    assert solve >= 1
+    for kw, scans in ((dict(M=100.0), 2), ({}, 3)):
+        sched = build_schedule(rig, cfg, revolutions=1000, **kw)
+        assert whiles(lambda p: wear_loop(p, cfg, sched).depth) == solve + scans, kw
