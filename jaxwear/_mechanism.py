@@ -10,6 +10,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 from ._custom_types import StepArray
 from ._params import Params
@@ -133,13 +134,22 @@ def crank_slider_forces(p: Params, t: StepArray, algorithm: str = "scla", scla_p
         return JointForce(fx, fy, kin, jnp.zeros_like(t))
     if algorithm != "scla":
         raise ValueError(f"unknown algorithm {algorithm!r}")
-    gamma = jnp.full_like(t, gamma0)
-    change = jnp.zeros_like(t)
-    for _ in range(scla_passes):
-        g_fixed = gamma
-        kin = kinematics(p, t, lambda tt, g=g_fixed: g + 0.0 * tt, xi)
+
+    def one_pass(gamma):
+        kin = kinematics(p, t, lambda tt: gamma + 0.0 * tt, xi)
         fx, fy = forces_from_kinematics(p, kin)
-        new = _safe_atan2(fy, fx)
-        change = jnp.abs(_wrap(new - gamma))
-        gamma = new
+        return kin, fx, fy, _safe_atan2(fy, fx)
+
+    def body(_, c):
+        gamma = c[3]
+        kin, fx, fy, new = one_pass(gamma)
+        return kin, fx, fy, new, jnp.abs(_wrap(new - gamma))
+
+    # The passes as a loop, not unrolled: every compiled program holds the load history, and
+    # `scla_passes` may be set up to 100 (each unrolled pass added its kinematics to it).
+    gamma = jnp.full_like(t, gamma0)
+    zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
+                         jax.eval_shape(one_pass, gamma)[:3])
+    kin, fx, fy, _, change = lax.fori_loop(0, scla_passes, body,
+                                           (*zeros, gamma, jnp.zeros_like(t)))
     return JointForce(fx, fy, kin, change)
