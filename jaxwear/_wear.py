@@ -227,9 +227,7 @@ _SAFETY, _SHRINK, _GROW = 0.9, 0.2, 5.0
 # h + ΔN Σ_j a_ij k_j (row 3 is the 3rd-order solution y1, input of the FSAL stage).
 _BS_A = np.array([[0.0, 0.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0], [0.0, 0.75, 0.0, 0.0],
                   [*_BS_B, 0.0]])
-_BS_CJ = np.array(_BS_C)
 _BS_BW = np.array([*_BS_B, 0.0])  # weights of the stages' work (3rd order)
-_BS_EW = np.array(_BS_E)
 
 
 def _adaptive_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0) -> WearResult:
@@ -305,7 +303,7 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
             y = h + step * (jnp.asarray(_BS_A)[i] @ K)
 
             def fresh(ws):
-                return rate(y, S + jnp.asarray(_BS_CJ)[i] * step * s_cyc, reg, ws)
+                return rate(y, S + jnp.asarray(_BS_C)[i] * step * s_cyc, reg, ws)
 
             def reuse(ws):
                 return k1, w1, jnp.zeros(()), jnp.zeros((), jnp.int32), ws
@@ -321,7 +319,7 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
         y1 = h + step * (jnp.asarray(_BS_A)[3] @ K)  # the last stage's own input, bit for bit
         k1, w1, k4, w4 = K[0], Wk[0], K[3], Wk[3]
         wsum = jnp.asarray(_BS_BW) @ Wk
-        est = step * (jnp.asarray(_BS_EW) @ K)  # signed, ~ΔN³
+        est = step * (jnp.asarray(_BS_E) @ K)  # signed, ~ΔN³
         # Global error per node (signed sum of local estimates). Budget: half the tolerance
         # at any time (the start's fast transient), the other half accrues with N.
         n_end = schedule.cycle_end[seg] - rem + step
