@@ -248,7 +248,7 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         ev, used = evaluate(held[0], v, doublings=doublings)
         if used.schedule.attempts > held[0].schedule.attempts:
             _log(verbose, f"    {label}: integration attempts raised {held[0].schedule.attempts}"
-                          f" -> {used.schedule.attempts} for these values (a recompilation)")
+                          f" -> {used.schedule.attempts} for these values")
             held[0] = used  # the largest attempt count any evaluation needed is kept
         return ev.point()
 

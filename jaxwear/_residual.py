@@ -441,10 +441,17 @@ def _forward_jit(model: ResidualModel, u):
 
 
 # Headroom of a raised attempt count: a fit's first rescale of K_d sets the stiffness to
-# within a small factor, and each raise is a recompilation of the whole Jacobian (measured
-# on the boom with running-in: three compilations for K_d x 15, then x 1.8, without it);
-# an unused attempt skips all work.
+# within a small factor. The count is a traced bound in the fits' programs (`_dynamic`), so
+# a raise costs no compilation; the headroom only keeps the host's bookkeeping from raising
+# at every small move. An unused attempt costs nothing (the loop ends at the run's end).
 RAISE_HEADROOM = 2.0
+
+
+def _dynamic(model: ResidualModel) -> ResidualModel:
+    """`model` whose adaptive loop takes its attempt count as a traced bound: a raise of the
+    count (the model it returns keeps the static count, for the host's bookkeeping) does not
+    recompile the Jacobian."""
+    return model.with_schedule(model.schedule.with_dynamic_attempts())
 
 
 def attempts_needed(model: ResidualModel, u) -> int:
@@ -491,14 +498,15 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3
     recompile)."""
     model = enough_attempts(model, u)
     uj = jnp.asarray(u, jnp.float64)
-    out = _evaluate_jit(model, uj)
+    out = _evaluate_jit(_dynamic(model), uj)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
-    # layer's rejections), double it (a recompilation) rather than use a truncated history.
+    # layer's rejections), double it (a traced bound: no recompilation) rather than use a
+    # truncated history.
     for _ in range(doublings):
         if not (model.schedule.adaptive and not np.isfinite(float(out[2][5]))):
             break
         model = model.with_schedule(model.schedule.more_attempts())
-        out = _evaluate_jit(model, uj)
+        out = _evaluate_jit(_dynamic(model), uj)
     J, J_snaps, (rows, snaps, mres, worn, sliding, err, steps) = jax.tree.map(np.asarray, out)
     u = np.asarray(u, np.float64)
     meas = model.measured
@@ -536,12 +544,12 @@ def forward_run(model: ResidualModel, u, *, doublings: int = 3, worn_ok: bool = 
     snapshots of a run that wore through (a forecast past the layer)."""
     model = enough_attempts(model, u)
     uj = jnp.asarray(u, jnp.float64)
-    out = _forward_jit(model, uj)
+    out = _forward_jit(_dynamic(model), uj)
     for _ in range(doublings):
         if not (model.schedule.adaptive and not np.isfinite(float(out[3]))):
             break
         model = model.with_schedule(model.schedule.more_attempts())
-        out = _forward_jit(model, uj)
+        out = _forward_jit(_dynamic(model), uj)
     rows, snaps, worn, err, steps = (np.asarray(x) for x in out)
     if (float(worn) >= 0 and not worn_ok) or not np.isfinite(float(err)):
         rows, snaps = np.full(rows.shape, np.nan), np.full(snaps.shape, np.nan)

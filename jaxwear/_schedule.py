@@ -17,6 +17,9 @@ import numpy as np
 from ._custom_types import Array, Float, Int
 from ._errors import InputError
 
+DYNAMIC_ATTEMPTS = -1
+"""`Schedule.attempts` of a schedule whose attempt count is traced (`attempt_limit`)."""
+
 
 class Schedule(eqx.Module):
     """Per-update arrays, shape (updates,).
@@ -28,7 +31,10 @@ class Schedule(eqx.Module):
 
     Adaptive schedules (`attempts > 0`) hold one entry per *piece* (a stretch of one regime
     between cuts) instead of per update; `tolerance` [m] bounds the integration error and
-    `attempts` is the static number of attempted Runge-Kutta steps the loop runs.
+    `attempts` is the static number of attempted Runge-Kutta steps the loop runs, or
+    `DYNAMIC_ATTEMPTS` (`with_dynamic_attempts`): the loop is a while loop bounded by the
+    traced `attempt_limit`, so that runs of any attempt count share one compilation (forward
+    and forward-mode derivatives only: a while loop has no reverse-mode derivative).
     """
 
     cycles: Float[Array, " updates"]
@@ -46,10 +52,26 @@ class Schedule(eqx.Module):
     # tail only asks *when* a depth is reached (life), not how deep the wear goes past it.
     stop_depth: Float[Array, ""] | None = None
     stop_after: Float[Array, ""] | None = None
+    attempt_limit: Int[Array, ""] | None = None
 
     @property
     def adaptive(self) -> bool:
-        return self.attempts > 0
+        return self.attempts != 0
+
+    @property
+    def dynamic(self) -> bool:
+        return self.attempts == DYNAMIC_ATTEMPTS
+
+    def with_dynamic_attempts(self) -> Schedule:
+        """The same run with its attempt count a traced bound instead of a static one (see
+        the class docstring). A fit raises the count as K_d moves (the stiffness-limited step
+        count grows with it); with a static count each raise recompiled the whole Jacobian
+        (measured: twice in every boom fit)."""
+        if not self.adaptive or self.dynamic:
+            return self
+        shape = self.cycles.shape[:-1]
+        return dataclasses.replace(self, attempts=DYNAMIC_ATTEMPTS, attempt_limit=jnp.full(
+            shape, self.attempts, jnp.int32))
 
     @property
     def updates(self) -> int:
@@ -57,8 +79,11 @@ class Schedule(eqx.Module):
 
     def more_attempts(self, factor: int = 2) -> Schedule:
         """The same schedule with `factor` times the adaptive loop's static attempt count
-        (one more compilation), for a run whose error estimate came back inf: the attempt
-        count is an estimate, and a run that exhausts it returns a truncated history."""
+        (one more compilation unless dynamic), for a run whose error estimate came back
+        inf: the attempt count is an estimate, and a run that exhausts it returns a
+        truncated history."""
+        if self.dynamic:
+            return dataclasses.replace(self, attempt_limit=factor * self.attempt_limit)
         return dataclasses.replace(self, attempts=factor * self.attempts)
 
     def stopping_at(self, depth_m, after_cycles) -> Schedule:

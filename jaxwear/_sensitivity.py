@@ -141,6 +141,8 @@ def sensitivities(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
         raise ValueError(f"sensitivity: mode must be 'rev' or 'fwd', got {mode!r}")
     sched = schedule if schedule is not None else build_schedule(
         p, cfg, revolutions=revolutions, hours=hours, M=M)
+    if mode == "fwd":  # a traced attempt count (no reverse pass through a while loop)
+        sched = sched.with_dynamic_attempts()
     J, (peak, vol, worn, resid, err, steps) = jax.device_get(_jac(p, cfg, sched, keys, mode))
     # the adaptive loop's attempt count is an estimate: where it fell short (error inf, a
     # truncated history) double it rather than differentiate a run that did not finish

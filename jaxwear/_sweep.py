@@ -255,9 +255,10 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
     sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, M=M, tolerance_um=tol,
                            snapshots=() if durations is None else list(durations))
     if sched.adaptive:
-        # one static attempt count for the whole grid: room for stiffer points (a point that
-        # runs out reports an infinite error estimate)
-        sched = sched.more_attempts()
+        # one attempt count for the whole grid: room for stiffer points (a point that runs
+        # out reports an infinite error estimate); a traced bound, so that the reruns of
+        # such points (below) compile nothing
+        sched = sched.more_attempts().with_dynamic_attempts()
     keys = tuple(grid)
     shape = tuple(len(v) for v in grid.values())
     mesh = np.meshgrid(*grid.values(), indexing="ij")
@@ -296,7 +297,7 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         sched = sched.more_attempts()
         if progress:
             print(f"  sweep: {int(short.sum())} point(s) need more integration steps: rerun "
-                  f"with {sched.attempts} attempts", file=sys.stderr, flush=True)
+                  f"with {int(np.max(sched.attempt_limit))} attempts", file=sys.stderr, flush=True)
         again = run(si[short], sched)
         for c, a in zip(cols, again):
             c[short] = a

@@ -375,14 +375,6 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
         return lax.cond(finished(c), lambda c: (c, (jnp.zeros(()), jnp.asarray(False))),
                         attempt, c)
 
-    A = schedule.attempts
-    inner = max(1, int(math.ceil(math.sqrt(A))))
-    outer = int(math.ceil(A / inner))
-
-    @jax.checkpoint
-    def block(c, _):
-        return lax.scan(jax.checkpoint(body), c, None, length=inner)
-
     z = jnp.zeros(())
     c0 = (h0, z, jnp.zeros((), jnp.int32), z, jnp.minimum(total / 64, cycles[0]),
           jnp.zeros(n), z, jnp.asarray(False), jnp.zeros(n), jnp.zeros((), jnp.int32),
@@ -390,8 +382,29 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
           jnp.full((schedule.n_snapshots, n), jnp.inf if stop else 0.0), z, z,
           jnp.zeros((), jnp.int32), jnp.asarray(-1.0),
           (starts0, jnp.broadcast_to(lax.stop_gradient(h0), (n_reg, n))))
-    c, trace = lax.scan(block, c0, None, length=outer)
-    trace = jax.tree.map(lambda a: a.reshape(-1), trace)  # (outer * inner,) >= attempts
+    if schedule.dynamic:
+        # A while loop bounded by the traced attempt count: one compilation for any count
+        # (forward and forward-mode runs: the fits' Jacobians); no trace, no replay.
+        if replay is not None:
+            raise ValueError("a replay needs a static attempt count")
+
+        def more(cc):
+            return (cc[1] < schedule.attempt_limit) & ~finished(cc[0])
+
+        c, _ = lax.while_loop(more, lambda cc: (attempt(cc[0])[0], cc[1] + 1),
+                              (c0, jnp.zeros((), jnp.int32)))
+        trace = None
+    else:
+        A = schedule.attempts
+        inner = max(1, int(math.ceil(math.sqrt(A))))
+        outer = int(math.ceil(A / inner))
+
+        @jax.checkpoint
+        def block(c, _):
+            return lax.scan(jax.checkpoint(body), c, None, length=inner)
+
+        c, trace = lax.scan(block, c0, None, length=outer)
+        trace = jax.tree.map(lambda a: a.reshape(-1), trace)  # (outer * inner,) >= attempts
     h, S, _, _, _, _, _, _, err, steps, rej, snaps, vol, res, its, worn, _ = c
     err = jnp.where(finished(c), jnp.max(jnp.abs(err)), jnp.inf)
     if schedule.order and list(schedule.order) != list(range(schedule.n_snapshots)):
@@ -537,9 +550,11 @@ def simulate(p: Params, cfg: ModelConfig = ModelConfig(), *, revolutions=None, h
     """
     sched = build_schedule(p, cfg, revolutions=revolutions, hours=hours, snapshots=snapshots, M=M,
                            pad_to=pad_to, integrator=integrator, tolerance_um=tolerance_um)
+    # The attempt count is a traced bound: runs of any count share one compilation.
+    sched = sched.with_dynamic_attempts()
     res = _wear_loop_jit(p, cfg, sched, h0)
-    # The static attempt count is an estimate: if the loop did not reach the end, rerun
-    # with more (rare; a recompilation).
+    # The attempt count is an estimate: if the loop did not reach the end, rerun with more
+    # (rare).
     for _ in range(4):
         if not (sched.adaptive and not np.isfinite(float(res.error_estimate))):
             break
