@@ -6,6 +6,8 @@ volume identity with the pair's weights, central finite differences of the same 
 function, and a separate run stopped at a snapshot count.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -209,3 +211,45 @@ def test_boom_calibration_right_by_default(tmp_path):
     assert integ["integrator"] == "adaptive"
     assert 0 < integ["error_estimate_um"] <= integ["tolerance_um"]
     assert b.to_json()["integration"]["integrator"] == "paper"
+
+
+def test_a_raised_attempt_count_compiles_nothing_and_changes_nothing(tmp_path):
+    """The fits' programs take the adaptive loop's attempt count as a traced bound
+    (`Schedule.with_dynamic_attempts`, a while loop): the boom at 15x its start K_d needs
+    more attempts (the stiff layer's stability limit), and the raise reuses the compiled
+    Jacobian (before: one more compilation in every boom fit). The while loop gives the
+    static scan's answer to rounding, and a bound too small truncates it as the scan does
+    (error estimate inf)."""
+    from pathlib import Path
+
+    from jaxwear._calibrate import build_problem, parse_fit
+    from jaxwear._residual import evaluate, traces, traces_since
+    from jaxwear._study import load_study
+
+    p, cfg, run = CASES["boom"]
+    sched = build_schedule(p, cfg, **run)
+    static = jax.jit(lambda q, s: wear_loop(q, cfg, s))
+    a = static(p, sched)
+    b = static(p, sched.with_dynamic_attempts())
+    np.testing.assert_allclose(np.asarray(b.depth), np.asarray(a.depth), rtol=1e-12,
+                               atol=1e-12 * float(jnp.max(a.depth)))
+    assert int(b.steps) == int(a.steps) and float(b.error_estimate) <= \
+        DEFAULT_WEAR_TOLERANCE_UM * 1e-6
+    short = static(p, dataclasses.replace(sched.with_dynamic_attempts(),
+                                          attempt_limit=jnp.asarray(int(a.steps) // 2)))
+    assert not np.isfinite(float(short.error_estimate))
+
+    src = Path(__file__).resolve().parents[1] / "calibration" / "boom" / "boom.csv"
+    (tmp_path / "boom.csv").write_text(src.read_text())
+    (tmp_path / "s.toml").write_text(BOOM_STUDY.format(extra=""))
+    study = load_study(tmp_path / "s.toml")
+    pb = build_problem(study, parse_fit(study, "K_d"))
+    u = np.zeros(len(pb.names))
+    ev0, used0 = evaluate(pb, u)
+    before = traces()
+    u[pb.names.index("K_d_per_Pa")] += np.log(15.0)
+    ev1, used1 = evaluate(used0, u)
+    assert used1.schedule.attempts > used0.schedule.attempts  # the raise happened
+    assert traces_since(before) == {"jacobian": 0, "forward": 0}
+    assert np.isfinite(ev1.error_um) and np.all(np.isfinite(ev1.J))
+    assert np.max(ev1.pred) > 5 * np.max(ev0.pred)  # depth nearly ∝ K_d
