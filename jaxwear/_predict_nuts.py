@@ -36,7 +36,6 @@ per NUTS step) plus the predictive evaluations; above `max_minutes` the run is r
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import sys
 import time
@@ -157,6 +156,8 @@ def u_of_samples(samples, white: Whitening | None, noise_um=None) -> np.ndarray:
 
 
 def _more_attempts(problem, factor: int):
+    import dataclasses
+
     sched = problem.schedule
     if not sched.adaptive:
         return problem
@@ -172,15 +173,12 @@ def initial_position(result, noise_um=None, white: Whitening | None = None) -> d
     return z0
 
 
-def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None,
-                   dynamic: bool = False):
+def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None):
     """(problem with room for the draws, `Whitening`, log density, start position): what
     `run_nuts` samples, and the benchmark's samplers with it. `compiled(logp)`: the
     compiled function of the log density checked for a finite value at the start
     (default `jax.jit(logp)`); a sampler passes the program it will time, so that the check
-    costs no compilation of its own (12 s of the boom's 200 s NUTS answer). `dynamic`: the
-    adaptive loop's attempt count a traced bound (`Schedule.with_dynamic_attempts`; forward
-    mode only), so that a raise of the count does not recompile the sampler."""
+    costs no compilation of its own (12 s of the boom's 200 s NUTS answer)."""
     # Room for the draws: the training problem's attempt count was estimated at the start
     # values, so first raise it to what the fitted values need (K_d moves by orders), then
     # leave 4x headroom for the posterior's tails (larger K_d: more steps on a stiff layer).
@@ -189,9 +187,6 @@ def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None,
 
     p = len(problem.names)
     problem = _more_attempts(_enough_attempts(problem, np.asarray(result.u)), 4)
-    if dynamic:
-        problem = dataclasses.replace(problem,
-                                      schedule=problem.schedule.with_dynamic_attempts())
     white = whitening(result, np.eye(p) if cov is None else cov, noise_um)
     z_fit = initial_position(result, noise_um, white)
     for i in range(4):  # the estimate may still fall short at the fit itself
@@ -271,8 +266,7 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
         return first_call
 
     problem, white, logp, z_fit = sampling_setup(problem, result, noise_um, cov,
-                                                 compiled=value_and_gradient,
-                                                 dynamic=forward_mode)
+                                                 compiled=value_and_gradient)
     grad, potential, t_compile = built["grad"], built["potential"], built["t_compile"]
     z0 = z_fit
     t0 = time.perf_counter()

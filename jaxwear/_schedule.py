@@ -29,7 +29,7 @@ class Schedule(eqx.Module):
     - `snapshot`: index of the snapshot taken after the update (n_snapshots = none).
     - `cycle_end`: cumulative cycle count after the update.
 
-    Adaptive schedules (`attempts > 0`) hold one entry per *piece* (a stretch of one regime
+    Adaptive schedules (`attempts != 0`) hold one entry per *piece* (a stretch of one regime
     between cuts) instead of per update; `tolerance` [m] bounds the integration error and
     `attempts` is the static number of attempted Runge-Kutta steps the loop runs, or
     `DYNAMIC_ATTEMPTS` (`with_dynamic_attempts`): the loop is a while loop bounded by the
