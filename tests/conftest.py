@@ -51,6 +51,20 @@ def _release_compiled_programs():
     gc.collect()
 
 
+@pytest.fixture(autouse=True)
+def _effect_registry_as_found():
+    """Each test leaves the effect registry as it found it. An effect a test registers (an
+    effect file a study loads, an example's `missing_wear.py`) would otherwise be a
+    candidate, computed at zero strength in every stage, of every later diagnosis in the
+    same worker: after the shape's worked example the synth tests ran 4-15x slower."""
+    from jaxwear.effects import _base
+
+    before = dict(_base._REGISTRY)
+    yield
+    _base._REGISTRY.clear()
+    _base._REGISTRY.update(before)
+
+
 @pytest.fixture(scope="session")
 def rig():
     """Rig preset: Tables 1 and 3, 276 r/min, k = 1009.4 N/m, x0 = L2 - L1 (DESIGN §8)."""

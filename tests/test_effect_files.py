@@ -19,7 +19,7 @@ import pytest
 import jaxwear as jw
 from jaxwear import InputError
 from jaxwear.cli import main
-from jaxwear.effects import _base, registered_effects
+from jaxwear.effects import registered_effects
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -82,16 +82,6 @@ def _study(folder: Path, files=("effects.py",), effects=(), kd=1e-13, extra="",
                         kd=kd, extra=extra)
     (folder / name).write_text(text)
     return folder / name
-
-
-@pytest.fixture(autouse=True)
-def registry():
-    """Each test leaves the registry as it found it (the module's effects would otherwise
-    be diagnose candidates in later tests of the same process)."""
-    before = dict(_base._REGISTRY)
-    yield
-    _base._REGISTRY.clear()
-    _base._REGISTRY.update(before)
 
 
 @pytest.fixture
