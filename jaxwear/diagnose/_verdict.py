@@ -34,13 +34,16 @@ COMPARABLE = 0.5
 
 
 def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
-             noise_um: float | None = None, shape: bool = False, seed: int = 0) -> Diagnosis:
+             noise_um: float | None = None, shape: bool = False, seed: int = 0,
+             auto_shape: bool = True) -> Diagnosis:
     """Diagnose a study (module docstring). Progress on stderr when `verbose`.
 
     `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
     else estimated from the data. `shape`: always analyse the shape of the missing wear
-    (`_shape`); without it, only when the verdict is `unexplained` (DESIGN §7); `seed`
-    of its null simulations.
+    (`_shape`); without it, only when the verdict is `unexplained` (DESIGN §7), unless
+    `auto_shape` is False (the verdict alone, e.g. a validation script's many studies: the
+    shape never changes the verdict and costs more than it); `seed` of its null
+    simulations.
     """
     if noise_um is None:
         noise_um = study.noise_um
@@ -209,7 +212,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                      loo_after=loo(by_contact(final.contact), final, noise),
                      resolution=resolution)
     summary = summarize_verdict(diag)
-    if shape or status == "unexplained":
+    if shape or (auto_shape and status == "unexplained"):
         from ._shape import shape_analysis
 
         shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
