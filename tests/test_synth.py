@@ -224,3 +224,24 @@ def test_synth_never_overwrites_an_input(tmp_path):
         (tmp_path / "sub").mkdir()
         (tmp_path / "sub" / "a.csv").write_text(data)
         synthesize([], other, out=tmp_path / "sub")
+
+
+def test_the_truth_computes_no_effect_it_does_not_hide():
+    """An effect registered in the process (an effect file a notebook loaded) and not
+    hidden is not part of the true model: its hook is never called (it was, at zero
+    strength, in every stage of the run: a synth 4-15x slower after the shape's worked
+    example). The conftest puts the registry back."""
+    import jaxwear as jw
+
+    class Trap(jw.Effect):
+        name = "trap_effect"
+        parameters = {"trap_gain": jw.EffectParameter(
+            1.0, 0.0, 0.0, 0.0, 10.0, "g [-]", scale=0.1, realistic=0.5)}
+        signature = "a hook that must not run"
+
+        def local_rate(self, p, rate, ctx):
+            raise AssertionError("the truth computed an effect it does not hide")
+
+    jw.register_effect(Trap())
+    res = synthesize(["speed_dependence"], "paper", noise_um=0.3, seed=4, numerics=SMALL)
+    assert set(res.truth["hidden"]) == {"speed_dependence"}
