@@ -36,6 +36,7 @@ per NUTS step) plus the predictive evaluations; above `max_minutes` the run is r
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -156,8 +157,6 @@ def u_of_samples(samples, white: Whitening | None, noise_um=None) -> np.ndarray:
 
 
 def _more_attempts(problem, factor: int):
-    import dataclasses
-
     sched = problem.schedule
     if not sched.adaptive:
         return problem
