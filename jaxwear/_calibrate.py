@@ -453,8 +453,9 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     corrected to them where needed, by forward runs there only (DESIGN §6).
 
     At the answer û, one forward run at the next finer level gives its rows; the
-    Gauss-Newton step with those residuals and the fit's own Jacobian, in standard errors,
-    is the check (what a finer grid changes is mostly the residual, by the discretisation
+    change those residuals make to the Gauss-Newton step with the fit's own Jacobian (the
+    step from the coarse rows, what the fit's own stop left, subtracted), in standard
+    errors, is the check (what a finer grid changes is mostly the residual, by the discretisation
     error; its change of the Jacobian moves the answer by that relative change times the
     residuals, in standard errors about the Jacobian's relative discretisation error,
     which this check does not see: README, "Resolution chosen by the error"). Within
@@ -480,7 +481,7 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     report = None
     for i in range(1, len(levels)):
         fine = build_problem(res.at_level(base, levels[i]), keys, start, layout=layout)
-        ratio, tries = math.inf, 0
+        ratio, tries, still = math.inf, 0, False
         while True:
             f = forward_run(fine, result.u)
             fine = f.model
@@ -493,7 +494,8 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
             ev = result.evaluation
             shift = f.rows - ev.pred  # the change of the correction that gives its rows
             pt = ev.shifted(shift).point()
-            ratio = lsq.step_in_standard_errors(pt, result.error_scale_um, lo, hi)[0]
+            ratio = lsq.step_in_standard_errors(pt, result.error_scale_um, lo, hi,
+                                                relative_to=ev.point())[0]
             ok = ratio <= res.FIT_SE_TOL
             _log(verbose, f"  resolution: a Gauss-Newton step with the rows of "
                           f"{_lv(levels[i])} (forward run) moves the answer at "
@@ -507,7 +509,15 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
                         ev0=ev.shifted(shift), label=f"corrected to {_lv(levels[i])}",
                         **fit_kw)
             spent += refit.iterations
+            # a refit that converged where it started leaves δ, and so the check, as they
+            # were: another round would repeat them (the fit's own stop, which judges the
+            # step against the scale the residuals will support, found it settled)
+            still = refit.converged and np.array_equal(np.asarray(refit.u),
+                                                       np.asarray(result.u))
             coarse, result, at = refit.problem, _carry(refit, result), i
+            if still:  # its rows already carry this δ: nothing more to add below
+                shift = np.zeros_like(shift)
+                break
         if not f.usable:
             report = res.report(levels[at], None, kind="fit", value=None, ok=False)
             break
@@ -519,7 +529,7 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
         coarse = coarse.with_defect(coarse.defect + shift)
         result = at_corrected(result, coarse, shift, f, ratio)
         correction_step = ratio
-        if ratio > res.FIT_SE_TOL or not result.converged:
+        if (ratio > res.FIT_SE_TOL and not still) or not result.converged:
             result.flags.append(f"resolution: the defect correction to {_lv(levels[i])} did "
                                 f"not settle ({tries} corrections; the last step is "
                                 f"{ratio:.2g} standard errors)")

@@ -374,3 +374,31 @@ def test_errors_widen_where_the_misfit_exceeds_the_noise():
     assert out.error_scale_um == pytest.approx(math.sqrt(s2), rel=1e-9)
     assert out.error_dof == pytest.approx(T.size - 2, rel=1e-9)
     np.testing.assert_allclose(out.cov.se, se_ols * 0.1 * SIGMA / math.sqrt(s2), rtol=1e-6)
+
+
+def test_the_resolution_check_measures_what_refining_moves():
+    """A linear model y = X u: at a point the fit left short of its minimum (0.3 SE in
+    its level), finer rows that differ by δ move the answer by (X'X)⁻¹X'δ, whatever the
+    step left: the check against the finer level subtracts the coarse rows' own step
+    (without it the leftover step reads as a discretisation error, and a defect
+    correction that cannot move re-runs until its count runs out)."""
+    rng = np.random.default_rng(0)
+    n, sigma = 200, 0.5
+    X = np.column_stack([np.ones(n), np.linspace(-1, 1, n)])
+    y = X @ np.array([2.0, -1.0]) + sigma * rng.standard_normal(n)
+    u_hat = np.linalg.lstsq(X, y, rcond=None)[0]
+    se = sigma * np.sqrt(np.diag(np.linalg.inv(X.T @ X)))
+    u = u_hat + np.array([0.3, 0.0]) * se  # where the fit's own stop left it
+
+    def pt(shift):
+        m = X @ u + shift
+        return lsq.Point(u=u.copy(), r=m - y, predicted=m, J=X, r_prior=np.zeros(0),
+                         J_prior=np.zeros((0, 2)), usable=True)
+
+    delta = 0.005 * X[:, 1]  # the finer level tilts the rows
+    move = np.linalg.solve(X.T @ X, X.T @ delta) / se
+    alone = lsq.step_in_standard_errors(pt(delta), sigma)[0]
+    refined = lsq.step_in_standard_errors(pt(delta), sigma, relative_to=pt(0.0))[0]
+    assert refined == pytest.approx(np.max(np.abs(move)), rel=1e-9)
+    assert 0.05 < refined < 0.1 < 0.29 < alone  # alone: the leftover step counted too
+    assert lsq.step_in_standard_errors(pt(0.0), sigma, relative_to=pt(0.0))[0] == 0.0

@@ -144,6 +144,7 @@ class ShapeResult:
     when_where: object = None  # _shape_map.WhenWhere
     numerical: dict = field(default_factory=dict)
     effect_file: str | None = None
+    knots: dict = field(default=None, repr=False)  # of the basis (`state_knots`)
 
     def form_variables(self, form: str | None = None) -> tuple:
         form = form or self.form or "factor"
@@ -300,11 +301,13 @@ def _band_of_peak(z, g_hat, G, periodic, level):
 
 # -- the model's own numerical error ----------------------------------------------------------
 
-def numerical_error_rows(model: Model, fit: Fit, verbose=False):
+def numerical_error_rows(model: Model, fit: Fit, verbose=False, candidates=None):
     """The rows' numerical error at the fit's answer (µm): the same model at twice the nodes
     and steps per cycle (and half the fixed update M, or a quarter of the adaptive
     tolerance) minus the model, one forward run; None where it cannot be run. The error of
-    the finer level is left in (for second-order convergence ~ a quarter)."""
+    the finer level is left in (for second-order convergence ~ a quarter). `candidates`:
+    those the finer model carries (default: the fit's; more, held at off, share its
+    compiled function with a later analysis)."""
     from dataclasses import replace as dreplace
 
     st = model.study
@@ -315,8 +318,9 @@ def numerical_error_rows(model: Model, fit: Fit, verbose=False):
                      wear_tolerance_um=st.wear_tolerance_um / 4)
     _log(verbose, f"    the model's numerical error: one run at {2 * cfg.nodes} x "
                   f"{2 * cfg.steps_per_rev}")
-    fm = Model(finer, keys=model.keys, start=model.start,
-               candidates=[g for g in fit.groups if g in model.candidates],
+    if candidates is None:
+        candidates = [g for g in fit.groups if g in model.candidates]
+    fm = Model(finer, keys=model.keys, start=model.start, candidates=candidates,
                contact=model.contact)
     u = np.zeros(len(fm.names))
     for i, name in enumerate(model.names):
@@ -332,21 +336,31 @@ def numerical_error_rows(model: Model, fit: Fit, verbose=False):
 
 def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after: str = "base",
                    seed: int = 0, draws: int = DRAWS, size: int = SIZE,
-                   verbose: bool = False, numerical: bool = True) -> ShapeResult:
+                   verbose: bool = False, numerical: bool = True, knots: dict | None = None,
+                   also=()) -> ShapeResult:
     """The shape of the misfit left by `fit` (of `model`) along every state variable, in
     both forms (module docstring). `noise_um` σ [µm] with `nu` degrees of freedom
     (diagnose's noise level). `numerical`: count the model's numerical error (one forward
-    run at finer numerics)."""
+    run at finer numerics).
+
+    Two analyses share their compiled functions (the design Jacobian's, the numerical
+    error's and the refit's; each ~10 s of compilation) where their models are equal:
+    `knots` reuses an earlier analysis's basis (`ShapeResult.knots`: the states met in the
+    data, which an effect found hardly moves), and `also` names candidate groups this
+    analysis carries held at their off values, where the model is the fit's exactly
+    (nesting), so that a later analysis on top of them finds its model compiled."""
     from ._shape_map import when_where
     from ._shape_text import describe
 
     evals0 = Model.evaluations
-    knots, load, exp_name, deepest = state_knots(model, fit)
+    own, load, exp_name, deepest = state_knots(model, fit)
+    knots = own if knots is None else knots
     basis = make_basis(knots, size)
     _log(verbose, f"  shape of the missing wear after {after}: {len(basis.variables)} "
                   f"variable-forms x {size} B-splines (one Jacobian; compiles the model with "
                   f"the correction)")
-    groups = [g for g in fit.groups if g in model.candidates]
+    carried = set(fit.groups) | set(also)
+    groups = [g for g in model.candidates if g in carried]
     smodel = model.variant(candidates=groups, shape=basis)
     # The correction's columns by one Jacobian of a model with no more than
     # `JACOBIAN_NODES` nodes (their cost grows with nodes x steps x columns): they are the
@@ -380,7 +394,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     nuisance = [Jw[:, free_base]]
     num_info = {"counted": False, "ar1_coefficient": phi, "ar1_z": z_phi}
     if numerical:
-        d = numerical_error_rows(model, fit, verbose)
+        d = numerical_error_rows(model, fit, verbose, candidates=groups)
         if d is not None:
             dw = lin.prewhiten(np.concatenate([d / sigma, np.zeros(len(ev.r_prior))])[:, None],
                                model.series, phi, n)
@@ -428,19 +442,19 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         top, alternatives = choose_best(results)
         best, form = top.name, top.form
         carriers = _carriers(results, top)
-        rmse_after, status, corr_model, u_fit, cov = _refit(
+        rmse_after, status, corr_model, u_fit, cov, snaps = _refit(
             smodel, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma, Jw,
             rho_full, verbose)
         correction = _correction(corr_model, u_fit, carriers, form)
         results = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
                    and v.form == form else v for v in results]
-        ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL)
+        ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL, snaps=snaps)
     sentence = describe(best, form, results, load, after, alternatives, carriers, ww)
     return ShapeResult(after, best, form, tuple(results), ALPHA, sigma, rmse_before, rmse_after,
                        Model.evaluations - evals0, status, sentence, load,
                        np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
                        exp_name, tuple(alternatives), forms, tuple(carriers), correction, ww,
-                       num_info)
+                       num_info, knots=knots)
 
 
 def _coarse(smodel: Model, groups, basis) -> Model:
@@ -559,7 +573,8 @@ def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, 
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
     a factor, the zero sum of each variable's coefficients as prior rows; a deposit ≥ 0 by
-    bounds. Returns (RMSE [µm], status, the model, u at the answer, covariance of u)."""
+    bounds. Returns (RMSE [µm], status, the model, u at the answer, covariance of u, its
+    snapshots (E, S, N) [µm] from the last evaluation, or None)."""
     from ..effects.shape import ShapeBasis
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
@@ -625,7 +640,11 @@ def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, 
                     noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
                     project=cm.packing.project, label=f"    shape {form}", log=log)
     r = out.point.r
-    return float(np.sqrt(np.mean(r ** 2))), out.status, cm, out.u, _full_cov(out, free)
+    snaps = getattr(out.point.extra, "snaps", None)
+    if snaps is not None and not np.array_equal(np.asarray(out.point.u), np.asarray(out.u)):
+        snaps = None
+    return (float(np.sqrt(np.mean(r ** 2))), out.status, cm, out.u, _full_cov(out, free),
+            snaps)
 
 
 def _full_cov(out: lsq.Outcome, free) -> np.ndarray:

@@ -73,12 +73,15 @@ class WhenWhere:
                 "peak_extra_depth_um": f(np.max(self.where_um))}
 
 
-def when_where(cm, u, cov, experiment: str, deepest: int, level: float
+def when_where(cm, u, cov, experiment: str, deepest: int, level: float, snaps=None
                ) -> WhenWhere | None:
     """The map of the refitted correction `cm` at `u` (its covariance `cov` (P, P)) on
-    experiment `deepest`, at its last measured profile."""
+    experiment `deepest`, at its last measured profile; `snaps` (E, S, N) [µm]: the model's
+    snapshots at u where the caller has them (the refit's last evaluation: no forward
+    compilation of its own)."""
     u = np.asarray(u, np.float64)
-    snaps = cm.snapshots(u)
+    if snaps is None:
+        snaps = cm.snapshots(u)
     if not np.all(np.isfinite(snaps)):
         return None
     h = jnp.asarray(snaps[deepest, -1] * 1e-6)

@@ -215,12 +215,16 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     if shape or (auto_shape and status == "unexplained"):
         from ._shape import shape_analysis
 
+        # with the effect's own contact model the two analyses share their compiled
+        # functions: the first carries the effect at off, the second its basis
+        share = status == "effect_found" and by_contact(final.contact) is model
         shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
-                             verbose=verbose)
+                             verbose=verbose, also=final.groups if share else ())
         after = None
         if status == "effect_found":
             after = shape_analysis(by_contact(final.contact), final, noise, nu,
-                                   after=" + ".join(effects), seed=seed, verbose=verbose)
+                                   after=" + ".join(effects), seed=seed, verbose=verbose,
+                                   knots=shp.knots if share else None)
         diag = replace(diag, shape=shp, shape_after_effect=after)
         summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else []))
     own = Model.evaluations - evals0

@@ -41,7 +41,9 @@ wear is.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -253,6 +255,27 @@ def precompute(shape: ShapeBasis, hist, nodes: int) -> dict:
     return {k: jnp.stack(v) for k, v in out.items()}
 
 
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def basis_dot(var: ShapeVariable, z, coef):
+    """var.basis(z) @ coef (...) at the states z (...) for the coefficients coef (size,)."""
+    return var.basis(z) @ coef
+
+
+@basis_dot.defjvp
+def _basis_dot_jvp(var, primals, tangents):
+    # Why a rule of its own: the design Jacobian pushes every coefficient column (~140)
+    # through the state-dependent basis of the per-node variables (pressure): autodiff's
+    # tangent of var.basis(z) is (columns, steps, nodes, size), every piece of the spline
+    # differentiated per column, and then contracted with coefficients that are zero at
+    # the base fit. Each output depends on its own z only, so d(B(z) c)/dz is one
+    # elementwise slope computed once; the tangent is B dc + slope · dz: columns + size
+    # per state instead of columns x size (the design's run ~xN faster, same numbers).
+    z, coef = primals
+    dz, dcoef = tangents
+    out, slope = jax.jvp(lambda zz: var.basis(zz) @ coef, (z,), (jnp.ones_like(z),))
+    return out, var.basis(z) @ dcoef + slope * dz
+
+
 def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
                 pre: dict | None = None, regime=None):
     """(Σ_v g_v(z_v) (steps, nodes), the deposit Σ_v e_v(z_v) κ (steps, nodes) [m] or None)
@@ -268,8 +291,9 @@ def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
         else:
             if z is None:
                 z = state_variables(pressure, slide, dt, sliding, angle, load)
-            B = var.basis(z[var.name])
-        term = jnp.broadcast_to(B @ coef, pressure.shape)
+            B = None
+        term = jnp.broadcast_to(B @ coef if B is not None else
+                                basis_dot(var, z[var.name], coef), pressure.shape)
         if var.form == "factor":
             g = g + term
         else:

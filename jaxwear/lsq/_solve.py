@@ -392,10 +392,12 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
 
 
 def step_in_standard_errors(pt: Point, noise_um: float, lower=None, upper=None,
-                            free=None) -> tuple[float, float]:
+                            free=None, relative_to: Point | None = None) -> tuple[float, float]:
     """How far one Gauss-Newton step from `pt` would move the answer: (largest |step| /
     standard error over the determined free parameters, predicted decrease of ½χ²). Used to
-    check an answer against a finer discretisation of the same model."""
+    check an answer against a finer discretisation of the same model: `relative_to`, the
+    same point with the coarse rows, whose own step (what the fit's stop left, up to 0.1 SE
+    within the numerical floor) is subtracted, so that the ratio is what refining moves."""
     P = len(pt.u)
     free = np.ones(P, bool) if free is None else np.asarray(free, bool)
     lo = np.full(P, -np.inf) if lower is None else np.asarray(lower, np.float64)
@@ -403,6 +405,9 @@ def step_in_standard_errors(pt: Point, noise_um: float, lower=None, upper=None,
     if not pt.usable:
         return math.inf, math.inf
     rw, Jw = whitened(pt, noise_um, free)
-    step, cov, pred = gauss_newton_step(np.asarray(pt.u, np.float64), free, lo, hi, rw, Jw,
-                                        pt.r.size)
+    u = np.asarray(pt.u, np.float64)
+    step, cov, pred = gauss_newton_step(u, free, lo, hi, rw, Jw, pt.r.size)
+    if relative_to is not None and relative_to.usable:
+        rw0, _ = whitened(relative_to, noise_um, free)
+        step = step - gauss_newton_step(u, free, lo, hi, rw0, Jw, pt.r.size)[0]
     return _ratio(step, cov), pred
