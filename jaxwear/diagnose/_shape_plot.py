@@ -27,8 +27,8 @@ def shape_figure(result, label: str):
     # fixed margins, not tight_layout: its text measurement drew every figure twice, a
     # third of the ~30 figures' writing time (the labels here are known and fit)
     fig, axes = pl.subplots(2, 1, figsize=(7, 5.4),
-                            gridspec_kw=dict(left=0.11, right=0.97, top=0.94, bottom=0.09,
-                                             hspace=0.42))
+                            gridspec_kw=dict(left=0.14, right=0.97, top=0.9, bottom=0.09,
+                                             hspace=0.5))
     ax = axes[0]
     ax.fill_between(v.z, v.g_lower, v.g_upper, color="C0", alpha=0.25,
                     label=f"{int(result_level() * 100)} % band")
@@ -42,7 +42,7 @@ def shape_figure(result, label: str):
     ax.set_ylabel("g = ln(rate factor)" if form == "factor"
                   else "e [nm·rad of depth per step]")
     sig = "significant" if v.significant else "not significant"
-    ax.set_title(f"{v.label}: explains {v.explained_fraction:.0%} of the misfit (unique "
+    ax.set_title(f"{v.label}\nexplains {v.explained_fraction:.0%} of the misfit (unique "
                  f"{v.unique_fraction:.0%}), dof {v.dof:.1f}, {p_text(v.p_value)} ({sig})",
                  fontsize=9)
     if v.name.startswith("load_turn") and float(v.z[0]) > 0:
