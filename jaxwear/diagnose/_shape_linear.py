@@ -167,6 +167,20 @@ def null_p_value(sm: Smoother, T: float, n_res, nu, rng, draws) -> float:
     return (1.0 + float(np.sum(T_star >= T))) / (1.0 + draws)
 
 
+def psolve(H: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """H⁺ b for a symmetric positive semi-definite H (k, k): eigenvalues under 1e-12 of the
+    largest (or all, where the largest is itself below 1e-290) are dropped. Blocks whose
+    columns are exactly zero (a B-spline of a deposit variable that no step reaches) leave
+    H singular, or scaled by a subnormal ridge that a flush-to-zero FPU reads as 0: two null
+    studies of 124 at auto numerics raised "Singular matrix" in `np.linalg.solve`."""
+    w, V = np.linalg.eigh(H)
+    top = float(np.max(w)) if len(w) else 0.0
+    if not top > 1e-290:
+        return np.zeros(H.shape[0])
+    keep = w > 1e-12 * top
+    return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
+
+
 def block_penalty(blocks) -> tuple[np.ndarray, np.ndarray]:
     """The columns of several variables side by side, and their block-diagonal penalty
     with each block scaled by its own tr(A'A)/tr(S), so that one λ penalises every
@@ -203,7 +217,7 @@ def joint_fit(blocks, rho, n_res, nu, rng, draws):
         # the others alone at the same λ (absolute, not re-scaled)
         H = Ak.T @ Ak + lam * Sk + 1e-12 * max(np.trace(Ak.T @ Ak), 1e-300) * np.eye(
             keep.sum())
-        a = np.linalg.solve(H, Ak.T @ rho)
+        a = psolve(H, Ak.T @ rho)
         fitted = Ak @ a
         drop = float(2 * rho @ fitted - fitted @ fitted)
         unique.append(fit.drop - drop)
