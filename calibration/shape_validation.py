@@ -75,7 +75,7 @@ def make_study(case: str, conditions: str, seed: int, out: Path, numerics) -> Pa
     res = jw.synthesize([LIBRARY[case]], conds, noise_um=0.3, seed=seed, out=out,
                         numerics={"nodes": nodes, "steps_per_rev": steps,
                                   "revolutions_per_update": 250})
-    return Path(res.path)
+    return Path(res.study_path)
 
 
 def _other_conditions(where: Path) -> Path:
