@@ -69,6 +69,12 @@ KNOT_QUANTILES = 32  # pieces of the piecewise-linear quantile coordinate
 REFIT_EVALUATIONS = 10
 MAX_CARRIERS = 3  # variables of the refitted correction at most
 JACOBIAN_NODES = 90  # nodes of the correction's Jacobian at most (its steps are the fit's)
+# Prior SD of each factor coefficient in the refit (g = ln of the rate factor: e at one SD).
+# Why: where little wears (a range's end) the data leave a coefficient loose (SE 26 measured
+# on a speed study), and a Gauss-Newton step of 0.4 SE moved it by 9: exp(9) on that part of
+# the rate, χ² up by 112 where the quadratic model promised 0.14 down; the refit then crept
+# at ~1 SE per step to its budget. The data override this prior wherever they determine g.
+FACTOR_SD = 1.0
 
 
 @dataclass(frozen=True)
@@ -572,9 +578,10 @@ def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, 
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
-    a factor, the zero sum of each variable's coefficients as prior rows; a deposit ≥ 0 by
-    bounds. Returns (RMSE [µm], status, the model, u at the answer, covariance of u, its
-    snapshots (E, S, N) [µm] from the last evaluation, or None)."""
+    a factor, the zero sum of each variable's coefficients and N(0, FACTOR_SD²) on each as
+    prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
+    answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
+    None)."""
     from ..effects.shape import ShapeBasis
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
@@ -629,6 +636,11 @@ def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, 
                 J1 = np.zeros((1, len(v)))
                 J1[0, idx] = 1.0 / (0.01 * var.size)
                 rows.append(r1), J.append(J1)
+                # g = ln of the rate factor, N(0, FACTOR_SD²) per coefficient
+                rows.append(c / FACTOR_SD)
+                J2 = np.zeros((len(c), len(v)))
+                J2[np.arange(len(c)), idx] = 1.0 / FACTOR_SD
+                J.append(J2)
             k += 1
         return replace(pt, r_prior=np.concatenate([pt.r_prior, *rows]),
                        J_prior=np.vstack([pt.J_prior, *J]))
