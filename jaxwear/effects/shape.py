@@ -272,8 +272,8 @@ def _basis_dot_jvp(var, primals, tangents):
     # per state instead of columns x size (the design's run ~xN faster, same numbers).
     z, coef = primals
     dz, dcoef = tangents
-    out, slope = jax.jvp(lambda zz: var.basis(zz) @ coef, (z,), (jnp.ones_like(z),))
-    return out, var.basis(z) @ dcoef + slope * dz
+    B, dB = jax.jvp(var.basis, (z,), (jnp.ones_like(z),))  # the basis and its z-slope, once
+    return B @ coef, B @ dcoef + (dB @ coef) * dz
 
 
 def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
@@ -287,13 +287,12 @@ def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
     for var in shape.variables:
         coef = jnp.stack([p.effect_params[k] for k in var.keys()])
         if pre is not None and var.name in CONSTANT:
-            B = pre[var.keys()[0]][regime]
+            term = pre[var.keys()[0]][regime] @ coef
         else:
             if z is None:
                 z = state_variables(pressure, slide, dt, sliding, angle, load)
-            B = None
-        term = jnp.broadcast_to(B @ coef if B is not None else
-                                basis_dot(var, z[var.name], coef), pressure.shape)
+            term = basis_dot(var, z[var.name], coef)
+        term = jnp.broadcast_to(term, pressure.shape)
         if var.form == "factor":
             g = g + term
         else:
