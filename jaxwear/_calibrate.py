@@ -122,6 +122,11 @@ class FitResult:
     clearance_tolerance_um: float = 5.0
     forward_runs: int = 0  # of `iterations`, those without a Jacobian (finer levels)
     compiles: dict | None = None  # compilations for this answer by kind (`fit_study`)
+    # rows of the level the answer was checked against minus the answer's rows (rows,)
+    # [µm], at `u`: its numerical error, from the check's own forward run (`correct_to_finer`;
+    # None where no finer level was run)
+    finer_minus_rows_um: np.ndarray | None = None
+    finer_level: tuple | None = None
 
     @property
     def converged(self) -> bool:
@@ -524,6 +529,10 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
         if at < i:  # the answer stands at its level, checked against this one
             report = res.report(levels[at], levels[i], kind="fit", value=ratio,
                                 ok=ratio <= res.FIT_SE_TOL)
+            # the check's rows are the answer's numerical error (a diagnosis's shape
+            # analysis counts it without a forward run of its own)
+            result = dataclasses.replace(result, finer_minus_rows_um=f.rows - ev.pred,
+                                         finer_level=tuple(levels[i]))
             break
         # corrected to this level: the answer is this level's, to within `ratio`
         coarse = coarse.with_defect(coarse.defect + shift)

@@ -119,6 +119,12 @@ class OutputDir:
         atomic_write(p, text)
         return p
 
+    def write_bytes(self, name: str, data: bytes) -> Path:
+        """`root/name` with `data` (e.g. a PNG drawn beforehand)."""
+        p = self.path(name)
+        atomic_write(p, data)
+        return p
+
     def write_csv(self, name: str, header: list[str], rows) -> Path:
         from ._report import _fmt
 

@@ -51,8 +51,15 @@ from ._packing import (
 from ._params import Params
 from ._schedule import Schedule, pad_schedule
 from ._study import Study
-from ._wear import adaptive_attempts, build_schedule, schedule_numerics, wear_loop
+from ._wear import (
+    _regime_rates,
+    adaptive_attempts,
+    build_schedule,
+    schedule_numerics,
+    wear_loop,
+)
 from .effects import STRUCTURAL_CANDIDATES
+from .effects.shape import pack as pack_shape
 
 # Compilations of the residual model's functions, by kind ("jacobian", "forward"), counted
 # when JAX traces them (a trace is a compilation, or a load from the persistent cache):
@@ -271,8 +278,10 @@ class ResidualModel(eqx.Module):
         """Snapshots (experiments, snapshots, nodes) [µm] and the batched `WearResult`."""
         # lax.map, not vmap: on CPU the experiments gain nothing from batching, and mapping
         # keeps the contact solver's data-dependent branches and loop counts per experiment.
+        # the shape correction's coefficients packed before the map too (`pack`)
         res = jax.lax.map(lambda ps: wear_loop(ps[0], self.cfg, ps[1]),
-                          (self.batched_params(u), self.schedule))
+                          (pack_shape(self.batched_params(u), self.cfg.shape),
+                           self.schedule))
         return res.snapshots * 1e6, res
 
     def predict_from(self, snaps_um, u=None):
@@ -460,13 +469,22 @@ def attempts_needed(model: ResidualModel, u) -> int:
     sched = model.schedule
     if not sched.adaptive:
         return 0
-    pb = model.batched_params(jnp.asarray(u, jnp.float64))
+    rates = np.asarray(_experiment_rates(model.with_schedule(None),
+                                         jnp.asarray(u, jnp.float64)))
+    host = jax.tree.map(np.asarray, sched)
     need = 0
     for i in range(sched.cycles.shape[0]):
-        p_i = jax.tree.map(lambda x: x[i], pb)
-        one = dataclasses.replace(jax.tree.map(lambda x: x[i], sched), attempts=1)
-        need = max(need, adaptive_attempts(p_i, model.cfg, one))
+        one = dataclasses.replace(jax.tree.map(lambda x: x[i], host), attempts=1)
+        need = max(need, adaptive_attempts(None, model.cfg, one, rates=rates[i]))
     return need
+
+
+@eqx.filter_jit
+def _experiment_rates(model: ResidualModel, u):
+    """`_regime_rates` of every experiment at u (experiments, regimes) [1/cycle], one
+    compiled call (the model without its schedule: an attempt count is no new program).
+    Eager, the parameters' assembly and the load history cost ~0.2 s per evaluation."""
+    return jax.lax.map(lambda p: _regime_rates(p, model.cfg), model.batched_params(u))
 
 
 def enough_attempts(model: ResidualModel, u, headroom: float = RAISE_HEADROOM

@@ -25,6 +25,7 @@ from ._load import LoadHistory, block_periods, load_history
 from ._params import Params
 from ._schedule import Schedule, bucket, crank_segments, duty_segments, make_schedule
 from .effects import RateContext, get_effect
+from .effects.shape import pack as pack_shape
 from .effects.shape import precompute, shape_terms
 
 
@@ -139,6 +140,7 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
               ) -> WearResult:
     """Run the wear loop over `schedule` (pure, jit-able, differentiable in `p` and `h0`):
     the adaptive Runge-Kutta integrator for adaptive schedules, eq 23 otherwise."""
+    p = pack_shape(p, cfg.shape)  # one array of coefficients through the loops, not ~140
     if schedule.adaptive:
         return _adaptive_loop(p, cfg, schedule, h0)
     effects = [get_effect(n) for n in cfg.effects]
@@ -450,12 +452,13 @@ DEFAULT_WEAR_TOLERANCE_UM = 0.002
 """Default `[numerics] wear_tolerance_um`: bound on the summed local error estimates [µm]."""
 
 
-def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule) -> int:
+def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) -> int:
     """Static number of attempted steps for an adaptive schedule: the explicit stability
     limit of the 3(2) pair (|λ ΔN| ≲ 2.5, λ bounded by `_regime_rates`) over every piece,
     a few steps per piece for accuracy and regime starts, rounded up to a bucket so that
-    similar runs share a compilation. Unused attempts cost nothing (no vmap)."""
-    rates = np.asarray(_regime_rates_jit(p, cfg)).reshape(-1)
+    similar runs share a compilation. Unused attempts cost nothing (no vmap). `rates`:
+    `_regime_rates` where the caller has them (one call for every experiment)."""
+    rates = np.asarray(_regime_rates_jit(p, cfg) if rates is None else rates).reshape(-1)
     cyc = np.asarray(sched.cycles)
     reg = np.asarray(sched.regime)
     live = cyc > 0

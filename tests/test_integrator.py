@@ -253,3 +253,35 @@ def test_a_raised_attempt_count_compiles_nothing_and_changes_nothing(tmp_path):
     assert traces_since(before) == {"jacobian": 0, "forward": 0}
     assert np.isfinite(ev1.error_um) and np.all(np.isfinite(ev1.J))
     assert np.max(ev1.pred) > 5 * np.max(ev0.pred)  # depth nearly ∝ K_d
+
+
+def test_attempt_estimate_in_one_call_is_the_per_experiment_estimate(tmp_path):
+    """`attempts_needed` takes every experiment's stiffness bound from one compiled call
+    (`_experiment_rates`; eager, the parameters and load histories cost ~0.2 s per
+    evaluation); it must equal the estimate from each experiment's own parameters and
+    schedule (`adaptive_attempts`), here on a rig study of two speeds and clearances and
+    at K_d x 50, where the stability limit, not accuracy, sets the count."""
+    from jaxwear._packing import parse_fit
+    from jaxwear._residual import attempts_needed, build_model
+    from jaxwear._wear import adaptive_attempts
+
+    res = jw.synthesize([], "paper", noise_um=0.3, seed=3,
+                        numerics=dict(nodes=48, steps_per_rev=48))
+    study = dataclasses.replace(res.study.with_experiments(res.study.experiments[:2]),
+                                integrator="adaptive")
+    model = build_model(study, parse_fit(study, "K_d,clearance"))
+    assert model.schedule.adaptive
+    for kd_factor in (1.0, 50.0):
+        u = np.zeros(len(model.names))
+        u[model.names.index("K_d_per_Pa")] = np.log(kd_factor)
+        pb = model.batched_params(jnp.asarray(u))
+        want = 0
+        for i in range(len(model.exp_names)):
+            p_i = jax.tree.map(lambda x: x[i], pb)
+            one = dataclasses.replace(jax.tree.map(lambda x: x[i], model.schedule),
+                                      attempts=1)
+            want = max(want, adaptive_attempts(p_i, model.cfg, one))
+        assert attempts_needed(model, u) == want
+    assert want > adaptive_attempts(jax.tree.map(lambda x: x[0], model.params), model.cfg,
+                                    dataclasses.replace(jax.tree.map(
+                                        lambda x: x[0], model.schedule), attempts=1))

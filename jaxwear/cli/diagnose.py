@@ -71,6 +71,7 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     out = out_dir if isinstance(out_dir, OutputDir) else open_diagnose_outputs(
         diag.study, out_dir, json_file)
     doc = diag.to_json()
+    saved = {}
     for prefix, key, res in (("shape", "shape", diag.shape),
                              ("shape_after_effect", "shape_after_effect",
                               diag.shape_after_effect)):
@@ -80,13 +81,18 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
         from ..diagnose._effect_file import effect_file_source
         from ..diagnose._shape_plot import file_stem, shape_figure, when_where_figure
 
+        mine = saved.setdefault(key, {})
         for v in res.variables:
+            name = prefix + file_stem(v.label).removeprefix("shape") + ".png"
+            if v.label in res.pngs:  # drawn while the refit ran (`diagnose(figures=)`)
+                mine[v.label] = out.write_bytes(name, res.pngs[v.label])
+                continue
             fig = shape_figure(res, v.label)
-            out.savefig(fig, prefix + file_stem(v.label).removeprefix("shape") + ".png")
+            mine[v.label] = out.savefig(fig, name)
             plt().close(fig)
         if res.when_where is not None:
             fig = when_where_figure(res)
-            out.savefig(fig, f"{prefix}_when_where.png")
+            mine["when_where"] = out.savefig(fig, f"{prefix}_when_where.png")
             plt().close(fig)
         if res.best is not None and res.correction:
             name = "missing_wear.py" if key == "shape" else "missing_wear_after_effect.py"
@@ -95,7 +101,7 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
     out.write_json("diagnosis.json", doc)
     header, rows = residual_table(diag)
     out.write_csv("residuals.csv", header, rows)
-    out.write_text("report.html", report_html(diag, doc))
+    out.write_text("report.html", report_html(diag, doc, saved))
     out.write_json_file(doc)
     return doc
 
@@ -144,7 +150,8 @@ class Diagnose(Verb):
         dia = importlib.import_module("jaxwear.diagnose")
 
         args = opts["args"]
-        diag = dia.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)))
+        diag = dia.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)),
+                            figures=True)
         doc = write_outputs(diag, out)
         v = doc["verdict"]
         name = " + ".join(v["effects"]) if v["effects"] else "none"

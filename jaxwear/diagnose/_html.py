@@ -232,8 +232,10 @@ def _num(x, fmt=".4g"):
         return str(x)
 
 
-def report_html(diag, doc: dict) -> str:
-    """The report: verdict paragraph, figures, tables (DESIGN §7 `diagnose --out`)."""
+def report_html(diag, doc: dict, saved: dict | None = None) -> str:
+    """The report: verdict paragraph, figures, tables (DESIGN §7 `diagnose --out`).
+    `saved`: {"shape" or "shape_after_effect": {figure label: PNG path}} of the shape
+    figures already written beside it (embedded as written, not drawn again)."""
     v = doc["verdict"]
     status = {"adequate": "Adequate: the base model fits to noise level",
               "effect_found": f"Missing effect found: {' + '.join(v['effects'])}",
@@ -306,11 +308,12 @@ def report_html(diag, doc: dict) -> str:
         "<h2>Fitted parameters (after)</h2>", _table(par_rows, ["parameter", "value", "SE"]),
         "<h2>Figures</h2>",
     ]
-    for title, res in (("The shape of the missing wear", diag.shape),
-                       ("The shape of what is still missing after the effect",
-                        diag.shape_after_effect)):
+    for key, title, res in (("shape", "The shape of the missing wear", diag.shape),
+                            ("shape_after_effect",
+                             "The shape of what is still missing after the effect",
+                             diag.shape_after_effect)):
         if res is not None:
-            parts += _shape_section(title, res)
+            parts += _shape_section(title, res, (saved or {}).get(key, {}))
     parts += [_img(src, alt) for alt, src in figs if src]
     parts.append(f"<h2>Method</h2><p>{html.escape(doc['method'])}</p>")
     parts.append(f"<p>{html.escape(_integration_text(a['integration']))}</p>")
@@ -327,7 +330,11 @@ def _integration_text(integ: dict) -> str:
             "estimate; halve numerics.revolutions_per_update to measure it.")
 
 
-def _shape_section(title: str, res) -> list[str]:
+def _written(path) -> str:
+    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+def _shape_section(title: str, res, saved: dict) -> list[str]:
     """The shape analysis: its sentence, a table of the variables in both forms, the figure
     of the best (or the largest share) and the map of when and where (`_shape`)."""
     from ._shape_plot import shape_figure, when_where_figure
@@ -354,10 +361,11 @@ def _shape_section(title: str, res) -> list[str]:
            "together; rows sorted by AIC.</p>"]
     show = (f"deposit:{res.best}" if res.form == "deposit" else res.best) if res.best else \
         max(res.variables, key=lambda v: v.explained_fraction).label
-    out.append(_img(_png(shape_figure(res, show)),
+    out.append(_img(_written(saved[show]) if show in saved else _png(shape_figure(res, show)),
                     f"{show}: the extra wear the data ask for"
                     + ("" if res.best else " (not significant: the largest share shown)")))
     if res.when_where is not None:
-        out.append(_img(_png(when_where_figure(res)),
+        out.append(_img(_written(saved["when_where"]) if "when_where" in saved
+                        else _png(when_where_figure(res)),
                         "when in the cycle the missing wear is made and where it lands"))
     return out

@@ -69,6 +69,12 @@ KNOT_QUANTILES = 32  # pieces of the piecewise-linear quantile coordinate
 REFIT_EVALUATIONS = 10
 MAX_CARRIERS = 3  # variables of the refitted correction at most
 JACOBIAN_NODES = 90  # nodes of the correction's Jacobian at most (its steps are the fit's)
+# The correction's Jacobian at this many times the fit's wear tolerance (adaptive
+# integrator): its columns are the test's design, so their integration error costs power
+# only. Measured on a 5-experiment speed study at 90 x 72 (146 columns): x1 51 steps,
+# 14.3 s; x4 31 steps, 9.2 s, columns within 1.4 % (median 0.4 %); x10 20 steps, 6.4 s,
+# within 4 % (median 0.6 %); x30 within 13 %.
+JACOBIAN_TOLERANCE = 10.0
 # Prior SD of each factor coefficient in the refit (g = ln of the rate factor: e at one SD).
 # Why: where little wears (a range's end) the data leave a coefficient loose (SE 26 measured
 # on a speed study), and a Gauss-Newton step of 0.4 SE moved it by 9: exp(9) on that part of
@@ -150,7 +156,21 @@ class ShapeResult:
     when_where: object = None  # _shape_map.WhenWhere
     numerical: dict = field(default_factory=dict)
     effect_file: str | None = None
-    knots: dict = field(default=None, repr=False)  # of the basis (`state_knots`)
+    design: object = field(default=None, repr=False)  # `Design`, for a later analysis
+    pending: object = field(default=None, repr=False)  # the refit still to run (`defer`)
+    pngs: dict = field(default_factory=dict, repr=False)  # figures drawn beforehand
+
+    def finished(self) -> ShapeResult:
+        """This result with its refit run (itself if none is pending)."""
+        if self.pending is None:
+            return self
+        return replace(self.pending(), pngs=self.pngs)
+
+    def settled_labels(self) -> tuple:
+        """Labels of the variable figures the pending refit will not change (all but its
+        carriers')."""
+        refitted = {f"deposit:{n}" if self.form == "deposit" else n for n in self.carriers}
+        return tuple(v.label for v in self.variables if v.label not in refitted)
 
     def form_variables(self, form: str | None = None) -> tuple:
         form = form or self.form or "factor"
@@ -177,6 +197,94 @@ class ShapeResult:
         return next(v for v in self.variables if v.name == name and v.form == form)
 
 
+@dataclass(frozen=True)
+class Design:
+    """What one analysis computed that a later one on the same model reuses: the basis
+    knots and the states of the data (`state_knots`), the model with the correction
+    (`smodel`), the Jacobian model and its evaluation (`ev_j`: the correction's columns),
+    and the rows' numerical error (µm, or None)."""
+
+    study: object
+    groups: tuple
+    knots: dict
+    load: dict
+    exp_name: str
+    deepest: int
+    smodel: Model
+    jmodel: Model
+    ev_j: object
+    numerical_um: np.ndarray | None
+    u: np.ndarray = None  # where the columns are linearised (smodel's u)
+    evaluations: int = 1  # model evaluations it took (0 once an analysis has counted them)
+
+
+def prepare_design(model: Model, fit, *, groups=None, size: int = SIZE,
+                   verbose: bool = False) -> Design:
+    """The states met in the data, the basis on them and the correction's columns at the
+    answer of `fit` (one Jacobian of the model with every variable-form switched on).
+    `fit`: a `Fit` of `model`, or anything with its `label` and `ev.u`, `ev.snaps`,
+    `ev.sliding_m` (`at_answer`). `groups`: the candidate groups the model with the
+    correction carries (held at off where `fit` does not fit them); default every
+    candidate of `model`, so that an analysis on top of any effect found later reuses it
+    (`diagnose` starts this in the background, before it knows the effect:
+    `Background`)."""
+    groups = list(model.candidates) if groups is None else list(groups)
+    knots, load, exp_name, deepest = state_knots(model, fit)
+    basis = make_basis(knots, size)
+    _log(verbose, f"  shape: {len(basis.variables)} variable-forms x {size} B-splines at the "
+                  f"answer of the {fit.label} fit (one Jacobian; compiles the model with the "
+                  f"correction)")
+    smodel = model.variant(candidates=groups, shape=basis)
+    # The correction's columns by one Jacobian of a model with no more than
+    # `JACOBIAN_NODES` nodes and a looser wear tolerance (their cost grows with nodes x
+    # steps x columns): they are the design of the test, not its data, so a coarser
+    # discretisation of them costs power only, never false alarms (the misfit tested is
+    # the fit's own); the answer is refitted at the fit's numerics.
+    jmodel = _coarse(smodel, groups, basis)
+    ev_j = jmodel.evaluate(_map_u(model, fit.ev.u, jmodel))
+    return Design(model.study, tuple(groups), knots, load, exp_name, deepest, smodel, jmodel,
+                  ev_j, None, u=_map_u(model, fit.ev.u, smodel))
+
+
+def at_answer(model: Model, evaluation, label: str = "base"):
+    """A stand-in for the fit of `model` at u = 0 (its start values: the answer of
+    calibrate's path, whose coarse `evaluation` holds the snapshots (E, S, N) [µm] and
+    sliding distances there), for `prepare_design` before `model` has evaluated."""
+    from types import SimpleNamespace
+
+    ev = SimpleNamespace(u=np.zeros(len(model.names)), snaps=np.asarray(evaluation.snaps),
+                         sliding_m=np.asarray(evaluation.sliding_m))
+    return SimpleNamespace(label=label, ev=ev)
+
+
+class Background:
+    """`fn(*args, **kw)` in a daemon thread (`result()` joins it and re-raises what it
+    raised). Why: the shape's design Jacobian (~25 s, most of it compilation) needs only
+    the base fit, so `diagnose --shape` computes it while the verdict's screens and refits
+    run; XLA's compilation and runs release the interpreter."""
+
+    def __init__(self, fn, *args, **kw):
+        import threading
+
+        self._out = None
+        self._err = None
+
+        def run():
+            try:
+                self._out = fn(*args, **kw)
+            except BaseException as e:  # re-raised in the caller's thread
+                self._err = e
+
+        self._thread = threading.Thread(target=run, daemon=True, name="jaxwear-shape")
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if self._err is not None:
+            raise self._err
+        return self._out
+
+
 def _other(form: str) -> str:
     return "deposit" if form == "factor" else "factor"
 
@@ -199,6 +307,10 @@ def _cycle_states(p, cfg, hist, regime, h, sliding):
                         hist.load[regime])
     rate = p.wear_coefficient * sol.pressure * slide[:, None]
     return {k: jnp.broadcast_to(v, sol.pressure.shape) for k, v in z.items()}, rate
+
+
+# eager, the mechanism's load history costs ~0.5 s per experiment
+_load_history_jit = eqx.filter_jit(load_history)
 
 
 def _weighted_quantiles(x, w, qs):
@@ -229,7 +341,7 @@ def state_knots(model: Model, fit: Fit):
     load = {}
     for e in range(snaps.shape[0]):
         p = jax.tree_util.tree_map(lambda x: x[e], P)
-        hist = load_history(p, cfg)
+        hist = _load_history_jit(p, cfg)
         total = float(fit.ev.sliding_m[e])
         for r in range(hist.load.shape[0]):
             for h, s in ((np.zeros(snaps.shape[2]), 0.0), (snaps[e, -1] * 1e-6, total)):
@@ -342,40 +454,54 @@ def numerical_error_rows(model: Model, fit: Fit, verbose=False, candidates=None)
 
 def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after: str = "base",
                    seed: int = 0, draws: int = DRAWS, size: int = SIZE,
-                   verbose: bool = False, numerical: bool = True, knots: dict | None = None,
-                   also=()) -> ShapeResult:
+                   verbose: bool = False, numerical: bool = True,
+                   numerical_um: np.ndarray | None = None,
+                   design: Design | None = None, defer: bool = False) -> ShapeResult:
     """The shape of the misfit left by `fit` (of `model`) along every state variable, in
     both forms (module docstring). `noise_um` σ [µm] with `nu` degrees of freedom
-    (diagnose's noise level). `numerical`: count the model's numerical error (one forward
-    run at finer numerics).
+    (diagnose's noise level). `numerical`: count the model's numerical error: the rows of
+    a finer level minus the fit's rows at its answer, `numerical_um` (rows,) [µm] where the
+    caller has them (calibrate's resolution check ran that forward run at this answer),
+    else one forward run at twice the nodes and steps.
 
-    Two analyses share their compiled functions (the design Jacobian's, the numerical
-    error's and the refit's; each ~10 s of compilation) where their models are equal:
-    `knots` reuses an earlier analysis's basis (`ShapeResult.knots`: the states met in the
-    data, which an effect found hardly moves), and `also` names candidate groups this
-    analysis carries held at their off values, where the model is the fit's exactly
-    (nesting), so that a later analysis on top of them finds its model compiled."""
+    `design` (`prepare_design`, or an earlier analysis's `ShapeResult.design`): the basis,
+    the states met in the data and the correction's columns, computed at `fit`'s answer
+    (e.g. in the background) or at another fit's on the same model (the base fit's, for
+    the analysis on top of an effect found): then this analysis runs no model of its own
+    until its refit. Its columns are linearised at that other answer: an effect found
+    moves them by its rate factor, which costs the test power only, never its level (the
+    misfit tested and the fit's own columns projected off are this fit's); the numerical
+    error's rows, also from there, enter one column per experiment, each with its own
+    scale, as the effect rescales each experiment's wear.
+
+    `defer`: where a variable is significant, return before the refit through the loop
+    (status "pending"; `ShapeResult.finished()` runs it), so that the caller can do other
+    work meanwhile (draw the figures the refit does not change)."""
     from ._shape_map import when_where
     from ._shape_text import describe
 
     evals0 = Model.evaluations
-    own, load, exp_name, deepest = state_knots(model, fit)
-    knots = own if knots is None else knots
-    basis = make_basis(knots, size)
-    _log(verbose, f"  shape of the missing wear after {after}: {len(basis.variables)} "
-                  f"variable-forms x {size} B-splines (one Jacobian; compiles the model with "
-                  f"the correction)")
-    carried = set(fit.groups) | set(also)
-    groups = [g for g in model.candidates if g in carried]
-    smodel = model.variant(candidates=groups, shape=basis)
-    # The correction's columns by one Jacobian of a model with no more than
-    # `JACOBIAN_NODES` nodes (their cost grows with nodes x steps x columns): they are the
-    # design of the test, not its data, so a coarser discretisation of them costs power
-    # only, never false alarms (the misfit tested is the fit's own); the answer is
-    # refitted at the fit's numerics.
-    jmodel = _coarse(smodel, groups, basis)
+    own_groups = [g for g in model.candidates if g in fit.groups]
+    spent = 0  # evaluations of a design computed before this call, not yet counted
+    if design is None:
+        design = prepare_design(model, fit, groups=own_groups, size=size, verbose=verbose)
+    else:
+        spent = design.evaluations
+    if design.study is not model.study or not set(own_groups) <= set(design.groups):
+        raise ValueError("a shape design is reused on another model")
+    # linearised at this fit's answer, or at another one (an earlier fit's)
+    reused = not np.array_equal(design.u, _map_u(model, fit.ev.u, design.smodel))
+    if spent and not reused:
+        _log(verbose, f"  shape of the missing wear after {after}: its columns were computed "
+                      f"while the verdict ran")
+    load, exp_name, deepest = design.load, design.exp_name, design.deepest
+    smodel, jmodel, ev_j = design.smodel, design.jmodel, design.ev_j
+    basis = smodel.ext.cfg.shape
+    if reused:
+        _log(verbose, f"  shape of the missing wear after {after}: {len(basis.variables)} "
+                      f"variable-forms x {size} B-splines (the columns of the analysis "
+                      f"before, no model run)")
     u = _map_u(model, fit.ev.u, smodel)
-    ev_j = jmodel.evaluate(_map_u(model, fit.ev.u, jmodel))
     ev = fit.ev
     sigma = max(float(noise_um), 1e-12)
     free_base = [smodel.index[model.names[i]] for i in np.flatnonzero(fit.mask)]
@@ -399,14 +525,31 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     rho_full = lin.prewhiten(rho_full[:, None], model.series, phi, n)[:, 0]
     nuisance = [Jw[:, free_base]]
     num_info = {"counted": False, "ar1_coefficient": phi, "ar1_z": z_phi}
+    d = None
+    elsewhere = False  # d taken at another answer (the design's): a column per experiment
     if numerical:
-        d = numerical_error_rows(model, fit, verbose, candidates=groups)
+        if reused and design.numerical_um is not None:
+            d, elsewhere = design.numerical_um, True
+        elif numerical_um is not None:
+            d = np.asarray(numerical_um, np.float64)
+            _log(verbose, "    the model's numerical error: the rows of the resolution "
+                          "check at this answer (no run of its own)")
+        else:
+            d = numerical_error_rows(model, fit, verbose, candidates=own_groups)
+        if d is not None and not np.all(np.isfinite(d)):
+            d = None
         if d is not None:
-            dw = lin.prewhiten(np.concatenate([d / sigma, np.zeros(len(ev.r_prior))])[:, None],
-                               model.series, phi, n)
-            nuisance.append(dw)
+            exps = np.asarray(model.row_exp)
+            parts = ([np.where(exps == k, d, 0.0) for k in np.unique(exps)] if elsewhere
+                     else [d])
+            for part in parts:
+                if np.any(part):
+                    nuisance.append(lin.prewhiten(np.concatenate(
+                        [part / sigma, np.zeros(len(ev.r_prior))])[:, None],
+                        model.series, phi, n))
             num_info.update(counted=True, rms_um=float(np.sqrt(np.mean(d ** 2))),
-                            max_um=float(np.max(np.abs(d))))
+                            max_um=float(np.max(np.abs(d))),
+                            columns=len(nuisance) - 1)
     Xb = np.hstack(nuisance)
     Qb = np.linalg.qr(Xb)[0] if Xb.shape[1] else np.zeros((len(rho_full), 0))
     proj = lambda X: X - Qb @ (Qb.T @ X)  # noqa: E731
@@ -443,39 +586,59 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     rmse_before = float(np.sqrt(np.mean(ev.r ** 2)))
     sig = [v for v in results if v.significant]
     best = form = None
-    rmse_after, status, alternatives, carriers, correction, ww = None, "none", [], (), {}, None
+    alternatives, carriers = [], ()
     if sig:
         top, alternatives = choose_best(results)
         best, form = top.name, top.form
         carriers = _carriers(results, top)
+    design_out = replace(design, evaluations=0,
+                         numerical_um=design.numerical_um if elsewhere else d)
+
+    def result(results, rmse_after, status, correction, ww, evaluations):
+        sentence = describe(best, form, results, load, after, alternatives, carriers, ww)
+        return ShapeResult(after, best, form, tuple(results), ALPHA, sigma, rmse_before,
+                           rmse_after, evaluations, status, sentence, load,
+                           np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
+                           exp_name, tuple(alternatives), forms, tuple(carriers), correction,
+                           ww, num_info, design=design_out)
+
+    def finish() -> ShapeResult:
+        """The refit through the loop and the when/where map (the costly part)."""
+        e0 = Model.evaluations
         rmse_after, status, corr_model, u_fit, cov, snaps = _refit(
-            smodel, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma, Jw,
-            rho_full, verbose)
+            smodel, own_groups, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
+            Jw, rho_full, verbose, deepest)
         correction = _correction(corr_model, u_fit, carriers, form)
-        results = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
-                   and v.form == form else v for v in results]
+        done = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
+                and v.form == form else v for v in results]
         ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL, snaps=snaps)
-    sentence = describe(best, form, results, load, after, alternatives, carriers, ww)
-    return ShapeResult(after, best, form, tuple(results), ALPHA, sigma, rmse_before, rmse_after,
-                       Model.evaluations - evals0, status, sentence, load,
-                       np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
-                       exp_name, tuple(alternatives), forms, tuple(carriers), correction, ww,
-                       num_info, knots=knots)
+        return result(done, rmse_after, status, correction, ww,
+                      linear.evaluations + Model.evaluations - e0)
+
+    linear = result(results, None, "none", {}, None, Model.evaluations - evals0 + spent)
+    if not sig:
+        return linear
+    linear = replace(linear, status="pending", pending=finish)
+    return linear if defer else linear.finished()
 
 
 def _coarse(smodel: Model, groups, basis) -> Model:
-    """`smodel` with no more than `JACOBIAN_NODES` nodes (itself if it has no more). The
-    steps per cycle stay the fit's: a deposit at the reversals lives on how the load is
-    sampled in time (measured: the columns of a 60-step model predicted a 72-step model's
-    misfit falling 85 %, where it fell 57 %)."""
+    """`smodel` with no more than `JACOBIAN_NODES` nodes and, for the adaptive integrator,
+    `JACOBIAN_TOLERANCE` times its tolerance (itself where neither changes it). The steps
+    per cycle stay the fit's: a deposit at the reversals lives on how the load is sampled
+    in time (measured: the columns of a 60-step model predicted a 72-step model's misfit
+    falling 85 %, where it fell 57 %)."""
     from dataclasses import replace as dreplace
 
     st = smodel.study
     cfg = st.config
     nodes = min(cfg.nodes, JACOBIAN_NODES)
-    if nodes == cfg.nodes:
+    adaptive = bool(smodel.ext.schedule.adaptive)
+    if nodes == cfg.nodes and not adaptive:
         return smodel
     coarse = dreplace(st, config=cfg.replace(nodes=nodes))
+    if adaptive:
+        coarse = dreplace(coarse, wear_tolerance_um=st.wear_tolerance_um * JACOBIAN_TOLERANCE)
     return Model(coarse, keys=smodel.keys, start=smodel.start, candidates=groups,
                  contact=smodel.contact, shape=basis)
 
@@ -573,8 +736,8 @@ def _carriers(results, top) -> tuple:
     return tuple([top.name] + [v.name for v in others][:MAX_CARRIERS - 1])
 
 
-def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
-           Jw, rho_full, verbose):
+def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
+           sigma, Jw, rho_full, verbose, deepest: int = 0):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
@@ -586,7 +749,12 @@ def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, 
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
-    cm = smodel.variant(shape=ShapeBasis(tuple(vars_)))
+    # the fit's own candidate groups only (the design may carry more, held at off)
+    cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_)))
+    # the when/where map of this model compiles in the background while the refit runs
+    from ._shape_map import compile_maps
+
+    maps = Background(compile_maps, cm, deepest)
     u0 = _map_u(smodel, u, cm)
     # the joint linearised start over the carriers (their GCV penalty)
     A, S = lin.block_penalty([blocks[lab][:2] for lab in labels])
@@ -651,6 +819,7 @@ def _refit(smodel: Model, ev, u, free_base, blocks, carriers, form, rho, n_res, 
     out = lsq.solve(evaluate, np.clip(u0, lo, hi), free=free, lower=lo, upper=hi,
                     noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
                     project=cm.packing.project, label=f"    shape {form}", log=log)
+    maps.result()
     r = out.point.r
     snaps = getattr(out.point.extra, "snaps", None)
     if snaps is not None and not np.array_equal(np.asarray(out.point.u), np.asarray(out.u)):

@@ -99,6 +99,10 @@ class Smoother:
         B = self.Vt.T * self.s  # A'U = V Σ
         self.M = np.stack([B.T @ inv @ B for inv in self.inv])  # (L, m, m)
         self.trace = np.einsum("lii->l", self.M)
+        # 2 y·My − ||My||² = y'(M + M' − M'M)y: one quadratic form per λ (the null's
+        # 20000 draws x 41 penalties: 2.5x faster than the two contractions)
+        Mt = self.M.transpose(0, 2, 1)
+        self.Q = self.M + Mt - np.matmul(Mt, self.M)
         self.AtU = B
 
     @property
@@ -107,9 +111,10 @@ class Smoother:
 
     def rss_drop(self, Y):
         """RSS_0 − RSS_λ (..., L) for y's (..., m): 2 y·ŷ − ||ŷ||²."""
-        Yh = np.einsum("lij,...j->...li", self.M, Y)
-        return 2 * np.einsum("...i,...li->...l", Y, Yh) - np.einsum("...li,...li->...l",
-                                                                    Yh, Yh)
+        Y = np.asarray(Y, np.float64)
+        flat = Y.reshape(-1, Y.shape[-1])
+        d = np.einsum("ldi,di->dl", np.matmul(flat[None], self.Q), flat, optimize=True)
+        return d.reshape(*Y.shape[:-1], self.Q.shape[0])
 
     def choose(self, drop, rss0, n_res):
         """GCV: argmin over λ of RSS_λ / (n − tr)² (rss0, n_res: the base fit's)."""
@@ -140,7 +145,7 @@ def penalised_fit(A, S, rho, n_res, nu, rng, draws) -> PenalisedFit:
     """The GCV-penalised fit of A's columns to ρ, with the null distribution of its ΔRSS
     simulated with the penalty re-chosen in every draw (so the choice is paid for): y* ~
     N(0, I), the rest of the base residual χ²_{n_res − m}, σ̂²/σ² ~ χ²_ν/ν;
-    p = (1 + #{T* ≥ T}) / (1 + draws)."""
+    p = (1 + #{T* ≥ T}) / (1 + n), n ≤ draws (`null_p_value`)."""
     sm = Smoother(A, S)
     y = sm.U.T @ rho
     rss0 = float(rho @ rho)
@@ -152,9 +157,28 @@ def penalised_fit(A, S, rho, n_res, nu, rng, draws) -> PenalisedFit:
                         sm.inv[i], i)
 
 
+FIRST_DRAWS = 2000  # the null's first batch; more only where the statistic is rare
+STOP_AT = 20  # exceedances that end the simulation (Besag & Clifford's sequential p)
+
+
 def null_p_value(sm: Smoother, T: float, n_res, nu, rng, draws) -> float:
+    """p = (1 + #{T* ≥ T}) / (1 + n) over n simulated nulls: `FIRST_DRAWS` first, the
+    rest of `draws` only where fewer than `STOP_AT` exceeded T (Besag & Clifford 1991:
+    a p-value that is already ≥ ~0.01 needs no resolution near the Bonferroni level;
+    the variables of a null study cost a tenth)."""
     if draws <= 0 or sm.m == 0:
         return math.nan
+    done, hits = 0, 0
+    for n in (min(draws, FIRST_DRAWS), draws - min(draws, FIRST_DRAWS)):
+        if n <= 0 or (done and hits >= STOP_AT):
+            break
+        hits += int(np.sum(_null_statistics(sm, n_res, nu, rng, n) >= T))
+        done += n
+    return (1.0 + hits) / (1.0 + done)
+
+
+def _null_statistics(sm: Smoother, n_res, nu, rng, draws) -> np.ndarray:
+    """T* of `draws` simulated nulls (the penalty re-chosen in each)."""
     m = sm.m
     Y = rng.standard_normal((draws, m))
     rest = rng.chisquare(max(n_res - m, 1), draws)
@@ -163,8 +187,7 @@ def null_p_value(sm: Smoother, T: float, n_res, nu, rng, draws) -> float:
     rss0_star = np.einsum("ij,ij->i", Y, Y) + rest / s2
     d_star = sm.rss_drop(Y)
     j = sm.choose(d_star, rss0_star, n_res)
-    T_star = d_star[np.arange(draws), j]
-    return (1.0 + float(np.sum(T_star >= T))) / (1.0 + draws)
+    return d_star[np.arange(draws), j]
 
 
 def psolve(H: np.ndarray, b: np.ndarray) -> np.ndarray:

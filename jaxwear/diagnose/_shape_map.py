@@ -85,7 +85,8 @@ def when_where(cm, u, cov, experiment: str, deepest: int, level: float, snaps=No
     if not np.all(np.isfinite(snaps)):
         return None
     h = jnp.asarray(snaps[deepest, -1] * 1e-6)
-    (Jw, Jr), (when, where), (d, load_n, turn) = _jit_maps(cm.ext, jnp.asarray(u), deepest, h)
+    (Jw, Jr), (when, where), (d, load_n, turn) = _jit_maps(cm.ext.with_schedule(None),
+                                                           jnp.asarray(u), deepest, h)
     Jw, Jr = np.asarray(Jw), np.asarray(Jr)
     when, where, d = np.asarray(when), np.asarray(where), np.asarray(d)
     load_n, turn = np.asarray(load_n), np.asarray(turn)
@@ -106,6 +107,19 @@ def when_where(cm, u, cov, experiment: str, deepest: int, level: float, snaps=No
                      load_n, turn, tuple(rev), float(phase[int(np.argmax(load_n))]), share,
                      arcs(phase, np.clip(when, 0, None)), arcs(bore, np.clip(where, 0, None)),
                      total)
+
+
+def compile_maps(cm, deepest: int) -> None:
+    """Compile (and run once) the map's function for the model `cm` on experiment
+    `deepest`, so that `when_where` finds it compiled: `_shape` calls this in the
+    background while the refit compiles and runs (the map's compilation is ~5 s of the
+    analysis). A failure here is left to `when_where` to meet and report."""
+    try:
+        ext = cm.ext.with_schedule(None)  # the schedule's attempt count: no new program
+        jax.block_until_ready(_jit_maps(ext, jnp.zeros(len(cm.names)), deepest,
+                                        jnp.zeros(ext.cfg.nodes)))
+    except Exception:  # noqa: BLE001 (the real call reports it)
+        pass
 
 
 @eqx.filter_jit

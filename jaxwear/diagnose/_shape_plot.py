@@ -19,16 +19,18 @@ def shape_figure(result, label: str):
     peak (factor: g = ln of the rate factor; deposit: e, the extra depth × arc per step);
     beneath, where on the bore of the most-worn experiment it lands (linearised, at its
     last measurement)."""
+    from matplotlib.figure import Figure
+
     from ._shape_text import p_text
 
-    pl = plt()
     form = "deposit" if label.startswith("deposit:") else "factor"
     v = result.variable(label.removeprefix("deposit:"), form)
     # fixed margins, not tight_layout: its text measurement drew every figure twice, a
-    # third of the ~30 figures' writing time (the labels here are known and fit)
-    fig, axes = pl.subplots(2, 1, figsize=(7, 5.4),
-                            gridspec_kw=dict(left=0.14, right=0.97, top=0.9, bottom=0.09,
-                                             hspace=0.5))
+    # third of the ~30 figures' writing time (the labels here are known and fit). A
+    # `Figure`, not pyplot's: `shape_pngs` draws these in a thread of its own.
+    fig = Figure(figsize=(7, 5.4))
+    axes = fig.subplots(2, 1, gridspec_kw=dict(left=0.14, right=0.97, top=0.9, bottom=0.09,
+                                               hspace=0.5))
     ax = axes[0]
     ax.fill_between(v.z, v.g_lower, v.g_upper, color="C0", alpha=0.25,
                     label=f"{int(result_level() * 100)} % band")
@@ -57,6 +59,27 @@ def shape_figure(result, label: str):
     ax4.set_title(f"where it lands ({result.experiment}, last measurement, linearised)",
                   fontsize=9)
     return fig
+
+
+DPI = 110  # of the written figures (`OutputDir.savefig`'s)
+
+
+def shape_pngs(results) -> list[dict]:
+    """PNG bytes {label: bytes} of every variable figure of each result (None: {}) whose
+    figure its refit will not change (`ShapeResult.settled_labels`). Drawn while the refit
+    runs (`diagnose`, in a thread of its own: pyplot is not used), written by the CLI."""
+    import io
+
+    out = []
+    for res in results:
+        pngs = {}
+        for label in (() if res is None else res.settled_labels()):
+            fig = shape_figure(res, label)
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png", dpi=DPI)
+            pngs[label] = buf.getvalue()
+        out.append(pngs)
+    return out
 
 
 def when_where_figure(result):

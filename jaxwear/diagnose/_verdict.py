@@ -35,7 +35,7 @@ COMPARABLE = 0.5
 
 def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
              noise_um: float | None = None, shape: bool = False, seed: int = 0,
-             auto_shape: bool = True) -> Diagnosis:
+             auto_shape: bool = True, figures: bool = False) -> Diagnosis:
     """Diagnose a study (module docstring). Progress on stderr when `verbose`.
 
     `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
@@ -43,7 +43,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     (`_shape`); without it, only when the verdict is `unexplained` (DESIGN §7), unless
     `auto_shape` is False (the verdict alone, e.g. a validation script's many studies: the
     shape never changes the verdict and costs more than it); `seed` of its null
-    simulations.
+    simulations. `figures`: draw the shape's variable figures (PNG, `ShapeResult.pngs`)
+    while its refit runs, for the caller to write (the CLI's `--out`).
     """
     if noise_um is None:
         noise_um = study.noise_um
@@ -53,6 +54,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     resolution = None
     start = None
     defect = None
+    finer_minus_rows = None  # calibrate's resolution check at its answer (µm per row)
     if study.auto_resolution or study.angle_tolerance_deg > 0:
         # the base model's fit by calibrate's path: the resolution it needs, checked at its
         # answer (DESIGN §6), and the scans' registration where the study fits it; the
@@ -73,6 +75,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             jac = resolution["jacobian"]
             study = at_level(study, (jac["nodes"], jac["steps_per_rev"]))
             defect = r.problem.defect
+            finer_minus_rows = r.finer_minus_rows_um
             if resolution.get("corrected_to"):
                 _log(verbose, f"  rows corrected to {resolution['nodes']} x "
                               f"{resolution['steps_per_rev']} (defect correction, held "
@@ -93,6 +96,15 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     _log(verbose, f"  {model.n} data rows; candidates: {', '.join(model.candidates) or 'none'}"
                   " (the first evaluation compiles the extended model)")
     models = {None: model}
+    job = None
+    if shape and start is not None:
+        # the shape's design needs the base model's answer only: calibrate's path has it
+        # (u = 0 here), so its Jacobian compiles and runs while the verdict's base fit,
+        # screens and refits run (`_shape.Background`)
+        from ._shape import Background, at_answer, prepare_design
+
+        job = Background(prepare_design, model, at_answer(model, r.evaluation),
+                         verbose=verbose)
 
     def by_contact(contact):
         if contact not in models:
@@ -116,6 +128,11 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     base = fit_masked(model, model.base_mask, u0, noise_um=noise, noise_dof=nu, label="base",
                       ev0=ev0, verbose=verbose)
     _check_derivatives(model, base)
+    if shape and job is None:
+        # the shape's design needs only the base fit: computed while the verdict runs
+        from ._shape import Background, prepare_design
+
+        job = Background(prepare_design, model, base, verbose=verbose)
     pairs = neighbour_pairs(model)
     _log(verbose, f"  base RMSE {base.rmse:.4f} µm, noise {noise:.4f} µm (ν = {nu:.4g})")
 
@@ -215,16 +232,34 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     if shape or (auto_shape and status == "unexplained"):
         from ._shape import shape_analysis
 
-        # with the effect's own contact model the two analyses share their compiled
-        # functions: the first carries the effect at off, the second its basis
-        share = status == "effect_found" and by_contact(final.contact) is model
+        # both analyses' linear parts first, their refits through the loop after (`defer`),
+        # so that the figures the refits do not change are drawn while they run
         shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
-                             verbose=verbose, also=final.groups if share else ())
+                             verbose=verbose, design=None if job is None else job.result(),
+                             numerical_um=(finer_minus_rows if _at_start(base, 0.1)
+                                           else None), defer=figures)
         after = None
         if status == "effect_found":
+            # with the effect's own contact model, on the first analysis's columns (its
+            # design carries every candidate, held at off: nesting)
+            share = by_contact(final.contact) is model and set(final.groups) <= set(
+                shp.design.groups)
             after = shape_analysis(by_contact(final.contact), final, noise, nu,
                                    after=" + ".join(effects), seed=seed, verbose=verbose,
-                                   knots=shp.knots if share else None)
+                                   design=shp.design if share else None, defer=figures)
+        drawing = None
+        if figures:
+            from ._shape import Background
+            from ._shape_plot import shape_pngs
+
+            drawing = Background(shape_pngs, [shp, after])
+        shp = shp.finished()
+        after = after.finished() if after is not None else None
+        if drawing is not None:
+            pngs, pngs_after = drawing.result()
+            shp = replace(shp, pngs=pngs)
+            if after is not None:
+                after = replace(after, pngs=pngs_after)
         diag = replace(diag, shape=shp, shape_after_effect=after)
         summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else []))
     own = Model.evaluations - evals0
@@ -241,3 +276,13 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                     f"{comp['jacobian']} Jacobian and {comp['forward']} forward "
                     f"compilations)")
     return diag
+
+
+def _at_start(fit, se: float) -> bool:
+    """True where `fit` ended within `se` standard errors of its start (u = 0: the answer
+    of calibrate's path), so that what was computed at that answer holds at this one."""
+    if fit.cov is None:
+        return False
+    u = np.asarray(fit.ev.u)[np.asarray(fit.mask, bool)]
+    sd = np.sqrt(np.clip(np.diag(np.asarray(fit.cov.cov)), 0.0, None))
+    return bool(np.all(np.abs(u) <= se * np.where(np.isfinite(sd), sd, 0.0)))
