@@ -55,6 +55,9 @@ def _key(p: Path):
         return ("path", p.resolve())
 
 
+FIGURE_DPI = 110  # of every figure a verb writes
+
+
 class OutputDir:
     """An output folder whose writes never replace an input file and are atomic.
 
@@ -160,7 +163,7 @@ class OutputDir:
             writer(tmp)
         return p
 
-    def savefig(self, fig, name: str, dpi: int = 110) -> Path:
+    def savefig(self, fig, name: str, dpi: int = FIGURE_DPI) -> Path:
         p = self.path(name)
         save_figure(fig, p, dpi)
         return p
@@ -263,7 +266,7 @@ def atomic_write(path, data: str | bytes) -> None:
         f.write(data)
 
 
-def save_figure(fig, path, dpi: int = 110) -> None:
+def save_figure(fig, path, dpi: int = FIGURE_DPI) -> None:
     """`fig.savefig` through a temporary file (format from the suffix)."""
     path = Path(path)
     with atomic_open(path, "wb") as f:

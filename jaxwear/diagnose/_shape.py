@@ -737,7 +737,7 @@ def _carriers(results, top) -> tuple:
 
 
 def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
-           sigma, Jw, rho_full, verbose, deepest: int = 0):
+           sigma, Jw, rho_full, verbose, deepest: int):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for

@@ -61,14 +61,13 @@ def shape_figure(result, label: str):
     return fig
 
 
-DPI = 110  # of the written figures (`OutputDir.savefig`'s)
-
-
 def shape_pngs(results) -> list[dict]:
     """PNG bytes {label: bytes} of every variable figure of each result (None: {}) whose
     figure its refit will not change (`ShapeResult.settled_labels`). Drawn while the refit
     runs (`diagnose`, in a thread of its own: pyplot is not used), written by the CLI."""
     import io
+
+    from .._io import FIGURE_DPI
 
     out = []
     for res in results:
@@ -76,7 +75,7 @@ def shape_pngs(results) -> list[dict]:
         for label in (() if res is None else res.settled_labels()):
             fig = shape_figure(res, label)
             buf = io.BytesIO()
-            fig.savefig(buf, format="png", dpi=DPI)
+            fig.savefig(buf, format="png", dpi=FIGURE_DPI)
             pngs[label] = buf.getvalue()
         out.append(pngs)
     return out
