@@ -45,6 +45,18 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), else the platform's: hosts of the same core
+    count differed 2x in speed between sessions, so the table says which one it is."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return f"{platform.machine()} ({line.split(':', 1)[1].strip()})"
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def strip_numerics(path: Path, effects: list[str] | None = None) -> None:
     text = re.sub(r"\[numerics\][^\[]*", "", path.read_text())
     if effects is not None:
@@ -249,7 +261,7 @@ def main(argv=None) -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     lines = ["# Time to an answer (benchmarks/time_to_answer.py)", "",
-             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+             f"Machine: {cpu_model()}, {os.cpu_count()} cores; "
              f"CLI wall clock per command in a fresh process; cold: an empty persistent "
              f"compilation cache, warm: the second run with that cache; load average "
              f"(1 min) before/after each run in the last column.", "",

@@ -43,7 +43,7 @@ from scipy import special
 
 from ._errors import InputError
 from ._predict_draws import DrawForecasts, new_measurements, run_forward
-from ._predict_nuts import _arviz, sampling_setup
+from ._predict_nuts import _arviz, prior_density, sampling_setup
 
 NU = 7.0  # the proposal's Student-t degrees of freedom
 K_GOOD, K_USABLE = 0.5, 0.7  # PSIS k̂ thresholds (Vehtari et al. 2024)
@@ -117,11 +117,37 @@ def systematic_resample(w, n: int, rng) -> np.ndarray:
     return np.minimum(np.searchsorted(np.cumsum(w), pos), len(w) - 1)
 
 
+MAX_OVERSAMPLE = 1000  # proposal draws per kept draw at most, where a support is given
+
+
+def truncated_sample(rng, mean, chol, n: int, nu: float, support=None):
+    """n draws of the t proposal restricted to `support` (x (m, d) ↦ bool (m,), cheap: no
+    model run), by rejection; and how many were rejected. Self-normalised importance
+    weights are unchanged by the restriction (q/Z instead of q: a constant factor), so the
+    model runs only where the density can be finite. Past `MAX_OVERSAMPLE` x n proposals
+    the rest are plain proposal draws (their weights are 0)."""
+    if support is None:
+        return t_sample(rng, mean, chol, n, nu), 0
+    kept, tried, have = [], 0, 0
+    while have < n and tried < MAX_OVERSAMPLE * n:
+        x = t_sample(rng, mean, chol, n, nu)
+        tried += n
+        x = x[np.asarray(support(x), bool)]
+        kept.append(x)
+        have += len(x)
+    if have < n:
+        kept.append(t_sample(rng, mean, chol, n - have, nu))
+    x = np.concatenate(kept)[:n]
+    return x, tried - min(have, n)
+
+
 def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
-                      rounds: int = 2, nu: float = NU, log=None):
+                      rounds: int = 2, nu: float = NU, log=None, support=None):
     """PSIS importance sampling of a density from a multivariate-t proposal (module
     docstring). `log_density`: x (n, d) ↦ log densities (n,) up to a constant (-inf
-    outside the support); `mean` (d,), `chol` (d, d): the proposal's centre and scale.
+    outside the support); `mean` (d,), `chol` (d, d): the proposal's centre and scale;
+    `support`: x (n, d) ↦ bool (n,), where the density can be finite (the prior's
+    support), to draw from the proposal restricted to it (`truncated_sample`).
     Returns (draws (chains, draws, d), normalised smoothed weights (chains, draws), each
     batch's normalised on its own, the rounds' history: k̂ and weights' ESS per batch)."""
     mean, chol = np.asarray(mean, np.float64), np.asarray(chol, np.float64)
@@ -130,7 +156,7 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
     history = []
     for r in range(max(1, rounds)):
         t0 = time.perf_counter()
-        x = t_sample(rng, mean, chol, n, nu)
+        x, rejected = truncated_sample(rng, mean, chol, n, nu, support)
         lp = np.asarray(log_density(x), np.float64)
         lw = np.where(np.isfinite(lp), lp - t_logpdf(x, mean, chol, nu), -np.inf)
         x = x.reshape(chains, draws, d)
@@ -140,7 +166,8 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
         k = [b for _, b in per]
         history.append({"round": r + 1, "k_hat": [float(v) for v in k],
                         "ess": [ess_of(w[c]) for c in range(chains)],
-                        "outside_support": int(np.sum(~np.isfinite(lw)))})
+                        "outside_support": int(np.sum(~np.isfinite(lw))),
+                        "proposals_rejected": int(rejected)})
         if log:
             log(f"predict/importance: round {r + 1}: k̂ " + ", ".join(f"{v:.2f}" for v in k)
                 + "; weights' ESS " + ", ".join(f"{e:.0f}" for e in history[-1]["ess"])
@@ -158,6 +185,12 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
         except np.linalg.LinAlgError:
             break
     return x, w, history
+
+
+def _share_in_support(in_support, mean, chol, rng, n: int = 4000) -> float:
+    """Share of `n` draws of the proposal t(mean, chol) inside the support (`in_support`:
+    x (n, d) ↦ bool (n,))."""
+    return float(np.mean(np.asarray(in_support(jnp.asarray(t_sample(rng, mean, chol, n))))))
 
 
 def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.9,
@@ -203,10 +236,16 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     n = chains * draws
     n_pred = min(n_predictive, n)
     par = max(1, min(workers, 2))
+    # the proposal is restricted to the prior's support (a cheap check, no model run):
+    # every draw then runs the model once; the share inside, for the log
+    prior = prior_density(problem, noise_um, white)
+    in_support = jax.jit(jax.vmap(lambda xx: jnp.isfinite(prior(z_of(xx))[2])))
+    inside = _share_in_support(in_support, mean, chol, np.random.default_rng([seed, 1]))
     est = (n * t_eval + n_pred * t_fc) / par
     _log(verbose, f"predict/importance: {p} parameters{'' if given else ' + noise'}; log "
                   f"density {t_eval * 1e3:.0f} ms (compiled in {t_compile:.0f} s), forecast "
-                  f"{t_fc * 1e3:.0f} ms; estimated run time {est / 60:.1f} min "
+                  f"{t_fc * 1e3:.0f} ms; {inside:.1%} of the proposal inside the prior's "
+                  f"support (drawn from there); estimated run time {est / 60:.1f} min "
                   f"({n} draws per round, {n_pred} forecasts, {par} threads)")
     if est > 60 * max_minutes:
         raise InputError(f"--max-minutes: importance sampling would take about "
@@ -221,7 +260,8 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     x, w, history = importance_sample(evaluate, mean, chol, draws, chains, rng, rounds=rounds,
-                                      log=(lambda m: _log(True, m)) if verbose else None)
+                                      log=(lambda m: _log(True, m)) if verbose else None,
+                                      support=lambda xs: np.asarray(in_support(jnp.asarray(xs))))
     t_run = time.perf_counter() - t0
     xf = x.reshape(-1, d)
     wp = (w / chains).reshape(-1)  # pooled normalised weights

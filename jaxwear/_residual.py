@@ -124,12 +124,24 @@ def _stack(trees):
     return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
 
 
+def _run_length(e) -> dict:
+    """`build_schedule`'s run length of an experiment's residuals: up to its last measured
+    point, not past it (nothing after it enters a residual: a forecast's training study
+    keeps the experiment's duration, and its fits ran 25 h of the boom for data to 15 h)."""
+    pts = e.snapshot_points
+    end = max(pts) if pts else None
+    if e.hours is not None:
+        return {"revolutions": None, "hours": e.hours if end is None else min(e.hours, end)}
+    return {"revolutions": e.revolutions if end is None or e.revolutions is None
+            else min(e.revolutions, end), "hours": None}
+
+
 def experiment_schedules(study: Study, plist: list[Params], layout: Layout | None = None
                          ) -> Schedule:
     """Every experiment's schedule (to its data's snapshot points), padded and batched;
     with a `layout`, padded to its capacities (which must hold it) with the early-stop
     arrays at +inf (never stops)."""
-    scheds = [build_schedule(p, study.config, revolutions=e.revolutions, hours=e.hours,
+    scheds = [build_schedule(p, study.config, **_run_length(e),
                              snapshots=e.snapshot_points or [e.hours or e.revolutions],
                              pad=False, **schedule_numerics(study))
               for p, e in zip(plist, study.experiments)]

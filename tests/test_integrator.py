@@ -206,7 +206,12 @@ def test_boom_calibration_right_by_default(tmp_path):
     for i, n in enumerate(a.names):
         se = max(a.stderr[i], b.stderr[i])
         assert abs(a.values[i] - b.values[i]) <= se, n
-    assert a.rmse_um == pytest.approx(b.rmse_um, rel=0.05)
+    # one-sided: eq 23 at M = 10 is near its stability limit at the fitted K_d (more so in
+    # running-in's first cycles), so its objective is rough at the round-off level and the
+    # tuned fit can stall short of the minimum (measured on an AMD EPYC host at the tests'
+    # LLVM O1: every step rejected up to λ 2e3 at RMSE 2.51 µm; 1.965 µm at O2, as the
+    # default's); the default (error-controlled) fit must do at least as well
+    assert a.rmse_um <= 1.05 * b.rmse_um
     integ = a.to_json()["integration"]
     assert integ["integrator"] == "adaptive"
     assert 0 < integ["error_estimate_um"] <= integ["tolerance_um"]

@@ -327,6 +327,49 @@ def test_nuts_log_density_is_the_gaussian_posterior(study_path):
         pytest.approx(float(logp({"u": z["u"], "log_noise": white.log_noise_hat})), abs=1e-9)
 
 
+def test_density_outside_the_prior_runs_no_model(study_path):
+    """Outside the prior's support (here ln σ above its bound) the log density is -inf
+    without a run of the wear model (the importance proposal's draws on the boom fell
+    there 3 times in 4, ~1 s each, once 94 s); inside it runs once. The run-time estimate's
+    share of the proposal inside the support: a t centred on the bound is half inside."""
+    import jax
+
+    from jaxwear._calibrate import build_problem, parse_fit
+    from jaxwear._predict import training_study
+    from jaxwear._predict_importance import _share_in_support
+    from jaxwear._predict_nuts import log_density, prior_density
+
+    train = training_study(load_study(study_path), 2000.0)
+    problem = build_problem(train, parse_fit(train, "K_d"))
+    runs = []
+
+    class Counting:
+        """The problem, counting executed model runs (a callback in the run's branch)."""
+
+        def __getattr__(self, name):
+            return getattr(problem, name)
+
+        def snapshots(self, u):
+            jax.debug.callback(lambda: runs.append(1))
+            return problem.snapshots(u)
+
+    logp = jax.jit(log_density(Counting()))
+    inside = {"u": jnp.zeros(1), "log_noise": jnp.asarray(math.log(0.3))}
+    outside = {"u": jnp.zeros(1), "log_noise": jnp.asarray(math.log(2e3))}
+    assert math.isfinite(float(logp(inside)))
+    jax.effects_barrier()
+    assert len(runs) == 1
+    assert float(logp(outside)) == -math.inf
+    jax.effects_barrier()
+    assert len(runs) == 1
+
+    prior = prior_density(problem)
+    in_support = jax.vmap(lambda x: jnp.isfinite(prior({"u": x[:1], "log_noise": x[1]})[2]))
+    share = _share_in_support(in_support, np.array([0.0, math.log(1e3)]),
+                              np.diag([1.0, 0.1]), np.random.default_rng(0))
+    assert 0.45 < share < 0.55  # 4000 draws: SE 0.008
+
+
 def test_adaptive_study_reports_the_forecast_integration(study_path, forecast, tmp_path):
     """The same data under the default (adaptive) integrator: the forecast says its
     integration error (within the tolerance) and steps, no eq-23 stability refit is
