@@ -14,7 +14,9 @@ Weights are smoothed by PSIS (Vehtari et al. 2024, `arviz.psislw`) per batch; it
 whether they can be trusted: k̂ ≤ 0.5 good, ≤ 0.7 usable (the estimates' error then
 converges, slowly), > 0.7 unreliable (flagged). When the first round's k̂ exceeds 0.5 the
 proposal is moved to the weighted moments of the draws (mean and covariance, t tails
-kept) and sampled again (`rounds`); the last round is the answer.
+kept) and sampled again (`rounds`); so it is where the weights' ESS is below
+`ESS_SHARE_GOOD` of the draws (a proposal far wider than the posterior: reliable weights,
+carried by few draws). The last round is the answer.
 
 Diagnostics per parameter (in the values' units): weighted mean, sd and quantiles; the
 effective sample size of its mean, ESS_h = Σw(h − h̄)² / Σw²(h − h̄)² (w normalised,
@@ -47,6 +49,7 @@ from ._predict_nuts import _arviz, prior_density, sampling_setup
 
 NU = 7.0  # the proposal's Student-t degrees of freedom
 K_GOOD, K_USABLE = 0.5, 0.7  # PSIS k̂ thresholds (Vehtari et al. 2024)
+ESS_SHARE_GOOD = 0.25  # below this share of the draws, the weights' ESS moves the proposal
 
 
 def _log(verbose, msg):
@@ -172,7 +175,11 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
             log(f"predict/importance: round {r + 1}: k̂ " + ", ".join(f"{v:.2f}" for v in k)
                 + "; weights' ESS " + ", ".join(f"{e:.0f}" for e in history[-1]["ess"])
                 + f" of {draws} ({time.perf_counter() - t0:.0f} s)")
-        if max(k) <= K_GOOD or r + 1 >= rounds:
+        # another round where the weights are unreliable (k̂) or where they are reliable
+        # but few carry them: a proposal far wider than the posterior (the boom's
+        # undetermined running-in pair: weights' ESS 114-125 of 1000, k̂ -0.05)
+        few = min(history[-1]["ess"]) < ESS_SHARE_GOOD * draws
+        if (max(k) <= K_GOOD and not few) or r + 1 >= rounds:
             break
         # move the proposal to the draws' weighted moments (t tails kept)
         wp = (w / chains).reshape(-1)

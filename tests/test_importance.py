@@ -14,6 +14,7 @@ import pytest
 from scipy import stats
 
 from jaxwear._predict_importance import (
+    ESS_SHARE_GOOD,
     K_GOOD,
     K_USABLE,
     ess_of,
@@ -130,3 +131,22 @@ def test_proposal_restricted_to_the_support_gives_the_same_posterior(gaussian):
     assert abs(wp @ xf[:, 0] - exact) < 4 * s0 / math.sqrt(ess_of(wp, xf[:, 0]))
     plain = importance_sample(truncated, mu, L, 2000, 2, np.random.default_rng(4), rounds=1)
     assert min(hist[0]["ess"]) > 1.5 * min(plain[2][0]["ess"])
+
+
+def test_too_wide_a_proposal_is_moved_for_its_few_weights(gaussian):
+    """A proposal 2.5 times the posterior's width: the weights are reliable (k̂ ≤ 0.5: p/q
+    is bounded) but carried by few draws (ESS below ESS_SHARE_GOOD of them: for a normal
+    proposal of s times the width, ESS/n = (√(2s² − 1)/s²)^d = 0.16 at s = 2.5, d = 3, less
+    with the t's tails); the second round, moved to the weighted moments, has at least
+    twice the ESS and recovers μ."""
+    logp, mu, cov = gaussian
+    L = np.linalg.cholesky(cov)
+    x, w, hist = importance_sample(logp, mu, 2.5 * L, 1000, 2, np.random.default_rng(5),
+                                   rounds=2)
+    assert max(hist[0]["k_hat"]) <= K_GOOD, hist
+    assert min(hist[0]["ess"]) < ESS_SHARE_GOOD * 1000 and len(hist) == 2, hist
+    assert min(hist[1]["ess"]) > 2 * min(hist[0]["ess"]), hist
+    xf, wp = x.reshape(-1, D), (w / 2).reshape(-1)
+    sd = np.sqrt(np.diag(cov))
+    for i in range(D):
+        assert abs(wp @ xf[:, i] - mu[i]) < 4 * sd[i] / math.sqrt(ess_of(wp, xf[:, i]))
