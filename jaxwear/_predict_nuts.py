@@ -157,8 +157,8 @@ def log_density(problem, noise_um=None, white: Whitening | None = None):
             return -0.5 * jnp.sum(r ** 2) / jnp.exp(2 * log_s) - r.shape[0] * log_s
 
         # outside the prior's support the density is -inf whatever the model says: the
-        # wear model is not run there (measured on the boom with running-in: 8 of 12 of
-        # the importance proposal's draws, ~0.85 s each, one of them 94 s at an extreme
+        # wear model is not run there (measured on the boom with running-in: 9 of 12 of
+        # the importance proposal's draws, 8 at ~0.85 s, one 94 s at an extreme
         # stiffness). Under vmap both branches run (a select), as before.
         ll = jax.lax.cond(jnp.isfinite(lp), likelihood, lambda _: jnp.asarray(-jnp.inf),
                           None)
