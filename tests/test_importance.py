@@ -90,22 +90,29 @@ def test_too_narrow_a_proposal_is_caught_and_moved(gaussian):
         assert abs(wp @ xf[:, i] - mu[i]) < 4 * sd[i] / math.sqrt(ess_of(wp, xf[:, i]))
 
 
-def test_draws_outside_the_support_weigh_nothing(gaussian):
-    """A prior truncated at θ₀ > μ₀ (uniform-bounded strengths are such priors): draws
-    beyond it get weight 0 and the weighted mean of θ₀ is the truncated normal's."""
+def _truncated_at_mean(gaussian):
+    """The posterior with θ₀ truncated at its mean μ₀ (uniform-bounded strengths are such
+    priors): (log density, cut, Cholesky factor of Σ, sd of θ₀, the exact mean of θ₀)."""
     logp, mu, cov = gaussian
     cut = mu[0]
 
     def truncated(x):
         return np.where(x[:, 0] > cut, logp(x), -np.inf)
 
-    L = np.linalg.cholesky(cov)
+    s0 = math.sqrt(cov[0, 0])
+    exact = mu[0] + s0 * math.sqrt(2 / math.pi)  # half-normal mean above the cut
+    return truncated, cut, np.linalg.cholesky(cov), s0, exact
+
+
+def test_draws_outside_the_support_weigh_nothing(gaussian):
+    """A prior truncated at θ₀ > μ₀: draws beyond it get weight 0 and the weighted mean of
+    θ₀ is the truncated normal's."""
+    truncated, cut, L, s0, exact = _truncated_at_mean(gaussian)
+    mu = gaussian[1]
     x, w, hist = importance_sample(truncated, mu, L, 2000, 2, np.random.default_rng(4),
                                    rounds=1)
     xf, wp = x.reshape(-1, D), (w / 2).reshape(-1)
     assert np.all(wp[xf[:, 0] <= cut] == 0) and hist[0]["outside_support"] > 0
-    s0 = math.sqrt(cov[0, 0])
-    exact = mu[0] + s0 * math.sqrt(2 / math.pi)  # half-normal mean above the cut
     assert abs(wp @ xf[:, 0] - exact) < 4 * s0 / math.sqrt(ess_of(wp, xf[:, 0]))
 
 
@@ -114,20 +121,13 @@ def test_proposal_restricted_to_the_support_gives_the_same_posterior(gaussian):
     model would run only there), the weights are unchanged in law (q restricted to the
     support differs from q by a constant), so the weighted mean is again the truncated
     normal's, with a larger effective sample from the same number of draws."""
-    logp, mu, cov = gaussian
-    cut = mu[0]
-
-    def truncated(x):
-        return np.where(x[:, 0] > cut, logp(x), -np.inf)
-
-    L = np.linalg.cholesky(cov)
+    truncated, cut, L, s0, exact = _truncated_at_mean(gaussian)
+    mu = gaussian[1]
     x, w, hist = importance_sample(truncated, mu, L, 2000, 2, np.random.default_rng(4),
                                    rounds=1, support=lambda x: x[:, 0] > cut)
     xf, wp = x.reshape(-1, D), (w / 2).reshape(-1)
     assert np.all(xf[:, 0] > cut) and hist[0]["outside_support"] == 0
     assert 3000 < hist[0]["proposals_rejected"] < 5000  # about half of ~8000 proposals
-    s0 = math.sqrt(cov[0, 0])
-    exact = mu[0] + s0 * math.sqrt(2 / math.pi)
     assert abs(wp @ xf[:, 0] - exact) < 4 * s0 / math.sqrt(ess_of(wp, xf[:, 0]))
     plain = importance_sample(truncated, mu, L, 2000, 2, np.random.default_rng(4), rounds=1)
     assert min(hist[0]["ess"]) > 1.5 * min(plain[2][0]["ess"])
