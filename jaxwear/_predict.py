@@ -79,14 +79,16 @@ LAPLACE_STOP_LAYERS = 2.0  # Laplace forecasts stop past this multiple of the la
 METHODS = ("laplace", "nuts", "importance")
 # Life crossings are searched on the forecast grid. Maximum depth never decreases in time, so
 # each crossing lies inside its grid bracket: the bracket's width bounds the life's numerical
-# error (reported). The forecast is refined (LIFE_REFINE_POINTS new points inside each
-# bracket, up to LIFE_REFINE_ROUNDS times; NUTS re-forecasts the same draws) until every
-# bracket is within LIFE_RTOL of its crossing. Measured on the boom with the 48-point grid
-# alone (5.2 h steps across its 1 h fast / 4 h slow duty blocks): life 39.55 h
+# error (reported). The forecast is refined (as many new points inside each bracket as
+# bring it within LIFE_RTOL of its crossing in one round, at most LIFE_REFINE_POINTS, up to
+# LIFE_REFINE_ROUNDS times; the sampling methods re-forecast every draw each round) until
+# every bracket is within LIFE_RTOL of its crossing. Measured on the boom with the 48-point
+# grid alone (5.2 h steps across its 1 h fast / 4 h slow duty blocks): life 39.55 h
 # [37.81, 41.42] against 40.54 h [40.13, 40.98] on a 0.1 h grid.
 LIFE_RTOL = 0.005
-LIFE_REFINE_POINTS = 8
+LIFE_REFINE_POINTS = 24
 LIFE_REFINE_ROUNDS = 3
+LIFE_ROOM_ROUNDS = 2  # refinement rounds the fit's compiled layout holds (a third recompiles)
 MAX_REGIME_POINTS = 1000  # duty-block boundaries added to the grid at most
 
 
@@ -206,7 +208,7 @@ def forecast_snapshots(problem, u):
 
 def forecast_layout(study: Study, train: Study, points, refine: bool = True) -> Layout:
     """Capacities (`_residual.Layout`) that hold the training problem and the forecast over
-    `points` with room for the life's refinement rounds (`LIFE_REFINE_ROUNDS` x 3
+    `points` with room for the life's refinement rounds (`LIFE_ROOM_ROUNDS` x 3
     brackets x `LIFE_REFINE_POINTS` more points per experiment), rounded up to buckets:
     the fit and every forecast then share one compiled function. Attempts: the forecast's
     at the study's values (a fit raises them where its values need more)."""
@@ -215,7 +217,7 @@ def forecast_layout(study: Study, train: Study, points, refine: bool = True) -> 
     plist = [study.params(e) for e in study.experiments]
     fs = experiment_schedules(forecast_study(study, points), plist)
     ts = experiment_schedules(train, plist)
-    room = LIFE_REFINE_ROUNDS * 3 * LIFE_REFINE_POINTS if refine else 0
+    room = LIFE_ROOM_ROUNDS * 3 * LIFE_REFINE_POINTS if refine else 0
     return Layout(updates=bucket(max(fs.cycles.shape[-1], ts.cycles.shape[-1]) + room),
                   snapshots=bucket(max(fs.n_snapshots, ts.n_snapshots) + room),
                   attempts=max(fs.attempts, ts.attempts))
@@ -361,13 +363,22 @@ def life_of(name, t, depth, lower, upper, limit, unit, horizon) -> Life:
                 max((b - a for a, b, _ in brackets), default=None), brackets)
 
 
+def refine_count(a: float, b: float) -> int:
+    """Points to add inside the bracket [a, b] so that each part is within LIFE_RTOL of any
+    crossing in it (≥ a), at most LIFE_REFINE_POINTS: one round where that suffices (each
+    round of a sampled forecast runs every draw again: ~185 s on the boom's importance
+    posterior, which took three rounds of 8 points)."""
+    need = math.ceil((b - a) / (LIFE_RTOL * max(abs(a), 1e-300)) * (1 - 1e-12)) - 1
+    return int(min(max(need, 1), LIFE_REFINE_POINTS))
+
+
 def refined_points(study: Study, res: PredictResult, points: list[np.ndarray]):
-    """`points` with LIFE_REFINE_POINTS more inside every life bracket wider than LIFE_RTOL
-    of its crossing (whole revolutions for a crank-slider study); None when none is."""
+    """`points` with `refine_count` more inside every life bracket wider than LIFE_RTOL of
+    its crossing (whole revolutions for a crank-slider study); None when none is."""
     crank = not timed(study.config)
     out, more = [], False
     for pts, life in zip(points, res.life):
-        new = [np.linspace(a, b, LIFE_REFINE_POINTS + 2)[1:-1]
+        new = [np.linspace(a, b, refine_count(a, b) + 2)[1:-1]
                for a, b, x in life.brackets if b - a > LIFE_RTOL * abs(x)]
         new = np.concatenate(new) if new else np.zeros(0)
         new = np.round(new) if crank else np.round(new, 6)

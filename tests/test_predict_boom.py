@@ -186,6 +186,7 @@ def test_life_crossings_hold_their_bound_and_refine_to_it():
 
     first = life(pts[0])
     assert abs(first.at - exact) > LIFE_RTOL * exact  # the grid alone is wrong
+    rounds = 0
     for _ in range(4):
         x = life(pts[0])
         assert abs(x.at - exact) <= x.numerical_error_bound * (1 + 1e-12)
@@ -195,8 +196,11 @@ def test_life_crossings_hold_their_bound_and_refine_to_it():
             break
         assert len(finer[0]) > len(pts[0])
         pts = finer
+        rounds += 1
     assert finer is None and x.numerical_error_bound <= LIFE_RTOL * x.upper
     assert abs(x.at - exact) < 1e-3 * exact
+    # 5.2 h brackets need 5.2 / (0.005 x 31.2 h) ≈ 33 parts: two rounds at 24 points at most
+    assert rounds == 2
 
     boom = SimpleNamespace(config=SimpleNamespace(
         duty_cycle=(SimpleNamespace(duration_h=1.0), SimpleNamespace(duration_h=4.0))))
@@ -204,7 +208,16 @@ def test_life_crossings_hold_their_bound_and_refine_to_it():
     np.testing.assert_allclose(b[:4], [1.0, 5.0, 6.0, 10.0])
     assert b[-1] == 250.0 and len(b) == 100
     grid = np.unique(np.r_[np.linspace(0, 250.0, 49)[1:], b])
-    assert life(grid).at == pytest.approx(exact, abs=1e-9)
+    x = life(grid)
+    assert x.at == pytest.approx(exact, abs=1e-9)
+    # brackets within one duty block (at most 4 h, here 3.75 h from 31.25 h) need
+    # 3.75 / (0.005 x 31.25) = 24 parts: one round suffices
+    assert max(b - a for a, b, _ in x.brackets) <= 4.0 + 1e-9
+    finer = refined_points(study, SimpleNamespace(life=[x]), [grid])
+    assert finer is not None
+    x = life(finer[0])
+    assert all(b - a <= LIFE_RTOL * c for a, b, c in x.brackets)
+    assert refined_points(study, SimpleNamespace(life=[x]), finer) is None
 
 
 def test_worn_through_draws_take_the_prediction_band_past_the_limit():
