@@ -22,7 +22,7 @@ numerics), the boom joint of the paper (calibration/boom, Table 5), both with th
 the error), and a one-experiment rig study at 64 x 72 for the posterior samplers.
 
     python benchmarks/time_to_answer.py [--out benchmarks/TIME_TO_ANSWER.md] [--only TEXT]
-        [--cold-only] [--samplers]
+        [--cold-only] [--samplers] [--logs DIR]
 
 Benchmarks are not tests: figures depend on the machine and its load (recorded before and
 after every command).
@@ -173,6 +173,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "TIME_TO_ANSWER.md"))
     ap.add_argument("--only", default=None, help="run only rows whose label contains this")
     ap.add_argument("--cold-only", action="store_true", help="skip the warm runs")
+    ap.add_argument("--logs", default=None,
+                    help="folder for each run's log (stderr: where its time went)")
     ap.add_argument("--samplers", action="store_true",
                     help="also the posterior samplers (importance, NUTS: minutes each)")
     args = ap.parse_args(argv)
@@ -244,6 +246,9 @@ def main(argv=None) -> int:
                 js = out / "answer.json"
                 wall, doc, err, l0, l1 = run([verb, *cmd, "--out", str(out), "--json", str(js)],
                                              js, cache)
+                if args.logs:
+                    Path(args.logs).mkdir(parents=True, exist_ok=True)
+                    Path(args.logs, f"row{i}-{which}.log").write_text(err)
                 walls.append(wall)
                 loads.append(f"{l0:.1f}/{l1:.1f}")
             docs[label] = doc

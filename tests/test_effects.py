@@ -103,6 +103,35 @@ def test_running_in_block_average_is_exact():
     assert f == pytest.approx(np.mean(1 + 0.7 * np.exp(-s / 5.0)), rel=1e-9)
 
 
+@pytest.mark.parametrize("a", [0.0, 0.01, 1.0, 100.0, 1000.0])
+def test_running_in_clock_inverts_the_block_factor(a):
+    """`cycles_at` inverts the clock τ(n) = n · block_factor(S₀, s, n) (the adaptive loop's
+    independent variable) to round-off, over blocks far shorter and far longer than the
+    running-in distance, and its derivative in a is the implicit function's,
+    dn/da = −(∂τ/∂a) / (∂τ/∂n), ∂τ/∂n the factor at the block's end."""
+    import jax
+
+    eff = get_effect("running_in")
+    for sr in (1e-3, 0.05, 1.0, 1e5):
+        p = jw.preset("boom", running_in_amplitude=a, running_in_distance_m=sr)
+        for s0 in (0.0, 0.5, 10.0):
+            for n in (1e-3, 0.3, 7.0, 1440.0):
+                s0_, ds, n_ = jnp.asarray(s0), jnp.asarray(0.056), jnp.asarray(n)
+                tau = n_ * eff.block_factor(p, s0_, ds, n_)
+                assert float(eff.cycles_at(p, s0_, ds, tau)) == pytest.approx(n, rel=1e-12)
+    p = jw.preset("boom", running_in_amplitude=a, running_in_distance_m=0.3)
+    s0, ds, tau = jnp.asarray(0.1), jnp.asarray(0.056), jnp.asarray(20.0)
+
+    def with_a(x):
+        return p.with_values({"running_in_amplitude": x})
+
+    n = eff.cycles_at(p, s0, ds, tau)
+    dn = jax.grad(lambda x: eff.cycles_at(with_a(x), s0, ds, tau))(jnp.asarray(a))
+    dtau_da = jax.grad(lambda x: n * eff.block_factor(with_a(x), s0, ds, n))(jnp.asarray(a))
+    rate = eff.block_factor(p, s0 + ds * n, ds, jnp.asarray(0.0))
+    assert float(dn) == pytest.approx(-float(dtau_da) / float(rate), rel=1e-9)
+
+
 def test_double_layer_strength_is_a_series_compliance():
     """C_b maps to a backing thickness such that 1/k = (L - h)/E_w + C_b exactly."""
     cand = STRUCTURAL_CANDIDATES["double_layer"]

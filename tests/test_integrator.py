@@ -290,3 +290,42 @@ def test_attempt_estimate_in_one_call_is_the_per_experiment_estimate(tmp_path):
     assert want > adaptive_attempts(jax.tree.map(lambda x: x[0], model.params), model.cfg,
                                     dataclasses.replace(jax.tree.map(
                                         lambda x: x[0], model.schedule), attempts=1))
+
+
+def test_running_in_is_integrated_on_its_clock(monkeypatch):
+    """Running-in at a = 100, S_r = 0.046 m on the boom (the wear rate 101x at the start,
+    decaying within the first cycle; the data fix only a·S_r): stepping in the clock
+    τ = ∫ (1 + a e^(−S/S_r)) dN the fast start costs no steps (about as many as at a = 1
+    with the same a·S_r), where stepping in cycles with the factor in the rate (the clock
+    switched off) takes over twice as many; and both agree within the tolerance, against the
+    latter at a tenth of it."""
+    import jaxwear._wear as wear
+
+    cfg = boom_config(nodes=48, steps_per_rev=72, effects=("running_in",))
+    tol = DEFAULT_WEAR_TOLERANCE_UM
+
+    def run(a, clock=True, tolerance=tol):
+        p = boom(running_in_amplitude=a, running_in_distance_m=4.58 / a)
+        # stepping in cycles needs more attempts than the estimate (which knows no factor)
+        sched = build_schedule(p, cfg, hours=6, snapshots=[1, 5, 6], tolerance_um=tolerance,
+                               attempts=None if clock else 8192)
+        if not clock:
+            monkeypatch.setattr(wear, "_clock_effect", lambda p, effects: None)
+        try:  # a fresh trace each time: the clock is chosen while tracing
+            r = jax.jit(lambda p: wear_loop(p, cfg, sched))(p)
+        finally:
+            monkeypatch.undo()
+        assert np.isfinite(float(r.error_estimate))
+        return np.asarray(r.snapshots) * 1e6, int(r.steps)
+
+    fast, n_fast = run(100.0)
+    slow, n_slow = run(1.0)
+    plain, n_plain = run(100.0, clock=False)
+    ref, _ = run(100.0, clock=False, tolerance=tol / 10)
+    assert n_fast <= 1.5 * n_slow, (n_fast, n_slow)
+    assert n_plain > 2 * n_fast, (n_plain, n_fast)
+    assert np.max(np.abs(fast - ref)) <= tol
+    assert np.max(np.abs(plain - ref)) <= tol
+    # the running-in is over long before 1 h: only a·S_r matters (the excess wear in
+    # metres of steady sliding), so a = 1 with S_r 100x longer differs early, not by much
+    assert 0 < np.max(np.abs(fast - slow)) < 0.5 * fast.max()

@@ -103,6 +103,12 @@ class Effect(eqx.Module):
     - `block_factor(p, sliding_start, sliding_per_cycle, cycles)`: multiplier of a block of
       `cycles` cycles' wear, for effects that depend on the history (S at the block start
       [m], sliding per cycle [m]).
+    - `cycles_at(p, sliding_start, sliding_per_cycle, clock)`: optional inverse of the
+      block factor's clock τ(n) = n · block_factor(p, S₀, s, n) (the factor integrated over
+      n cycles): the n with τ(n) = `clock`, or None (the default). An effect that gives it
+      is the adaptive wear loop's clock: the loop steps in τ, where dh/dτ has no factor, so
+      a large, fast-decaying factor (running-in) costs no steps (`_wear._adaptive_trace`).
+      Only one such effect at a time is a clock.
     """
 
     name: ClassVar[str] = ""
@@ -121,6 +127,10 @@ class Effect(eqx.Module):
     def block_factor(self, p, sliding_start, sliding_per_cycle, cycles):
         """Multiplier of a block of `cycles` cycles' wear (profile frozen within the block)."""
         return jnp.ones(())
+
+    def cycles_at(self, p, sliding_start, sliding_per_cycle, clock):
+        """Cycles n whose clock n · block_factor(p, S₀, s, n) is `clock`, or None (no clock)."""
+        return None
 
     @classmethod
     def strength_keys(cls) -> tuple[str, ...]:
