@@ -388,6 +388,30 @@ def refined_points(study: Study, res: PredictResult, points: list[np.ndarray]):
     return out if more else None
 
 
+def guided_points(study: Study, res: PredictResult, points: list[np.ndarray]):
+    """`points` with a grid every LIFE_RTOL of the crossing over the span of each
+    experiment's life brackets in `res` (a Laplace forecast's: the sampled band's crossings
+    lie near its), where that takes at most LIFE_ROOM_ROUNDS x 3 x LIFE_REFINE_POINTS points
+    (the room the layout keeps for refinements); None where no experiment gets any."""
+    crank = not timed(study.config)
+    out, more = [], False
+    for pts, life in zip(points, res.life):
+        if not life.brackets:
+            out.append(pts)
+            continue
+        a, b = min(x[0] for x in life.brackets), max(x[1] for x in life.brackets)
+        n = math.ceil((b - a) / (LIFE_RTOL * max(a, 1e-300)) * (1 - 1e-12))
+        if not (a > 0 and 1 < n <= LIFE_ROOM_ROUNDS * 3 * LIFE_REFINE_POINTS):
+            out.append(pts)
+            continue
+        new = np.linspace(a, b, n + 1)[1:-1]
+        new = np.round(new) if crank else np.round(new, 6)
+        merged = np.unique(np.concatenate([pts, new[new > 0]]))
+        more |= len(merged) > len(pts)
+        out.append(merged)
+    return out if more else None
+
+
 # ---------------------------------------------------------------- the API
 
 
@@ -524,28 +548,9 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
                          result, cov, null_dirs, noise, result.noise_given, dof, q,
                          list(flags), snaps, J, draws, extra, life)
 
-    draws = extra = forecast_draws = None  # sampled posteriors: draws' forecasts, JSON
-    sampled = method in ("nuts", "importance")
-    if sampled:
-        if method == "nuts":
-            from ._predict_nuts import run_nuts as run_sampler
-        else:
-            from ._predict_importance import run_importance as run_sampler
-
-        _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points")
-        draws, extra, forecast_draws = run_sampler(
-            problem, result, *forecast_at(points, 1.0), noise_um=noise_um,
-            level=level, verbose=verbose, cov=cov, **(nuts_options or {}))
-
-    def evaluate(points, rnd):
-        """The result with the forecast at `points` (round `rnd` of the life refinement)."""
-        nonlocal draws
-        if sampled:
-            if rnd:  # the same posterior draws, forecast at the refined points
-                _log(verbose, f"predict/{method}: life refinement {rnd}: forecasting the "
-                              f"draws at {sum(len(x) for x in points)} points")
-                draws = forecast_draws(*forecast_at(points, 1.0))
-            return assemble(points, flags, None, None, draws, extra)
+    def laplace(points, rnd):
+        """The linearised (Laplace) result with the forecast at `points` (round `rnd` of the
+        life refinement)."""
         _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points"
                       + (f"; life refinement {rnd}" if rnd else ""))
         # past 2x the layer the lower band's crossing of the limit is not looked for
@@ -569,6 +574,41 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
                              f"the forecast exceeds the tolerance {integ['tolerance_um']:g} "
                              f"µm: lower numerics.wear_tolerance_um")
         return assemble(points, run_flags, snaps, J, None, {"integration": integ})
+
+    draws = extra = forecast_draws = None  # sampled posteriors: draws' forecasts, JSON
+    sampled = method in ("nuts", "importance")
+    if sampled:
+        if method == "nuts":
+            from ._predict_nuts import run_nuts as run_sampler
+        else:
+            from ._predict_importance import run_importance as run_sampler
+
+        if life:
+            # Each life refinement round forecasts every draw again (~80 s on the boom's
+            # 200 draws): the draws' first forecast is as fine as the life needs where the
+            # Laplace band crosses the limit (one Jacobian run of the answer, ~2 s there).
+            guided = guided_points(study, laplace(points, 0), points)
+            if guided is not None:
+                _log(verbose, f"predict/{method}: the Laplace forecast's life brackets: "
+                              f"the draws are forecast every {LIFE_RTOL:.1%} there "
+                              f"({sum(len(x) for x in guided) - sum(len(x) for x in points)}"
+                              f" more points)")
+                points = guided
+        _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points")
+        draws, extra, forecast_draws = run_sampler(
+            problem, result, *forecast_at(points, 1.0), noise_um=noise_um,
+            level=level, verbose=verbose, cov=cov, **(nuts_options or {}))
+
+    def evaluate(points, rnd):
+        """The result with the forecast at `points` (round `rnd` of the life refinement)."""
+        nonlocal draws
+        if sampled:
+            if rnd:  # the same posterior draws, forecast at the refined points
+                _log(verbose, f"predict/{method}: life refinement {rnd}: forecasting the "
+                              f"draws at {sum(len(x) for x in points)} points")
+                draws = forecast_draws(*forecast_at(points, 1.0))
+            return assemble(points, flags, None, None, draws, extra)
+        return laplace(points, rnd)
 
     res, rnd = evaluate(points, 0), 0
     while life and rnd < LIFE_REFINE_ROUNDS:

@@ -220,6 +220,40 @@ def test_life_crossings_hold_their_bound_and_refine_to_it():
     assert refined_points(study, SimpleNamespace(life=[x]), finer) is None
 
 
+def test_draws_forecast_on_the_laplace_life_span_need_no_refinement():
+    """The sampled methods forecast their draws once on points every LIFE_RTOL over the span
+    of the Laplace forecast's life brackets (`guided_points`): a sampled band inside the
+    Laplace band (here ±15 µm against ±20 µm around the staircase) then crosses the limit
+    within brackets that need no refinement round, where the plain grid needs one or two
+    (each a forecast of every draw)."""
+    from types import SimpleNamespace
+
+    from jaxwear._predict import LIFE_RTOL, guided_points, life_of, refined_points
+
+    study = SimpleNamespace(config=SimpleNamespace(driver="oscillating"))
+    grid = [np.linspace(0, 250.0, 49)[1:]]
+
+    def life(t, half):
+        y = _staircase(t)
+        return life_of("boom", t, y, y - half, y + half, 500.0, "hours", 250.0)
+
+    laplace = life(grid[0], 20.0)
+    pts = guided_points(study, SimpleNamespace(life=[laplace]), grid)
+    assert pts is not None
+    a = min(x[0] for x in laplace.brackets)
+    b = max(x[1] for x in laplace.brackets)
+    added = len(pts[0]) - len(grid[0])
+    assert added <= (b - a) / (LIFE_RTOL * a) + 1
+    sampled = life(pts[0], 15.0)
+    assert all(b_ - a_ <= LIFE_RTOL * c for a_, b_, c in sampled.brackets), sampled
+    assert refined_points(study, SimpleNamespace(life=[sampled]), pts) is None
+    assert refined_points(study, SimpleNamespace(life=[life(grid[0], 15.0)]), grid) is not None
+    # a life not reached (no bracket) leaves the points alone
+    far = life_of("boom", grid[0], _staircase(grid[0]), _staircase(grid[0]),
+                  _staircase(grid[0]), 1e6, "hours", 250.0)
+    assert guided_points(study, SimpleNamespace(life=[far]), grid) is None
+
+
 def test_worn_through_draws_take_the_prediction_band_past_the_limit():
     """200 draws wearing 10 µm/h, each stopped (worn through) at the first point past the
     500 µm layer, with 5 µm noise. Past a draw's stop a new measurement is past the limit;
