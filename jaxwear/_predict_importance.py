@@ -223,13 +223,15 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
         # move the proposal to the draws' weighted moments (t tails kept)
         wp = (w / chains).reshape(-1)
         xf = x.reshape(-1, d)
-        mean = wp @ xf
-        c = (xf - mean).T @ ((xf - mean) * wp[:, None])
+        centre = wp @ xf
+        c = (xf - centre).T @ ((xf - centre) * wp[:, None])
         c = 0.5 * (c + c.T) + 1e-12 * np.trace(c) * np.eye(d)
         try:
             chol = np.linalg.cholesky(c * (nu - 2) / nu if nu > 2 else c)
+            mean = centre
         except np.linalg.LinAlgError:
-            if x.shape[1] < draws:  # no pilot is an answer: its round is completed
+            # no pilot is an answer: its round is completed from the same proposal
+            if x.shape[1] < draws:
                 x2, lw2, rej2 = sample(draws - x.shape[1])
                 x, lw = np.concatenate([x, x2], 1), np.concatenate([lw, lw2], 1)
                 w, k, ess, _ = weigh(lw)
