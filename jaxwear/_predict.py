@@ -363,13 +363,24 @@ def life_of(name, t, depth, lower, upper, limit, unit, horizon) -> Life:
                 max((b - a for a, b, _ in brackets), default=None), brackets)
 
 
+def _parts(a: float, b: float) -> int:
+    """Equal parts of [a, b] each within LIFE_RTOL of any crossing in it (≥ a)."""
+    return math.ceil((b - a) / (LIFE_RTOL * max(abs(a), 1e-300)) * (1 - 1e-12))
+
+
+def _merged(pts: np.ndarray, new: np.ndarray, crank: bool) -> np.ndarray:
+    """`pts` with the points `new` (whole revolutions for a crank-slider study), sorted and
+    unique."""
+    new = np.round(new) if crank else np.round(new, 6)
+    return np.unique(np.concatenate([pts, new[new > 0]]))
+
+
 def refine_count(a: float, b: float) -> int:
     """Points to add inside the bracket [a, b] so that each part is within LIFE_RTOL of any
     crossing in it (≥ a), at most LIFE_REFINE_POINTS: one round where that suffices (each
     round of a sampled forecast runs every draw again: ~185 s on the boom's importance
     posterior, which took three rounds of 8 points)."""
-    need = math.ceil((b - a) / (LIFE_RTOL * max(abs(a), 1e-300)) * (1 - 1e-12)) - 1
-    return int(min(max(need, 1), LIFE_REFINE_POINTS))
+    return int(min(max(_parts(a, b) - 1, 1), LIFE_REFINE_POINTS))
 
 
 def refined_points(study: Study, res: PredictResult, points: list[np.ndarray]):
@@ -380,9 +391,7 @@ def refined_points(study: Study, res: PredictResult, points: list[np.ndarray]):
     for pts, life in zip(points, res.life):
         new = [np.linspace(a, b, refine_count(a, b) + 2)[1:-1]
                for a, b, x in life.brackets if b - a > LIFE_RTOL * abs(x)]
-        new = np.concatenate(new) if new else np.zeros(0)
-        new = np.round(new) if crank else np.round(new, 6)
-        merged = np.unique(np.concatenate([pts, new[new > 0]]))
+        merged = _merged(pts, np.concatenate(new) if new else np.zeros(0), crank)
         more |= len(merged) > len(pts)
         out.append(merged)
     return out if more else None
@@ -400,13 +409,11 @@ def guided_points(study: Study, res: PredictResult, points: list[np.ndarray]):
             out.append(pts)
             continue
         a, b = min(x[0] for x in life.brackets), max(x[1] for x in life.brackets)
-        n = math.ceil((b - a) / (LIFE_RTOL * max(a, 1e-300)) * (1 - 1e-12))
+        n = _parts(a, b)
         if not (a > 0 and 1 < n <= LIFE_ROOM_ROUNDS * 3 * LIFE_REFINE_POINTS):
             out.append(pts)
             continue
-        new = np.linspace(a, b, n + 1)[1:-1]
-        new = np.round(new) if crank else np.round(new, 6)
-        merged = np.unique(np.concatenate([pts, new[new > 0]]))
+        merged = _merged(pts, np.linspace(a, b, n + 1)[1:-1], crank)
         more |= len(merged) > len(pts)
         out.append(merged)
     return out if more else None

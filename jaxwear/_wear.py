@@ -330,7 +330,9 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
         def sliding_at(tau):
             return s_start[seg] + s_cyc * cycles_in(seg, tau)
 
-        S1 = jnp.where(clipped, s_start[seg] + cycles[seg] * s_cyc, sliding_at(pos + step))
+        # cycles into the piece at the step's start and end
+        n_pos, n_step = cycles_in(seg, pos), cycles_in(seg, pos + step)
+        S1 = jnp.where(clipped, s_start[seg] + cycles[seg] * s_cyc, s_start[seg] + s_cyc * n_step)
 
         # The four stages are one loop, not four inlined copies of the cycle's contact
         # solve: the compiled program is ~3x smaller (compile time is most of a cold
@@ -359,10 +361,10 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
         est = step * (jnp.asarray(_BS_E) @ K)  # signed, ~ΔN³
         # Global error per node (signed sum of local estimates). Budget: half the tolerance
         # at any time (the start's fast transient), the other half accrues with N.
-        n_end = jnp.where(clipped, schedule.cycle_end[seg], n0 + cycles_in(seg, pos + step))
+        n_end = jnp.where(clipped, schedule.cycle_end[seg], n0 + n_step)
         budget = tol * (0.5 + 0.5 * n_end / total)
         slack = jnp.maximum(budget - jnp.max(jnp.abs(err)),
-                            1e-3 * tol * (n_end - n0 - cycles_in(seg, pos)) / total)
+                            1e-3 * tol * (n_end - n0 - n_pos) / total)
         ratio = jnp.max(jnp.abs(est)) / slack
         accept = ratio <= 1.0 if replay is None else replay[1][steps + rej]
         fac = jnp.clip(_SAFETY * jnp.maximum(ratio, 1e-12) ** (-1 / 3), _SHRINK, _GROW)
