@@ -35,7 +35,8 @@ def number(option: str, text, *, positive: bool = False, nonneg: bool = False,
     if integer and v != int(v):
         raise InputError(f"{option}: expected a whole number, got {text!r}")
     if (lo is not None and not v > lo) or (hi is not None and not v < hi):
-        raise InputError(f"{option}: expected a number in ({lo:g}, {hi:g}), got {text!r}")
+        raise InputError(f"{option}: expected a number in ({-math.inf if lo is None else lo:g}"
+                         f", {math.inf if hi is None else hi:g}), got {text!r}")
     return int(v) if integer else v
 
 

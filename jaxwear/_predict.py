@@ -602,9 +602,40 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
                               f" more points)")
                 points = guided
         _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points")
-        draws, extra, forecast_draws = run_sampler(
-            problem, result, *forecast_at(points, 1.0), noise_um=noise_um,
-            level=level, verbose=verbose, cov=cov, **(nuts_options or {}))
+        sampler_kw = dict(nuts_options or {})
+        draws_at = forecast_at
+        if method == "importance":
+            coarse = sampling_level(train, keys, problem, result, layout, noise_um, verbose)
+            if coarse is not None:
+                c_problem, c_train, c_base = coarse
+
+                def draws_at(points, factor, _fit=forecast_at):
+                    """The draws' forecast problems at the sampling level, corrected to the
+                    answer's level (its finer one, where it has one)."""
+                    fp, ff = _fit(points, factor)
+                    fc = stop_past_layer(c_train, forecast_problem(c_train, c_base, points,
+                                                                   layout), points, at, factor)
+                    return fc, (fp if ff is None else ff)
+
+                sampler_kw["exact"] = {"problem": problem, "forecast": forecast_at(points, 1.0),
+                                       "level": (c_train.config.nodes,
+                                                 c_train.config.steps_per_rev),
+                                       "fit_level": (train.config.nodes,
+                                                     train.config.steps_per_rev)}
+                _log(verbose, f"predict/{method}: sampling at {c_train.config.nodes} x "
+                              f"{c_train.config.steps_per_rev}, the rows corrected to "
+                              f"{train.config.nodes} x {train.config.steps_per_rev} at the "
+                              f"answer (max {np.max(np.abs(c_problem.defect)):.3g} µm); "
+                              f"checked at posterior draws")
+                draws, extra, forecast_draws = run_sampler(
+                    c_problem, result, *draws_at(points, 1.0), noise_um=noise_um,
+                    level=level, verbose=verbose, cov=cov, **sampler_kw)
+                if not extra["importance"]["level"]["used"]:
+                    draws_at = forecast_at  # it fell back to the fit's level
+        if draws is None:
+            draws, extra, forecast_draws = run_sampler(
+                problem, result, *forecast_at(points, 1.0), noise_um=noise_um,
+                level=level, verbose=verbose, cov=cov, **sampler_kw)
 
     def evaluate(points, rnd):
         """The result with the forecast at `points` (round `rnd` of the life refinement)."""
@@ -613,7 +644,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
             if rnd:  # the same posterior draws, forecast at the refined points
                 _log(verbose, f"predict/{method}: life refinement {rnd}: forecasting the "
                               f"draws at {sum(len(x) for x in points)} points")
-                draws = forecast_draws(*forecast_at(points, 1.0))
+                draws = forecast_draws(*draws_at(points, 1.0))
             return assemble(points, flags, None, None, draws, extra)
         return laplace(points, rnd)
 
@@ -631,6 +662,53 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     # compilations of the whole answer (fit, checks and every forecast), by kind
     res.extra["compiles"] = traces_since(before)
     return res
+
+
+SAMPLING_NODES_SHARE = 0.5  # the importance sampler's level: this share of the fit's nodes
+SAMPLING_NODES_MIN = 40  # ... and at least this many
+SAMPLING_DEFECT_REACH = 1.0  # the level's row correction's bound in log likelihood, at most
+
+
+def sampling_level(train: Study, keys, problem, result: FitResult, layout, noise_um=None,
+                   verbose=False):
+    """(training problem, training study, base problem) of the importance sampler's level:
+    half the nodes of the fit's level (90 x 72: 45 x 72, a log density in ~45 % of the time
+    on the boom), its rows corrected by the difference to the answer's level at
+    the answer (defect correction, `ResidualModel.defect_um`: the rows agree exactly at û
+    and, as the discretisation error moves slowly with the parameters, closely across the
+    posterior; `_predict_importance.run_importance` checks that at posterior draws and
+    falls back to the fit's level where it does not hold). None where the level would
+    have fewer than `SAMPLING_NODES_MIN` nodes, the model does not run there at û, or the
+    correction itself could move the log likelihood by more than `SAMPLING_DEFECT_REACH`
+    (a level that does not resolve the scar: on the rig's narrow scar at 48 of 64 nodes
+    the check at the draws found ±0.36, so it would be sampled twice)."""
+    nodes = int(round(train.config.nodes * SAMPLING_NODES_SHARE))
+    if nodes < SAMPLING_NODES_MIN:
+        return None
+    c_train = at_level(train, (nodes, train.config.steps_per_rev))
+    start = dict(zip(problem.names, map(float, np.asarray(problem.start))))
+    c_base = build_problem(c_train, keys, start, layout)
+    fit_rows = forward_run(problem, result.u).rows
+    # with a (zero) row correction: the same program as the corrected problem's runs
+    c_rows = forward_run(c_base.with_defect(np.zeros(c_base.n_data)), result.u).rows
+    level = f"{nodes} x {train.config.steps_per_rev}"
+    if not (np.all(np.isfinite(fit_rows)) and np.all(np.isfinite(c_rows))):
+        _log(verbose, f"predict/importance: the model at {level} does not run to its rows at "
+                      f"the answer: sampled at the fit's level")
+        return None
+    defect = fit_rows - c_rows
+    # the whole correction's reach in log likelihood, |Σ r δ|/σ² ≤ ‖δ‖ √χ² / σ with
+    # χ² ≤ 2 (n + d) (as `_predict_nuts.sampling_tolerance_m`): only its change across the
+    # posterior matters, a fraction of it where the level resolves the scar
+    d = len(problem.names) + (0 if noise_um is not None else 1)
+    sigma = float(noise_um if noise_um is not None else result.noise_um)
+    reach = float(np.linalg.norm(defect)) * math.sqrt(2.0 * (len(defect) + d)) / sigma
+    if not reach <= SAMPLING_DEFECT_REACH:
+        _log(verbose, f"predict/importance: the rows at {level} differ from the fit's level "
+                      f"by {reach:.3g} in log likelihood at the answer (> "
+                      f"{SAMPLING_DEFECT_REACH:g}): sampled at the fit's level")
+        return None
+    return c_base.with_defect(defect), c_train, c_base
 
 
 def on_nodes(a, nodes: int):

@@ -46,11 +46,19 @@ from scipy import special
 
 from ._errors import InputError
 from ._predict_draws import DrawForecasts, new_measurements, run_forward
-from ._predict_nuts import _arviz, prior_density, sampling_setup
+from ._predict_nuts import (
+    _arviz,
+    prior_density,
+    sampling_setup,
+    sampling_tolerance_m,
+    with_tolerance,
+)
 
 NU = 7.0  # the proposal's Student-t degrees of freedom
 K_GOOD, K_USABLE = 0.5, 0.7  # PSIS k̂ thresholds (Vehtari et al. 2024)
 ESS_SHARE_GOOD = 0.25  # below this share of the draws, the weights' ESS moves the proposal
+ESS_TARGET = 400  # the answer's round stops growing once every parameter's ESS reaches this
+R_HAT_OK = 1.01  # ... and R-hat between the batches is at most this
 
 
 def _log(verbose, msg):
@@ -147,27 +155,32 @@ def truncated_sample(rng, mean, chol, n: int, nu: float, support=None):
 
 PILOT_SHARE = 0.25  # a round that may move the proposal starts with this share of its draws
 PILOT_MIN = 200  # draws per batch of a pilot at least (PSIS's k̂ needs a tail to fit)
+GROW_MIN = 50  # draws per batch added at least, where the answer's round grows to its ESS
+GROW_MARGIN = 1.1  # draws for the ESS still missing: the linear estimate times this
 
 
 def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
-                      rounds: int = 2, nu: float = NU, log=None, support=None):
+                      rounds: int = 2, nu: float = NU, log=None, support=None, enough=None):
     """PSIS importance sampling of a density from a multivariate-t proposal (module
     docstring). `log_density`: x (n, d) ↦ log densities (n,) up to a constant (-inf
     outside the support); `mean` (d,), `chol` (d, d): the proposal's centre and scale;
     `support`: x (n, d) ↦ bool (n,), where the density can be finite (the prior's
     support), to draw from the proposal restricted to it (`truncated_sample`).
 
-    Every round but the last starts with a pilot of `PILOT_SHARE` of its draws (at least
-    `PILOT_MIN` per batch). Where the pilot's weights are reliable (k̂ ≤ `K_GOOD`) but
-    carried by few draws (a proposal far wider than the posterior), the proposal moves
-    after the pilot alone (on the boom with running-in, 500 densities where a full first
-    round spent 2 000, ~0.13 s each, only to move it); otherwise the round's other draws
-    come from the same proposal (one i.i.d. batch: nothing is lost), and unreliable
-    weights move it on the whole round's moments (a pilot's, from a proposal 3x too
-    narrow, had a weights' ESS of 4-33 and two moves left k̂ at 0.6-1.0).
-    Returns (draws (chains, draws, d), normalised smoothed weights (chains, draws), each
-    batch's normalised on its own, the rounds' history: draws per batch, k̂ and weights'
-    ESS per batch)."""
+    Every round starts with a pilot of `PILOT_SHARE` of its draws (at least `PILOT_MIN`
+    per batch). Where the pilot's weights are reliable (k̂ ≤ `K_GOOD`) but carried by few
+    draws (a proposal far wider than the posterior), the proposal moves after the pilot
+    alone (on the boom with running-in, 500 densities where a full first round spent
+    2 000, ~0.13 s each, only to move it); unreliable weights (a pilot's, from a proposal
+    3x too narrow, had a weights' ESS of 4-33 and two moves left k̂ at 0.6-1.0) complete
+    the round from the same proposal (one i.i.d. batch: nothing is lost) and move it on
+    the whole round's moments. The round that answers (the last, or one whose pilot is
+    good) grows from its pilot until `enough(x, w, k)` says so or `draws` per batch are
+    drawn: `enough` maps the draws (chains, m, d), their weights and k̂ per batch to (done,
+    draws per batch it expects to need, a line for the log); None: all `draws`.
+    Returns (draws (chains, m, d), normalised smoothed weights (chains, m), each batch's
+    normalised on its own, the rounds' history: draws per batch, k̂ and weights' ESS per
+    batch)."""
     mean, chol = np.asarray(mean, np.float64), np.asarray(chol, np.float64)
     d = len(mean)
     history = []
@@ -190,21 +203,39 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
         # weights' ESS 114-125 of 1000, k̂ -0.05)
         return w, k, ess, max(k) <= K_GOOD and min(ess) >= ESS_SHARE_GOOD * lw.shape[1]
 
+    def more(x, lw, rejected, m):
+        x2, lw2, rej2 = sample(m)
+        return np.concatenate([x, x2], 1), np.concatenate([lw, lw2], 1), rejected + rej2
+
+    def grow(x, lw, rejected, r):
+        """The answer's round: more draws from the same proposal until `enough`."""
+        while x.shape[1] < draws:
+            if enough is None:
+                return more(x, lw, rejected, draws - x.shape[1])
+            w, k, _, _ = weigh(lw)
+            done, need, line = enough(x, w, k)
+            if done:
+                break
+            m = int(min(draws - x.shape[1], max(GROW_MIN, math.ceil(need) - x.shape[1])))
+            if log:
+                log(f"predict/importance: round {r + 1}: {x.shape[1]} draws per batch, "
+                    f"{line}: {m} more")
+            x, lw, rejected = more(x, lw, rejected, m)
+        return x, lw, rejected
+
     for r in range(max(1, rounds)):
         t0 = time.perf_counter()
         last = r + 1 >= rounds
-        m = draws if last else min(draws, max(PILOT_MIN, math.ceil(PILOT_SHARE * draws)))
+        m = min(draws, max(PILOT_MIN, math.ceil(PILOT_SHARE * draws)))
         x, lw, rejected = sample(m)
         w, k, ess, good = weigh(lw)
         pilot = None
-        # a pilot whose weights are good, or unreliable (k̂: their moments would be too, as
-        # for a proposal far narrower than the posterior), is completed to a full round; one
-        # whose weights are reliable but carried by few draws moves the proposal at once
-        if m < draws and (good or max(k) > K_GOOD):
+        if m < draws and (good or last or max(k) > K_GOOD):
             pilot = {"draws": m, "k_hat": [float(v) for v in k], "ess": ess}
-            x2, lw2, rej2 = sample(draws - m)
-            x, lw, rejected = np.concatenate([x, x2], 1), np.concatenate([lw, lw2], 1), \
-                rejected + rej2
+            if good or last:
+                x, lw, rejected = grow(x, lw, rejected, r)
+            else:  # unreliable weights: their moments would be too; the whole round's
+                x, lw, rejected = more(x, lw, rejected, draws - m)
             w, k, ess, good = weigh(lw)
         history.append({"round": r + 1, "draws": int(x.shape[1]),
                         "k_hat": [float(v) for v in k], "ess": ess,
@@ -212,13 +243,13 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
                         "proposals_rejected": int(rejected)})
         if pilot is not None:
             history[-1]["pilot"] = pilot
+        moves = not (good or last)
         if log:
             log(f"predict/importance: round {r + 1}: k̂ " + ", ".join(f"{v:.2f}" for v in k)
                 + "; weights' ESS " + ", ".join(f"{e:.0f}" for e in ess)
-                + f" of {x.shape[1]}" + (" (a pilot: the proposal moves)"
-                                         if x.shape[1] < draws else "")
+                + f" of {x.shape[1]}" + (" (the proposal moves)" if moves else "")
                 + f" ({time.perf_counter() - t0:.0f} s)")
-        if good or last:
+        if not moves:
             break
         # move the proposal to the draws' weighted moments (t tails kept)
         wp = (w / chains).reshape(-1)
@@ -230,16 +261,74 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
             chol = np.linalg.cholesky(c * (nu - 2) / nu if nu > 2 else c)
             mean = centre
         except np.linalg.LinAlgError:
-            # no pilot is an answer: its round is completed from the same proposal
+            # no pilot is an answer: its round grows from the same proposal
             if x.shape[1] < draws:
-                x2, lw2, rej2 = sample(draws - x.shape[1])
-                x, lw = np.concatenate([x, x2], 1), np.concatenate([lw, lw2], 1)
+                x, lw, rej = grow(x, lw, 0, r)
                 w, k, ess, _ = weigh(lw)
-                history[-1].update(draws=draws, k_hat=[float(v) for v in k], ess=ess,
-                                   proposals_rejected=history[-1]["proposals_rejected"]
-                                   + rej2, outside_support=int(np.sum(~np.isfinite(lw))))
+                history[-1].update(draws=int(x.shape[1]), k_hat=[float(v) for v in k],
+                                   ess=ess, proposals_rejected=history[-1]
+                                   ["proposals_rejected"] + rej,
+                                   outside_support=int(np.sum(~np.isfinite(lw))))
             break
     return x, w, history
+
+
+LEVEL_CHECK_DRAWS = 16  # posterior draws the sampling level's log density is checked at
+LEVEL_FORECAST_DRAWS = 8  # ... and its forecast
+LEVEL_LOGP_ERROR = 0.1  # half the spread of the levels' log-density difference, at most
+LEVEL_FORECAST_SHARE = 0.1  # the levels' forecast depths apart by this share of σ, at most
+
+
+def check_level(exact, problem, fprob, fprob_fine, u_fit, u_all, noise, wp, rng, workers,
+                verbose) -> dict:
+    """The sampling level against the fit's at `LEVEL_CHECK_DRAWS` posterior draws
+    resampled by their weights `wp` (n,) (u_all (n, p), noise (n,) [µm]): the log
+    likelihoods' difference between the levels (its half spread: a constant difference
+    does not change the weights; within ±`LEVEL_LOGP_ERROR`, every weight is within ~10 %)
+    and the forecast maxima at `LEVEL_FORECAST_DRAWS` of them (points before each draw's
+    early stop; within `LEVEL_FORECAST_SHARE` of σ). `problem`, `fprob`, `fprob_fine`: the
+    sampling level's training and forecast problems as the draws ran them; `u_fit` the
+    answer, where each level's forecast is corrected to its finer one."""
+    from ._residual import forward_run
+
+    t0 = time.perf_counter()
+    pick = np.unique(systematic_resample(wp, LEVEL_CHECK_DRAWS, rng))
+    u, sig = u_all[pick], noise[pick]
+    y = np.asarray(problem.data.depth_um)
+    fit = exact["problem"]
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        r_fit = list(pool.map(lambda ui: forward_run(fit, ui).rows, u))
+        r_c = list(pool.map(lambda ui: forward_run(problem, ui).rows, u))
+    dl = np.array([-0.5 * (np.sum((a - y) ** 2) - np.sum((b - y) ** 2)) / s ** 2
+                   for a, b, s in zip(r_fit, r_c, sig)])
+    spread = float(0.5 * (np.max(dl) - np.min(dl))) if np.all(np.isfinite(dl)) else math.inf
+    k = min(LEVEL_FORECAST_DRAWS, len(u))
+    quiet = {"seed": 0, "workers": workers, "verbose": False}
+    a = DrawForecasts(u[:k], sig[:k], u_fit, **quiet)(fprob, fprob_fine)
+    b = DrawForecasts(u[:k], sig[:k], u_fit, **quiet)(*exact["forecast"])
+    both = np.isfinite(a["new_um"]) & np.isfinite(b["new_um"])
+    diff = float(np.max(np.abs(a["max_um"] - b["max_um"])[both])) if both.any() else 0.0
+    ok = spread <= LEVEL_LOGP_ERROR and diff <= LEVEL_FORECAST_SHARE * float(np.min(sig))
+    info = {"nodes": exact["level"][0], "steps_per_rev": exact["level"][1],
+            "fit_nodes": exact["fit_level"][0], "fit_steps_per_rev": exact["fit_level"][1],
+            "used": bool(ok), "draws_checked": int(len(u)),
+            "log_density_spread": spread, "log_density_tolerance": LEVEL_LOGP_ERROR,
+            "forecast_draws_checked": int(k), "forecast_difference_um": diff,
+            "forecast_tolerance_um": LEVEL_FORECAST_SHARE * float(np.min(sig)),
+            "seconds": time.perf_counter() - t0}
+    _log(verbose, f"predict/importance: the sampling level against the fit's at {len(u)} "
+                  f"posterior draws: log density ±{spread:.3g} (tolerance "
+                  f"{LEVEL_LOGP_ERROR:g}), forecast {diff:.3g} µm apart at {k} (tolerance "
+                  f"{info['forecast_tolerance_um']:.3g} µm) ({info['seconds']:.0f} s)")
+    return info
+
+
+def batch_r_hat(h, idx) -> float:
+    """ArviZ's rank-normalised split R-hat of values h (n,) between the batches whose
+    resampled draws are `idx` (a list of index arrays, one per batch); nan where undefined."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return float(_arviz().rhat(np.stack([h[i] for i in idx])))
 
 
 def _share_in_support(in_support, mean, chol, rng, n: int = 4000) -> float:
@@ -251,15 +340,35 @@ def _share_in_support(in_support, mean, chol, rng, n: int = 4000) -> float:
 def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.9,
                    verbose=False, draws: int = 1000, chains: int = 2, seed: int = 0,
                    max_minutes: float = 20.0, n_predictive: int = 200, out=None, cov=None,
-                   rounds: int = 2, workers: int = 2):
+                   rounds: int = 2, workers: int = 2, ess_target: int = ESS_TARGET,
+                   exact=None):
     """The posterior by PSIS importance sampling (module docstring) and the forecast's
-    predictive at `n_predictive` draws resampled by their weights. `draws` per batch,
+    predictive at `n_predictive` draws resampled by their weights. At most `draws` per
+    batch: the answer's round stops once every parameter's ESS reaches `ess_target`, R-hat
+    between the batches is at most `R_HAT_OK` and k̂ ≤ `K_GOOD` (0: all `draws`);
     `chains` independent batches (for R-hat), up to `rounds` rounds. Returns what
-    `_predict_nuts.run_nuts` returns: (draws dict, extra JSON dict, forecast_draws)."""
+    `_predict_nuts.run_nuts` returns: (draws dict, extra JSON dict, forecast_draws).
+
+    `exact`: where `problem` and `fprob` are a coarser sampling level (`_predict.
+    sampling_level`), {"problem": the fit's training problem, "forecast": its forecast
+    problems (fprob, fprob_fine), "level", "fit_level": (nodes, steps)}: after sampling,
+    `check_level` compares the levels at posterior draws; where they differ by more than
+    `LEVEL_LOGP_ERROR` (log density) or `LEVEL_FORECAST_SHARE` of σ (forecast depth), the
+    whole answer is sampled again at the fit's level. The JSON's `level` says which."""
+    if exact is not None:
+        first = dict(noise_um=noise_um, level=level, verbose=verbose, draws=draws,
+                     chains=chains, seed=seed, max_minutes=max_minutes,
+                     n_predictive=n_predictive, out=out, cov=cov, rounds=rounds,
+                     workers=workers, ess_target=ess_target)
     names = list(problem.names)
     p = len(names)
     given = noise_um is not None
+    problem_in = problem
     problem, white, logp, z_fit = sampling_setup(problem, result, noise_um, cov)
+    # the draws' forecasts at the density's tolerance (a depth error far below the noise)
+    tol_m = sampling_tolerance_m(problem, result, noise_um)
+    fprob = with_tolerance(fprob, tol_m)
+    problem_in = with_tolerance(problem_in, tol_m)
     d = p + (0 if given else 1)
 
     def z_of(x):
@@ -289,7 +398,7 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     run_forward(fprob, u_fit)
     t_fc = time.perf_counter() - t0
     n = chains * draws
-    n_pred = min(n_predictive, n)
+    n_pred = min(n_predictive, n)  # n: the most the rounds may draw
     par = max(1, min(workers, 2))
     # the proposal is restricted to the prior's support (a cheap check, no model run):
     # every draw then runs the model once; the share inside, for the log
@@ -312,30 +421,58 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
         with ThreadPoolExecutor(max_workers=par) as pool:
             return np.array(list(pool.map(lambda x: float(logp_x(jnp.asarray(x))), xs)))
 
+    u_of_x = jax.jit(jax.vmap(lambda xx: white.u_of(z_of(xx))))
+
+    def values(xf):
+        """(u (n, p), the parameters' values and σ [µm] per draw: name ↦ (n,)) of x (n, d)."""
+        u = np.asarray(u_of_x(jnp.asarray(xf)))
+        v = np.array([problem.packing.values_np(ui) for ui in u]).reshape(len(u), p)
+        post_ = {nm: v[:, i] for i, nm in enumerate(names)}
+        if not given:
+            post_["noise_um"] = np.exp(xf[:, p])
+        return u, post_
+
+    def resampled(w):
+        """Each batch resampled to equal weights (for R-hat), the same for the same
+        weights: the growth's stop and the answer's report read one R-hat."""
+        m = w.shape[1]
+        r_ = np.random.default_rng([seed, 2, m])
+        return [systematic_resample(w[c], m, r_) + c * m for c in range(chains)]
+
+    def enough(x, w, k):
+        """Whether the answer's round has its draws (`importance_sample`)."""
+        m = x.shape[1]
+        post_ = values(x.reshape(-1, d))[1]
+        wp_ = (w / chains).reshape(-1)
+        ess = {nm: ess_of(wp_, h) for nm, h in post_.items()}
+        low = min(ess, key=ess.get)
+        idx = resampled(w)
+        rh = max(batch_r_hat(h, idx) for h in post_.values()) if chains > 1 else 1.0
+        done = max(k) <= K_GOOD and ess[low] >= ess_target and not rh > R_HAT_OK
+        need = m * GROW_MARGIN * ess_target / max(ess[low], 1.0) \
+            if ess[low] < ess_target else 1.25 * m
+        return done, need, (f"k̂ {max(k):.2f}, ESS {ess[low]:.0f} ({low}) for {ess_target}, "
+                            f"R-hat {rh:.4f}")
+
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     x, w, history = importance_sample(evaluate, mean, chol, draws, chains, rng, rounds=rounds,
                                       log=(lambda m: _log(True, m)) if verbose else None,
-                                      support=lambda xs: np.asarray(in_support(jnp.asarray(xs))))
+                                      support=lambda xs: np.asarray(in_support(jnp.asarray(xs))),
+                                      enough=enough if ess_target > 0 else None)
     t_run = time.perf_counter() - t0
+    m_drawn = x.shape[1]
     xf = x.reshape(-1, d)
     wp = (w / chains).reshape(-1)  # pooled normalised weights
-    u_all = np.asarray(jax.vmap(lambda xx: white.u_of(z_of(xx)))(jnp.asarray(xf)))
-    v_all = np.array([problem.packing.values_np(u) for u in u_all])  # (n, p)
-    noise = np.full(len(xf), float(noise_um)) if given else np.exp(xf[:, p])
-    post = {nm: v_all[:, i] for i, nm in enumerate(names)}
-    if not given:
-        post["noise_um"] = noise
+    u_all, post = values(xf)
+    noise = np.full(len(xf), float(noise_um)) if given else post["noise_um"]
     # R-hat between the batches, each resampled to equal weights
     az = _arviz()
-    res_idx = [systematic_resample(w[c], draws, rng) + c * draws for c in range(chains)]
+    res_idx = resampled(w)
     lo_q, hi_q = (1 - level) / 2, (1 + level) / 2
     diag = {}
     for kname, h in post.items():
-        chains_h = np.stack([h[i] for i in res_idx])  # (chains, draws)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            rh = float(az.rhat(chains_h)) if chains > 1 else math.nan
+        rh = batch_r_hat(h, res_idx) if chains > 1 else math.nan
         m = float(wp @ h)
         diag[kname] = {"r_hat": rh if math.isfinite(rh) else None,
                        "ess": ess_of(wp, h),
@@ -351,6 +488,20 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     elif k_max > K_GOOD:
         flags.append(f"importance: Pareto k̂ {k_max:.2f} in ({K_GOOD}, {K_USABLE}]: usable, "
                      f"its Monte Carlo error converges slowly")
+    level_info = None
+    if exact is not None:
+        level_info = check_level(exact, problem_in, fprob, fprob_fine, u_fit, u_all, noise, wp,
+                                 np.random.default_rng([seed, 3]), par, verbose)
+        if not level_info["used"]:
+            _log(verbose, f"predict/importance: the sampling level is off by "
+                          f"{level_info['log_density_spread']:.3g} in log density or "
+                          f"{level_info['forecast_difference_um']:.3g} µm in the forecast at "
+                          f"posterior draws: sampling again at the fit's level")
+            d_, e_, f_ = run_importance(exact["problem"], result, *exact["forecast"],
+                                        **first)
+            e_["importance"]["level"] = level_info
+            e_["importance"]["seconds_at_the_sampling_level"] = t_run
+            return d_, e_, f_
     # posterior predictive at draws resampled by their weights (a draw picked twice is run
     # once)
     pick = systematic_resample(wp, n_pred, rng)
@@ -361,7 +512,7 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
                                verbose=verbose, label="predict/importance")
 
     def forecast_draws(fp, ff=None):
-        out_ = forecaster(fp, ff)
+        out_ = forecaster(with_tolerance(fp, tol_m), ff)
         full = {key: val[inv] for key, val in out_.items() if key != "new_um"}
         # each resampled draw its own new measurement noise
         past = ~np.isfinite(out_["new_um"])[inv]
@@ -389,7 +540,8 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     extra_json["importance"] = {
         "sampler": f"importance sampling, Laplace proposal (multivariate t, {NU:g} dof, in "
                    f"the whitened coordinates), Pareto-smoothed (PSIS)",
-        "chains": chains, "draws": draws, "rounds": len(history), "seed": seed,
+        "chains": chains, "draws": m_drawn, "max_draws": draws, "ess_target": ess_target,
+        "rounds": len(history), "seed": seed,
         "k_hat": k_max, "k_hat_per_batch": history[-1]["k_hat"],
         "weights_ess": float(1.0 / np.sum(wp ** 2)),
         "min_ess": worst("ess", min), "max_r_hat": worst("r_hat", max),
@@ -399,4 +551,6 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
         "predictive_draws": int(n_pred), "predictive_seconds": t_pred,
         "posterior": diag, "netcdf": None if path is None else str(path),
         "flags": flags}
+    if level_info is not None:
+        extra_json["importance"]["level"] = level_info
     return draws_out, extra_json, forecast_draws

@@ -15,6 +15,7 @@ from scipy import stats
 
 from jaxwear._predict_importance import (
     ESS_SHARE_GOOD,
+    GROW_MIN,
     K_GOOD,
     K_USABLE,
     ess_of,
@@ -155,3 +156,73 @@ def test_too_wide_a_proposal_is_moved_for_its_few_weights(gaussian):
     sd = np.sqrt(np.diag(cov))
     for i in range(D):
         assert abs(wp @ xf[:, i] - mu[i]) < 4 * sd[i] / math.sqrt(ess_of(wp, xf[:, i]))
+
+
+def test_the_answers_round_grows_until_every_mean_has_its_ess(gaussian):
+    """The answer's round stops once every coordinate's ESS reaches a target (the CLI's
+    `--ess`): from a proposal 1.6x too wide (weights' ESS ~50 % of the draws, above the
+    share that would move it, so the pilot's round answers), 600 effective draws need ~2 x
+    420 of the 2 x 1000 allowed; the round stops with every ESS at or above 600, well
+    before 1 000 per batch, the means
+    within 4 Monte Carlo errors of μ; a target no draw count reaches takes all the draws."""
+    logp, mu, cov = gaussian
+    L = np.linalg.cholesky(cov)
+    calls = []
+
+    def enough(x, w, k):
+        xf, wp = x.reshape(-1, D), (w / 2).reshape(-1)
+        ess = min(ess_of(wp, xf[:, i]) for i in range(D))
+        calls.append((x.shape[1], ess))
+        return ess >= target, x.shape[1] * 1.1 * target / ess, f"ESS {ess:.0f}"
+
+    target = 600
+    x, w, hist = importance_sample(logp, mu, 1.6 * L, 1000, 2, np.random.default_rng(6),
+                                   rounds=2, enough=enough)
+    assert len(hist) == 1 and hist[0]["pilot"]["draws"] == 250, hist
+    m = x.shape[1]
+    assert m == hist[0]["draws"] < 1000 and len(calls) >= 2, (hist, calls)
+    xf, wp = x.reshape(-1, D), (w / 2).reshape(-1)
+    sd = np.sqrt(np.diag(cov))
+    for i in range(D):
+        ess = ess_of(wp, xf[:, i])
+        assert ess >= target
+        assert abs(wp @ xf[:, i] - mu[i]) < 4 * sd[i] / math.sqrt(ess)
+    # every growth step drew at least GROW_MIN more
+    assert all(b - a >= GROW_MIN for (a, _), (b, _) in zip(calls, calls[1:])), calls
+    calls.clear()
+    target = 10 ** 6
+    x, _, hist = importance_sample(logp, mu, 1.6 * L, 1000, 2, np.random.default_rng(6),
+                                   rounds=2, enough=enough)
+    assert x.shape[1] == 1000 == hist[-1]["draws"], hist
+
+
+def test_sampling_tolerance_bounds_the_log_likelihoods_error():
+    """The samplers' wear tolerance (`sampling_tolerance_m`): a depth error of at most tol
+    on each row moves the Gaussian log likelihood by at most LOGP_ERROR at any residual
+    vector with χ² ≤ 2(n + d), worst case (every error along its residual's sign); where
+    the noise is small against the study's tolerance (a long rig profile), the study's
+    stays."""
+    from types import SimpleNamespace
+
+    from jaxwear._predict_nuts import LOGP_ERROR, sampling_tolerance_m
+
+    def problem(n, p, tol_m=2e-9):
+        sched = SimpleNamespace(adaptive=True, tolerance=np.asarray(tol_m))
+        return SimpleNamespace(schedule=sched, n_data=n, names=[f"p{i}" for i in range(p)])
+
+    rng = np.random.default_rng(7)
+    for n, p, sigma in [(3, 4, 5.0), (10, 3, 4.0), (1, 1, 50.0)]:
+        tol = sampling_tolerance_m(problem(n, p), None, noise_um=sigma) * 1e6  # µm
+        assert tol > 0.002
+        r = rng.standard_normal((2000, n))
+        r *= (np.sqrt(2 * (n + p)) * sigma / np.linalg.norm(r, axis=1))[:, None]
+        dl = 0.5 * (np.sum((r + tol * np.sign(r)) ** 2, 1) - np.sum(r ** 2, 1)) / sigma ** 2
+        # (the second-order term n tol²/(2σ²) adds < 1 % of the bound)
+        assert np.max(np.abs(dl)) <= LOGP_ERROR * 1.01, (n, p, np.max(dl))
+        assert np.max(np.abs(dl)) > 0.5 * LOGP_ERROR  # and not far looser than it needs
+    # 180 rows at σ = 0.1 µm: far below the study's 0.002 µm, which stays
+    assert sampling_tolerance_m(problem(180, 6), None, noise_um=0.1) == 2e-9
+    # σ estimated: the bound at σ̂'s lower edge, a smaller σ than σ̂
+    fit = SimpleNamespace(noise_um=5.0, error_dof=10.0)
+    assert sampling_tolerance_m(problem(3, 4), fit) < sampling_tolerance_m(
+        problem(3, 4), None, noise_um=5.0)

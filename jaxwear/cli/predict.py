@@ -219,7 +219,11 @@ class Predict(Verb):
                        help="measurement noise σ [µm] if known (default: from the residuals)")
         r.add_argument("--draws", default=None,
                        help="nuts: posterior draws per chain (default 500); importance: "
-                            "draws per batch (default 1000)")
+                            "draws per batch at most (default 1000)")
+        r.add_argument("--ess", default="400",
+                       help="importance: stop drawing once every parameter's effective "
+                            "sample size reaches this (and R-hat <= 1.01, k-hat <= 0.5); "
+                            "0: all --draws")
         r.add_argument("--warmup", default="300", help="nuts: warm-up steps per chain")
         r.add_argument("--chains", default="2",
                        help="nuts: chains; importance: independent batches (R-hat between "
@@ -251,6 +255,8 @@ class Predict(Verb):
                         max_minutes=number("--max-minutes", args.max_minutes, positive=True),
                         n_predictive=number("--predictive-draws", args.predictive_draws,
                                             positive=True, integer=True))
+            if args.method == "importance":
+                nuts["ess_target"] = number("--ess", args.ess, nonneg=True, integer=True)
             if args.method == "nuts":
                 nuts["warmup"] = number("--warmup", args.warmup, positive=True, integer=True)
         return {"kw": opts, "nuts": nuts, "method": args.method, "fit": args.fit}
