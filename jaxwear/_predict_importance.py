@@ -17,7 +17,13 @@ proposal is moved to the weighted moments of the draws (mean and covariance, t t
 kept) and sampled again (`rounds`); so it is where the weights' ESS is below
 `ESS_SHARE_GOOD` of the draws (a proposal far wider than the posterior: reliable weights,
 carried by few draws). A round that may move the proposal for its few effective draws
-decides on a pilot of a quarter of them. The last round is the answer.
+decides on a pilot of a quarter of them. The last round is the answer; it grows from its
+pilot until every parameter's ESS reaches `ess_target` with R-hat ≤ `R_HAT_OK` and
+k̂ ≤ `K_GOOD` (at most `draws` per batch). The densities and the draws' forecasts run at
+the tolerance the noise allows (`_predict_nuts.sampling_tolerance_m`) and, where
+`_predict.sampling_level` gives one, at a coarser level with the rows corrected at the
+answer, checked at posterior draws after sampling (`check_level`; the fit's level again
+where it fails).
 
 Diagnostics per parameter (in the values' units): weighted mean, sd and quantiles; the
 effective sample size of its mean, ESS_h = Σw(h − h̄)² / Σw²(h − h̄)² (w normalised,

@@ -192,6 +192,9 @@ def test_band_uses_the_residual_dof_quantile(forecast):
     (["--at", "3000", "--train-until", "500"], "--train-until"),
     (["--at", "3000", "--method", "nuts", "--max-minutes", "0"], "--max-minutes"),
     (["--at", "3000", "--method", "nuts", "--predictive-draws", "0"], "--predictive-draws"),
+    (["--at", "3000", "--method", "importance", "--ess", "-1"], "--ess"),
+    (["--at", "3000", "--method", "importance", "--ess", "2.5"], "--ess"),
+    (["--at", "3000", "--method", "nuts", "--ess", "100"], "--ess"),
 ])
 def test_cli_bad_options_exit_2(study_path, tmp_path, capsys, argv, needle):
     code = main(["predict", str(study_path), "--out", str(tmp_path / "o"), *argv])

@@ -220,10 +220,10 @@ class Predict(Verb):
         r.add_argument("--draws", default=None,
                        help="nuts: posterior draws per chain (default 500); importance: "
                             "draws per batch at most (default 1000)")
-        r.add_argument("--ess", default="400",
+        r.add_argument("--ess", default=None,
                        help="importance: stop drawing once every parameter's effective "
-                            "sample size reaches this (and R-hat <= 1.01, k-hat <= 0.5); "
-                            "0: all --draws")
+                            "sample size reaches this (and R-hat <= 1.01, k-hat <= 0.5; "
+                            "default 400); 0: all --draws")
         r.add_argument("--warmup", default="300", help="nuts: warm-up steps per chain")
         r.add_argument("--chains", default="2",
                        help="nuts: chains; importance: independent batches (R-hat between "
@@ -245,6 +245,9 @@ class Predict(Verb):
         if args.method not in ("laplace", "nuts", "importance"):
             raise InputError(f"--method: expected laplace, nuts or importance, got "
                              f"{args.method!r}")
+        if args.ess is not None and args.method != "importance":
+            raise InputError(f"--ess: only with --method importance (got --method "
+                             f"{args.method})")
         nuts = None
         if args.method in ("nuts", "importance"):
             default = "500" if args.method == "nuts" else "1000"
@@ -256,7 +259,8 @@ class Predict(Verb):
                         n_predictive=number("--predictive-draws", args.predictive_draws,
                                             positive=True, integer=True))
             if args.method == "importance":
-                nuts["ess_target"] = number("--ess", args.ess, nonneg=True, integer=True)
+                nuts["ess_target"] = number("--ess", args.ess or "400", nonneg=True,
+                                            integer=True)
             if args.method == "nuts":
                 nuts["warmup"] = number("--warmup", args.warmup, positive=True, integer=True)
         return {"kw": opts, "nuts": nuts, "method": args.method, "fit": args.fit}
