@@ -507,6 +507,14 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
                                         **first)
             e_["importance"]["level"] = level_info
             e_["importance"]["seconds_at_the_sampling_level"] = t_run
+            e_["importance"]["flags"].append(
+                f"importance: sampled first at {level_info['nodes']} x "
+                f"{level_info['steps_per_rev']} ({t_run:.0f} s), whose check at posterior "
+                f"draws failed (log density ±{level_info['log_density_spread']:.3g}, "
+                f"tolerance {LEVEL_LOGP_ERROR:g}; forecast "
+                f"{level_info['forecast_difference_um']:.3g} µm apart, tolerance "
+                f"{level_info['forecast_tolerance_um']:.3g} µm): the answer is the fit "
+                f"level's, sampled again")
             return d_, e_, f_
     # posterior predictive at draws resampled by their weights (a draw picked twice is run
     # once)

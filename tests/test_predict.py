@@ -313,6 +313,7 @@ def test_importance_sampling_level_is_checked_and_falls_back(study_path, tmp_pat
     assert (lv["nodes"], lv["used"]) == (48, False), lv
     assert lv["log_density_spread"] > pi.LEVEL_LOGP_ERROR, lv
     assert back["posterior"] == fit_level["posterior"]
+    assert any("sampled first at 48 x 72" in f for f in back["flags"]), back["flags"]
 
 
 def _converged_rhat_bound(n, ess_fraction, params, chains=2, reps=500, q=0.99):
