@@ -603,39 +603,36 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
                 points = guided
         _log(verbose, f"predict: forecasting {sum(len(x) for x in points)} points")
         sampler_kw = dict(nuts_options or {})
-        draws_at = forecast_at
-        if method == "importance":
-            coarse = sampling_level(train, keys, problem, result, layout, noise_um, verbose)
-            if coarse is not None:
-                c_problem, c_train, c_base = coarse
+        draws_at = forecast_at  # the draws' forecast problems, at the level they ran at
+        s_problem = problem
+        coarse = (sampling_level(train, keys, problem, result, layout, noise_um, verbose)
+                  if method == "importance" else None)
+        if coarse is not None:
+            s_problem, c_train, c_base = coarse
 
-                def draws_at(points, factor, _fit=forecast_at):
-                    """The draws' forecast problems at the sampling level, corrected to the
-                    answer's level (its finer one, where it has one)."""
-                    fp, ff = _fit(points, factor)
-                    fc = stop_past_layer(c_train, forecast_problem(c_train, c_base, points,
-                                                                   layout), points, at, factor)
-                    return fc, (fp if ff is None else ff)
+            def draws_at(points, factor):
+                """The draws' forecast problems at the sampling level, corrected to the
+                answer's level (its finer one, where it has one)."""
+                fp, ff = forecast_at(points, factor)
+                fc = stop_past_layer(c_train, forecast_problem(c_train, c_base, points,
+                                                               layout), points, at, factor)
+                return fc, (fp if ff is None else ff)
 
-                sampler_kw["exact"] = {"problem": problem, "forecast": forecast_at(points, 1.0),
-                                       "level": (c_train.config.nodes,
-                                                 c_train.config.steps_per_rev),
-                                       "fit_level": (train.config.nodes,
-                                                     train.config.steps_per_rev)}
-                _log(verbose, f"predict/{method}: sampling at {c_train.config.nodes} x "
-                              f"{c_train.config.steps_per_rev}, the rows corrected to "
-                              f"{train.config.nodes} x {train.config.steps_per_rev} at the "
-                              f"answer (max {np.max(np.abs(c_problem.defect)):.3g} µm); "
-                              f"checked at posterior draws")
-                draws, extra, forecast_draws = run_sampler(
-                    c_problem, result, *draws_at(points, 1.0), noise_um=noise_um,
-                    level=level, verbose=verbose, cov=cov, **sampler_kw)
-                if not extra["importance"]["level"]["used"]:
-                    draws_at = forecast_at  # it fell back to the fit's level
-        if draws is None:
-            draws, extra, forecast_draws = run_sampler(
-                problem, result, *forecast_at(points, 1.0), noise_um=noise_um,
-                level=level, verbose=verbose, cov=cov, **sampler_kw)
+            sampler_kw["exact"] = {"problem": problem, "forecast": forecast_at(points, 1.0),
+                                   "level": (c_train.config.nodes,
+                                             c_train.config.steps_per_rev),
+                                   "fit_level": (train.config.nodes,
+                                                 train.config.steps_per_rev)}
+            _log(verbose, f"predict/{method}: sampling at {c_train.config.nodes} x "
+                          f"{c_train.config.steps_per_rev}, the rows corrected to "
+                          f"{train.config.nodes} x {train.config.steps_per_rev} at the "
+                          f"answer (max {np.max(np.abs(s_problem.defect)):.3g} µm); "
+                          f"checked at posterior draws")
+        draws, extra, forecast_draws = run_sampler(
+            s_problem, result, *draws_at(points, 1.0), noise_um=noise_um, level=level,
+            verbose=verbose, cov=cov, **sampler_kw)
+        if coarse is not None and not extra["importance"]["level"]["used"]:
+            draws_at = forecast_at  # it fell back to the fit's level
 
     def evaluate(points, rnd):
         """The result with the forecast at `points` (round `rnd` of the life refinement)."""
