@@ -20,6 +20,7 @@ with no backpropagation through the Newton iterations.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -102,18 +103,52 @@ def _newton_1d(load, cosj, g, kA, iters):
     return s
 
 
-def _forces(e, nx, ny, g, kA, W):
-    """Residual R(e) = Σ kA max(d,0) n - W, the penetrations d, and the potential."""
+def _moments(e, nx, ny, g, kA, W):
+    """R(e) = Σ kA max(d,0) n - W (steps, 2), the potential (steps,) and its Hessian
+    (xx, xy, yy), each (steps,), from the penetrations d = e·n - g.
+
+    All six sums over the nodes are one variadic reduction: one pass that computes d once
+    and carries six sums. XLA:CPU runs a plain row sum as its own scalar loop, and a
+    stacked sum writes six steps x nodes arrays first (measured, 360 x 360: seven sums
+    0.60 ms, stacked 0.21 ms, variadic 0.077 ms)."""
     d = e[:, 0:1] * nx + e[:, 1:2] * ny - g
-    q = jnp.where(d > 0, kA * d, 0.0)  # p_j A_j
-    r = jnp.stack([jnp.sum(q * nx, 1), jnp.sum(q * ny, 1)], axis=1) - W
-    potential = 0.5 * jnp.sum(q * jnp.maximum(d, 0.0), 1) - jnp.sum(W * e, 1)
-    return r, d, potential
-
-
-def _hessian(d, nx, ny, kA):
     a = jnp.where(d > 0, kA, 0.0)
-    return jnp.sum(a * nx * nx, 1), jnp.sum(a * nx * ny, 1), jnp.sum(a * ny * ny, 1)
+    q = a * d  # p_j A_j
+    terms = [jnp.broadcast_to(t, d.shape)
+             for t in (q * nx, q * ny, q * d, a * nx * nx, a * nx * ny, a * ny * ny)]
+    rx, ry, qd, hxx, hxy, hyy = lax.reduce(
+        terms, [jnp.zeros((), d.dtype)] * 6,
+        lambda x, y: [xi + yi for xi, yi in zip(x, y)], (1,))
+    r = jnp.stack([rx, ry], axis=1) - W
+    potential = 0.5 * qd - jnp.sum(W * e, 1)
+    return r, potential, (hxx, hxy, hyy)
+
+
+@jax.custom_jvp
+def _residual_at(e_star, r_star, nx, ny, g, kA, W):
+    """R(e*; g, kA, W) at Newton's answer e*, whose value `r_star` Newton computed: the
+    forward pass reuses it (one sweep over steps x nodes less per solve, a sixth of a warm
+    solve), derivatives come from R's own JVP at e*."""
+    return r_star
+
+
+@_residual_at.defjvp
+def _residual_at_jvp(primals, tangents):
+    e_star, r_star, nx, ny, g, kA, W = primals
+    _, _, _, _, tg, tk, tw = tangents
+    # dR = Σ_j [d_j > 0] (dkA_j d_j - kA_j dg_j) n_j - dW at fixed e*, with plain sums
+    # (transposable for reverse mode, which the variadic reduction of `_moments` is not).
+    d = e_star[:, 0:1] * nx + e_star[:, 1:2] * ny - g
+    dq = jnp.where(d > 0, tk * d - kA * tg, 0.0)
+    return r_star, jnp.stack([jnp.sum(dq * nx, 1), jnp.sum(dq * ny, 1)], axis=1) - tw
+
+
+def _facing_gap(e, angle, nx, ny, g):
+    """e·n_j - g_j (steps,) at the node j nearest the load direction of each step."""
+    nodes = nx.shape[-1]
+    j = jnp.round(angle * nodes / (2 * jnp.pi)).astype(jnp.int32) % nodes
+    pick = lambda a: jnp.broadcast_to(a, (e.shape[0], nodes))[jnp.arange(e.shape[0]), j]
+    return e[:, 0] * pick(nx) + e[:, 1] * pick(ny) - pick(g)
 
 
 def _solve2(hess, r, ridge=0.0):
@@ -139,43 +174,44 @@ def _newton_2d(e0, nx, ny, g, kA, W, wnorm, iters, tol, cap):
     Each iteration evaluates one trial point per step: accepted if the potential falls
     (Armijo) or the residual halves, otherwise the step is halved. Converged steps are
     frozen. Steps are capped at `cap` [m]: a singular H cannot throw the iterate away.
-    Returns the offsets, the final residuals and the number of iterations.
+    Returns the offsets, their residuals and Hessians, and the number of iterations.
     """
     ridge = 1e-9 * jnp.max(kA)
 
-    def newton_step(d, r):
-        st = -_solve2(_hessian(d, nx, ny, kA), r, ridge)
+    def newton_step(hess, r):
+        st = -_solve2(hess, r, ridge)
         st = jnp.where(jnp.isfinite(st), st, 0.0)
         norm = jnp.linalg.norm(st, axis=1, keepdims=True)
         return st * jnp.minimum(1.0, cap / jnp.maximum(norm, 1e-300))
 
-    r0, d0, m0 = _forces(e0, nx, ny, g, kA, W)
+    r0, m0, h0 = _moments(e0, nx, ny, g, kA, W)
     limit = tol * jnp.maximum(wnorm, 1e-300)
 
     def cond(state):
-        i, _, r, _, _, _ = state
+        i, _, r, _, _, _, _ = state
         return (i < iters) & jnp.any(jnp.linalg.norm(r, axis=1) > limit)
 
     def body(state):
-        i, e, r, m, step, alpha = state
+        i, e, r, m, step, alpha, hess = state
         trial = e + alpha[:, None] * step
-        rt, dt, mt = _forces(trial, nx, ny, g, kA, W)
+        rt, mt, ht = _moments(trial, nx, ny, g, kA, W)
         rn = jnp.linalg.norm(r, axis=1)
         active = rn > limit
         decrease = mt <= m + 1e-4 * alpha * jnp.sum(r * step, 1)
         # Round-off hides the decrease of a near-converged step; accept a smaller residual.
         accept = active & (decrease | (jnp.linalg.norm(rt, axis=1) < 0.5 * rn))
-        new_step = newton_step(dt, rt)
+        new_step = newton_step(ht, rt)
         e = jnp.where(accept[:, None], trial, e)
         r = jnp.where(accept[:, None], rt, r)
         m = jnp.where(accept, mt, m)
         step = jnp.where(accept[:, None], new_step, step)
         alpha = jnp.where(accept, 1.0, jnp.where(active, 0.5 * alpha, alpha))
-        return i + 1, e, r, m, step, alpha
+        hess = tuple(jnp.where(accept, a, b) for a, b in zip(ht, hess))
+        return i + 1, e, r, m, step, alpha, hess
 
-    state = (0, e0, r0, m0, newton_step(d0, r0), jnp.ones_like(m0))
-    i, e, r, _, _, _ = lax.while_loop(cond, body, state)
-    return e, r, i
+    state = (0, e0, r0, m0, newton_step(h0, r0), jnp.ones_like(m0), h0)
+    i, e, r, _, _, _, hess = lax.while_loop(cond, body, state)
+    return e, r, hess, i
 
 
 def _symmetric(load, angle, nx, ny, g, k, area, iterations):
@@ -210,11 +246,15 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
         return jnp.stack([s0 * sg(ux), s0 * sg(uy)], axis=1)
 
     if start is None:
-        e_star, r_star, its = newton(cold(), iterations)
+        e_star, r_star, hess, its = newton(cold(), iterations)
     else:
-        # Warm start, moved out along the load until it touches the (further worn) bore.
+        # Warm start, moved out along the load until the node facing the load touches the
+        # (further worn) bore: a sweep over all nodes for the deepest gap cost a fifth of a
+        # warm solve at 360 x 360, and Newton on the convex potential starts as well from a
+        # pin pushed in a little too far (the predictor in the wear loop already moves it
+        # out by the wear along the load).
         e0 = sg(start)
-        gap = jnp.max(e0[:, 0:1] * nx + e0[:, 1:2] * ny - sg(g), axis=1)
+        gap = _facing_gap(e0, sg(angle), nx, ny, sg(g))
         e0 = e0 - jnp.minimum(gap, 0.0)[:, None] * jnp.stack([sg(ux), sg(uy)], 1)
         limit = tol * jnp.maximum(sg(load), 1e-300)
 
@@ -223,28 +263,33 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
         # of NaN, each regime's first solve in the wear loops, from the cold start); then,
         # rarely, the steps that did not converge again from the cold start.
         def attempt(carry, k):
-            e, r, its, todo = carry
+            e, r, hess, its, todo = carry
 
             def run(_):
                 init = lax.cond(jnp.any(todo), lambda: jnp.where(todo[:, None], cold(), e),
                                 lambda: e)
-                e1, r1, i1 = newton(init, jnp.where(k == 0, min(iterations, 12), iterations))
+                e1, r1, h1, i1 = newton(init, jnp.where(k == 0, min(iterations, 12),
+                                                        iterations))
                 take = (k == 0) | todo
                 e1 = jnp.where(take[:, None], e1, e)
                 r1 = jnp.where(take[:, None], r1, r)
-                return e1, r1, its + i1, jnp.linalg.norm(r1, axis=1) > limit
+                h1 = tuple(jnp.where(take, a, b) for a, b in zip(h1, hess))
+                return e1, r1, h1, its + i1, jnp.linalg.norm(r1, axis=1) > limit
 
             return lax.cond((k == 0) | jnp.any(todo), run, lambda c: c, carry), None
 
-        first = (e0, jnp.zeros_like(e0), jnp.zeros((), jnp.int32), jnp.isnan(e0[:, 0]))
-        (e_star, r_star, its, _), _ = lax.scan(attempt, first, jnp.arange(2))
+        zero = jnp.zeros_like(load)
+        first = (e0, jnp.zeros_like(e0), (zero, zero, zero), jnp.zeros((), jnp.int32),
+                 jnp.isnan(e0[:, 0]))
+        (e_star, r_star, hess, its, _), _ = lax.scan(attempt, first, jnp.arange(2))
     e_star = sg(e_star)
-    r, d, _ = _forces(e_star, nx, ny, g, kA, W)  # differentiable in g, k, W
-    e = e_star - _solve2(tuple(map(sg, _hessian(sg(d), nx, ny, kA))), r)
+    r = _residual_at(e_star, sg(r_star), nx, ny, g, kA, W)  # differentiable in g, k, W
+    e = e_star - _solve2(tuple(map(sg, hess)), r)
     delta = e[:, 0:1] * nx + e[:, 1:2] * ny - g
     pressure = jnp.where(delta > 0, k * delta, 0.0)
     res = jnp.linalg.norm(sg(r_star), axis=1) / jnp.maximum(sg(load), 1e-300)
-    return ContactSolution(pressure, e, jnp.where(load > 0, res, 0.0), its)
+    return ContactSolution(pressure, e, jnp.where(load > 0, res, 0.0),
+                           jnp.asarray(its, jnp.int32))
 
 
 def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k: NodeArray,
@@ -265,6 +310,7 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
     - `tol`: Newton stops when every step's relative force residual is below it; 1e-10 is a
       tenth of the 1e-9 that DESIGN §3 requires (and the implicit-gradient correction is one
       more exact Newton step on top).
+
 
     **Returns:** a `ContactSolution`; `residual` is the relative force residual of the
     converged Newton iterate, which the caller checks (never assumed).

@@ -113,8 +113,10 @@ def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, s
     rate, sol = cycle_rates(p, cfg, hist, regime, h, sliding, start)
     slide = hist.slide[regime]
     area = node_area(p, cfg.nodes)
-    work = jnp.sum(jnp.sum(sol.pressure, axis=1) * area * slide)
-    return jnp.sum(rate, axis=0), work, sol
+    # Sums over the steps as matrix-vector products: XLA:CPU's reductions of a
+    # (steps, nodes) array cost ~3x (measured, 360 x 360: 0.09 ms against ~0.03 ms a cycle).
+    work = area * jnp.sum(slide @ sol.pressure)
+    return jnp.ones_like(slide) @ rate, work, sol
 
 
 def _cold_starts(hist: LoadHistory):
