@@ -295,7 +295,7 @@ def grad_vs_forward(T: Timer, study_path: Path, repeats):
 
     study = load_study(study_path)
     prob = build_problem(study, parse_fit(study, "K_d,clearance"))
-    loss = lambda pr, u: jnp.sum(pr.residuals(u, NOISE_UM) ** 2)
+    loss = lambda pr, u: jnp.sum(((pr.predict(u) - pr.data.depth_um) / NOISE_UM) ** 2)
     fwd = eqx.filter_jit(loss)
     grad = eqx.filter_jit(lambda pr, u: jax.grad(lambda v: loss(pr, v))(u))
     u = jnp.zeros(len(prob.names))

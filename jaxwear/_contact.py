@@ -15,6 +15,8 @@ Gradients: the solve runs on `stop_gradient` inputs and one Newton correction
 e = e* - J⁻¹ R(e*; θ) is applied with J held fixed. At a converged e* this is the implicit
 function theorem, de/dθ = -J⁻¹ ∂R/∂θ: exact first derivatives in forward and reverse mode,
 with no backpropagation through the Newton iterations.
+R(e*; θ)'s value is the one Newton computed (`_residual_at`, a custom JVP supplies its
+derivative): the forward pass spends no sweep over the grid on it.
 """
 
 from __future__ import annotations
