@@ -176,10 +176,10 @@ def _newton_2d(e0, nx, ny, g, kA, W, wnorm, iters, tol, cap):
     frozen. Steps are capped at `cap` [m]: a singular H cannot throw the iterate away.
     Returns the offsets, their residuals and Hessians, and the number of iterations.
 
-    The iteration works on components ((steps,) arrays, not (steps, 2)): its bookkeeping
-    is then elementwise, a few fused loops an iteration instead of ~14 (each norm or dot
-    over the last axis was a reduction of its own: measured, a third of a warm solve at
-    90 x 72)."""
+    The iteration works on components ((steps,) arrays, not (steps, 2)), its state packed
+    in one array: norms and dots are elementwise, not reductions over a last axis of two,
+    and the update is one select (measured on the boom's 25 h at 360 x 360: 1.21-1.26 s
+    against 1.22-1.28 s, within the host's noise; the sums over the nodes are the cost)."""
     ridge = 1e-9 * jnp.max(kA)
     wx, wy = W[:, 0], W[:, 1]
 
@@ -332,7 +332,6 @@ def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k:
     - `tol`: Newton stops when every step's relative force residual is below it; 1e-10 is a
       tenth of the 1e-9 that DESIGN §3 requires (and the implicit-gradient correction is one
       more exact Newton step on top).
-
 
     **Returns:** a `ContactSolution`; `residual` is the relative force residual of the
     converged Newton iterate, which the caller checks (never assumed).
