@@ -82,8 +82,7 @@ def _newton_1d(load, cosj, g, kA, iters):
     monotonically down and stops exactly on the root's linear piece.
     """
     jstar = jnp.argmax(cosj, axis=1)
-    pick = lambda a: jnp.take_along_axis(jnp.broadcast_to(a, cosj.shape), jstar[:, None], 1)[:, 0]
-    c_star, g_star, k_star = pick(cosj), pick(g), pick(kA)
+    c_star, g_star, k_star = (_at_node(a, jstar, cosj.shape[1]) for a in (cosj, g, kA))
     s = g_star / c_star + load / (k_star * c_star * c_star)  # loaded node alone carries |W|
 
     def cond(state):
@@ -147,12 +146,18 @@ def _facing_gap(e, angle, nx, ny, g):
     """e·n_j - g_j (steps,) at the node j nearest the load direction of each step."""
     nodes = nx.shape[-1]
     j = jnp.round(angle * nodes / (2 * jnp.pi)).astype(jnp.int32) % nodes
-    pick = lambda a: jnp.broadcast_to(a, (e.shape[0], nodes))[jnp.arange(e.shape[0]), j]
-    return e[:, 0] * pick(nx) + e[:, 1] * pick(ny) - pick(g)
+    at = lambda a: _at_node(a, j, nodes)  # noqa: E731
+    return e[:, 0] * at(nx) + e[:, 1] * at(ny) - at(g)
 
 
-def _solve2(hess, r, ridge=0.0):
-    """Solve H x = r for symmetric 2x2 H per step."""
+def _at_node(a, j, nodes):
+    """Each step's value at its node j (steps,) of `a`, broadcastable to (steps, nodes)."""
+    a = jnp.broadcast_to(a, (j.shape[0], nodes))
+    return jnp.take_along_axis(a, j[:, None], 1)[:, 0]
+
+
+def _solve2(hess, rx, ry, ridge=0.0):
+    """Solve H x = r for symmetric 2x2 H per step, in components: (x, y), each (steps,)."""
     hxx, hxy, hyy = hess
     # With fewer than two active nodes H is singular: the ridge keeps the step finite (the
     # step cap and line search do the rest). It changes steps, never the fixed point; the
@@ -163,9 +168,8 @@ def _solve2(hess, r, ridge=0.0):
     # No active node at all (zero load): no step, and no 0/0 in the gradient either.
     ok = det > 0
     det = jnp.where(ok, det, 1.0)
-    x = jnp.stack([(hyy * r[:, 0] - hxy * r[:, 1]) / det,
-                   (-hxy * r[:, 0] + hxx * r[:, 1]) / det], axis=1)
-    return jnp.where(ok[:, None], x, 0.0)
+    return (jnp.where(ok, (hyy * rx - hxy * ry) / det, 0.0),
+            jnp.where(ok, (-hxy * rx + hxx * ry) / det, 0.0))
 
 
 def _newton_2d(e0, nx, ny, g, kA, W, wnorm, iters, tol, cap):
@@ -184,18 +188,8 @@ def _newton_2d(e0, nx, ny, g, kA, W, wnorm, iters, tol, cap):
     wx, wy = W[:, 0], W[:, 1]
 
     def newton_step(hess, r):
-        hxx, hxy, hyy = hess
-        rx, ry = r
-        # With fewer than two active nodes H is singular: the ridge keeps the step finite
-        # (the step cap and line search do the rest). It changes steps, never the fixed
-        # point. No active node at all (zero load): no step.
-        rdg = ridge + 1e-12 * (hxx + hyy) + 1e-300
-        hxx, hyy = hxx + rdg, hyy + rdg
-        det = hxx * hyy - hxy * hxy
-        ok = det > 0
-        det = jnp.where(ok, det, 1.0)
-        sx = jnp.where(ok, -(hyy * rx - hxy * ry) / det, 0.0)
-        sy = jnp.where(ok, -(-hxy * rx + hxx * ry) / det, 0.0)
+        sx, sy = _solve2(hess, *r, ridge)
+        sx, sy = -sx, -sy
         sx = jnp.where(jnp.isfinite(sx), sx, 0.0)
         sy = jnp.where(jnp.isfinite(sy), sy, 0.0)
         scale = jnp.minimum(1.0, cap / jnp.maximum(jnp.sqrt(sx * sx + sy * sy), 1e-300))
@@ -306,7 +300,7 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
         (e_star, r_star, hess, its, _), _ = lax.scan(attempt, first, jnp.arange(2))
     e_star = sg(e_star)
     r = _residual_at(e_star, sg(r_star), nx, ny, g, kA, W)  # differentiable in g, k, W
-    e = e_star - _solve2(tuple(map(sg, hess)), r)
+    e = e_star - jnp.stack(_solve2(tuple(map(sg, hess)), r[:, 0], r[:, 1]), axis=1)
     delta = e[:, 0:1] * nx + e[:, 1:2] * ny - g
     pressure = jnp.where(delta > 0, k * delta, 0.0)
     res = jnp.linalg.norm(sg(r_star), axis=1) / jnp.maximum(sg(load), 1e-300)
