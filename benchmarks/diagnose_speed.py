@@ -46,8 +46,8 @@ def make_study(case: str, *, nodes: int, steps: int, M: float, fine: tuple, nois
                seed: int, angle_step_deg: float = 2.0, cache: str | None = None,
                integrator: str = "paper"):
     """The full-scan noisy study (in memory) and the truth."""
-    from jaxwear._study import Profile
-    from jaxwear._synth import synthesize
+    from jaxwear._analyses.synth import synthesize
+    from jaxwear._study.study import Profile
 
     fn, fs, fm = fine
     tag = "+".join(HIDDEN[case]) or "null"
@@ -116,7 +116,7 @@ def main(argv=None):
     if a.compilation_cache:
         jax.config.update("jax_compilation_cache_dir", a.compilation_cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    from jaxwear.diagnose import Model, diagnose
+    from jaxwear._analyses.diagnose import Model, diagnose
 
     load0 = os.getloadavg()
     t = time.perf_counter()

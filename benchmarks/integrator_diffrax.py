@@ -34,10 +34,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxwear as jw
-from jaxwear._config import boom_config
-from jaxwear._load import load_history
-from jaxwear._schedule import crank_segments, duty_segments
-from jaxwear._wear import (
+from jaxwear._physics.config import boom_config
+from jaxwear._physics.load import load_history
+from jaxwear._physics.schedule import crank_segments, duty_segments
+from jaxwear._physics.wear import (
     DEFAULT_WEAR_TOLERANCE_UM,
     build_schedule,
     cycle_increment,

@@ -3,7 +3,7 @@
     python benchmarks/nuts_samplers.py --case boom|rig [--warmup 200] [--draws 200]
         [--chains 2] [--seed 0] [--samplers numpyro,blackjax] [--json FILE]
 
-Both samplers draw from exactly one log density, `jaxwear._predict_nuts.log_density` in
+Both samplers draw from exactly one log density, `jaxwear._analyses.predict.nuts.log_density` in
 the whitened coordinates of `sampling_setup` (what `predict --method nuts` samples), with its
 gradient by forward mode (p tangents through the
 wear loop, as `run_nuts` does; BlackJAX asks for reverse mode, so the density is wrapped in a
@@ -47,10 +47,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jaxwear as jw  # noqa: E402
-from jaxwear._calibrate import build_problem, fit, parse_fit  # noqa: E402
-from jaxwear._predict import parameter_covariance, training_study  # noqa: E402
-from jaxwear._predict_nuts import _arviz, sampling_setup, u_of_samples  # noqa: E402
-from jaxwear._study import load_study  # noqa: E402
+from jaxwear._analyses.predict.forecast import parameter_covariance, training_study  # noqa: E402
+from jaxwear._analyses.predict.nuts import _arviz, sampling_setup, u_of_samples  # noqa: E402
+from jaxwear._inference.calibrate import build_problem, fit, parse_fit  # noqa: E402
+from jaxwear._study.study import load_study  # noqa: E402
 
 TARGET_ACCEPT, MAX_DEPTH = 0.85, 8
 

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxwear as jw
-from jaxwear import _contact
-from jaxwear._wear import build_schedule, cycle_increment, node_area, wear_loop
+from jaxwear._physics import contact as _contact
+from jaxwear._physics.wear import build_schedule, cycle_increment, node_area, wear_loop
 
 
 def timeit(f, *args, repeats=7):

@@ -49,7 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxwear as jw
-from jaxwear._wear import build_schedule, wear_loop
+from jaxwear._physics.wear import build_schedule, wear_loop
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -209,7 +209,7 @@ def adaptive(T: Timer, nodes, steps, revolutions, hours, repeats, rig_ref=None):
     """The default integrator (no M): rig and boom forward times, their error against eq 23
     at M = 1 and the integrator's own estimate; gradient / forward on the rig for a scalar
     loss of (K_d, clearance), as `benchmarks/integrator_diffrax.py`."""
-    from jaxwear._config import boom_config
+    from jaxwear._physics.config import boom_config
 
     out = {}
     cases = {"rig": (jw.preset("rig"), jw.ModelConfig(nodes=nodes, steps_per_rev=steps),
@@ -290,8 +290,8 @@ def write_synthetic_study(folder: Path, nodes, steps, M) -> Path:
 
 def grad_vs_forward(T: Timer, study_path: Path, repeats):
     """Reverse-mode gradient of Σ residuals² over its forward evaluation."""
-    from jaxwear._calibrate import build_problem, parse_fit
-    from jaxwear._study import load_study
+    from jaxwear._inference.calibrate import build_problem, parse_fit
+    from jaxwear._study.study import load_study
 
     study = load_study(study_path)
     prob = build_problem(study, parse_fit(study, "K_d,clearance"))
@@ -318,7 +318,7 @@ def grad_vs_forward(T: Timer, study_path: Path, repeats):
 # sweep
 
 def sweep(T: Timer, n_side, nodes, steps, revolutions, M, repeats):
-    from jaxwear._parallel import sharded_vmap
+    from jaxwear._core.parallel import sharded_vmap
 
     p = jw.preset("rig")
     cfg = jw.ModelConfig(nodes=nodes, steps_per_rev=steps)

@@ -15,8 +15,8 @@ import jax
 import numpy as np
 
 import jaxwear as jw
-from jaxwear._parallel import sharded_vmap
-from jaxwear._wear import build_schedule, wear_loop
+from jaxwear._core.parallel import sharded_vmap
+from jaxwear._physics.wear import build_schedule, wear_loop
 
 p = jw.preset("rig")
 cfg = jw.ModelConfig(nodes=72, steps_per_rev=72)

@@ -293,7 +293,7 @@ def write_one_experiment_rig(root: Path) -> list[str]:
          str(root / "s")],
         None, None)
     sys.path.insert(0, str(ROOT))
-    from jaxwear._study import load_study
+    from jaxwear._study.study import load_study
 
     st = load_study(root / "s" / "study.toml")
     pts = st.experiments[0].snapshot_points

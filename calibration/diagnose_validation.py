@@ -39,10 +39,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jaxwear as jw  # noqa: E402
-from jaxwear._config import ModelConfig  # noqa: E402
-from jaxwear._synth import PAPER_MATRIX, synthesize  # noqa: E402
-from jaxwear.diagnose import ALPHA, diagnose  # noqa: E402
-from jaxwear.effects import STRUCTURAL_CANDIDATES, get_effect  # noqa: E402
+from jaxwear._analyses.diagnose import ALPHA, diagnose  # noqa: E402
+from jaxwear._analyses.synth import PAPER_MATRIX, synthesize  # noqa: E402
+from jaxwear._physics.config import ModelConfig  # noqa: E402
+from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect  # noqa: E402
 
 EFFECTS = ("running_in", "speed_dependence", "pressure_exponent", "friction", "creep",
            "double_layer")

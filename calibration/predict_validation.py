@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 import jaxwear as jw
-from jaxwear._errors import InputError
-from jaxwear._study import load_study
+from jaxwear._core.errors import InputError
+from jaxwear._study.study import load_study
 
 ROOT = Path(__file__).resolve().parents[1]
 NODES, STEPS, M = 64, 72, 100

@@ -68,7 +68,7 @@ def main(argv=None):
     import jax
 
     import jaxwear as jw
-    from jaxwear.diagnose import diagnose
+    from jaxwear._analyses.diagnose import diagnose
 
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)

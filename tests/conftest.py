@@ -25,6 +25,8 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
 
 import jaxwear  # noqa: E402
 
+jaxwear.configure_xla()  # the faster-compiling emitters, as the CLI has them
+
 # No persistent compilation cache in the tests. The CLI turns JAX's cache on process-wide
 # (~/.cache/jaxwear), and the tests run the CLI in-process, so every later library test read
 # and wrote that cache. Four full-suite runs died inside it (segfaults and an abort while
@@ -69,7 +71,7 @@ def _effect_registry_as_found():
     effect file a study loads, an example's `missing_wear.py`) would otherwise be a
     candidate, computed at zero strength in every stage, of every later diagnosis in the
     same worker: after the shape's worked example the synth tests ran 4-15x slower."""
-    from jaxwear.effects import _base
+    from jaxwear._physics.effects import _base
 
     before = dict(_base._REGISTRY)
     yield
@@ -85,12 +87,12 @@ def rig():
 
 @pytest.fixture
 def engines_stubbed(monkeypatch):
-    import jaxwear._predict as pre
+    import jaxwear._analyses.predict.forecast as pre
     import jaxwear.cli.calibrate as cal
     dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
-    import jaxwear._sensitivity as sen
-    import jaxwear._simulate_study as sim
-    import jaxwear._sweep as swe
+    import jaxwear._analyses.sensitivity as sen
+    import jaxwear._analyses.sweep as swe
+    import jaxwear.cli.simulate as sim
 
     def loaded(*a, **k):
         raise Loaded

@@ -96,7 +96,7 @@ def paper_three(numerics):
     148 r/min at 0.05 mm, 230 r/min at 0.10 mm) as conditions for `synthesize`: speed and
     clearance still vary, at about a third of the fits' cost. `numerics`: nodes,
     steps_per_rev, revolutions_per_update."""
-    from jaxwear._synth import paper_conditions
+    from jaxwear._analyses.synth import paper_conditions
 
     st = paper_conditions(numerics)
     return st.with_experiments([e for e in st.experiments if e.name in THREE_EXPERIMENTS])

@@ -124,7 +124,7 @@ def test_adaptive_estimate_bounds_the_real_step_count(tmp_path):
     """The estimate is above what the loop really attempts (boom at its calibrated K_d, 3 h
     at 32 x 36: stability limited) and within a small factor of it."""
     import jaxwear as jw
-    from jaxwear._budget import EVALUATIONS_PER_ATTEMPT, wear_updates
+    from jaxwear._study.budget import EVALUATIONS_PER_ATTEMPT, wear_updates
 
     st = load_study(_study(tmp_path, boom=True, hours="3",
                            params="[model.parameters]\nK_d_per_Pa = 3.8e-13"))
@@ -297,7 +297,7 @@ def test_memory_estimate_uses_the_fit_given(tmp_path, engines_stubbed, monkeypat
 def test_history_residuals_have_one_hours_column():
     from types import SimpleNamespace as NS
 
-    from jaxwear.cli.diagnose import residual_table
+    from jaxwear._report.diagnosis import residual_table
 
     model = NS(is_max=np.array([True, True]), exp_names=["b"], row_exp=[0, 0],
                row_x=[5.0, 10.0], row_time=[5.0, 10.0], measured=[94.0, 130.0])
@@ -313,7 +313,7 @@ def test_history_residuals_have_one_hours_column():
 
 
 def test_non_finite_r_hat_is_null_and_flagged():
-    from jaxwear._predict_nuts import r_hat_warnings, worst
+    from jaxwear._analyses.predict.nuts import r_hat_warnings, worst
 
     diag = {"K_d_per_Pa": {"r_hat": None, "ess_bulk": 12.0},
             "noise_um": {"r_hat": 1.01, "ess_bulk": None}}
@@ -329,7 +329,7 @@ def test_non_finite_r_hat_is_null_and_flagged():
 def test_nuts_integration_block_has_laplaces_form():
     from types import SimpleNamespace as NS
 
-    from jaxwear._predict_draws import integration_block
+    from jaxwear._analyses.predict.draws import integration_block
 
     sched = NS(adaptive=True, tolerance=np.asarray(2e-9))
     block = integration_block(sched, {"error": 1.5e-9, "steps": 40})
@@ -343,7 +343,7 @@ def test_nuts_integration_block_has_laplaces_form():
 def test_files_written_by_name_are_atomic(tmp_path):
     """`posterior.nc` was written in place by its library; `write_with` gives it a temporary
     name, renamed only once complete: a failing writer leaves the old file and no debris."""
-    from jaxwear._io import OutputDir
+    from jaxwear._core.io import OutputDir
 
     out = OutputDir(tmp_path / "o")
     (tmp_path / "o" / "posterior.nc").write_text("old")
@@ -511,7 +511,7 @@ def test_sweep_reports_failed_points_as_failed(tmp_path, monkeypatch):
     and in the headline, not "worn through" (the engine stands in: 3 points, one of each)."""
     import csv
 
-    import jaxwear._sweep as swe
+    import jaxwear._analyses.sweep as swe
 
     def fake(study, grid, progress=False):
         n = 3
@@ -545,7 +545,7 @@ def test_a_contact_failure_names_the_experiment_and_keys():
     from types import SimpleNamespace as NS
 
     import jaxwear as jw
-    from jaxwear._wear import check_result
+    from jaxwear._physics.wear import check_result
 
     cfg = jw.ModelConfig(nodes=32, steps_per_rev=36)
     fast = jw.preset("rig", speed_rpm=1e5)
@@ -578,7 +578,7 @@ def test_the_work_estimate_counts_the_tolerance(tmp_path):
     the refusal names the tolerance when it drives the work."""
     from dataclasses import replace
 
-    from jaxwear._budget import EVALUATIONS_PER_ATTEMPT, check_work, wear_updates
+    from jaxwear._study.budget import EVALUATIONS_PER_ATTEMPT, check_work, wear_updates
 
     st = load_study(_study(tmp_path, revs="2000"))
     e = st.experiments[0]
@@ -604,8 +604,8 @@ def test_300000_row_profile_outputs_in_seconds(tmp_path):
     from dataclasses import replace
     from types import SimpleNamespace as NS
 
-    from jaxwear._io import OutputDir
-    from jaxwear._study import Profile
+    from jaxwear._core.io import OutputDir
+    from jaxwear._study.study import Profile
     from jaxwear.cli.calibrate import plot_fits, write_tables
 
     n = 300_000
@@ -636,7 +636,7 @@ def test_300000_row_profile_outputs_in_seconds(tmp_path):
 def test_thinned_points_keep_the_envelope():
     """The plotted points of a large scatter: at most PLOT_POINTS, and in every bin along x
     the lowest and the highest point (so an outlier is never thinned away)."""
-    from jaxwear._report import PLOT_POINTS, thinned
+    from jaxwear._report.figures import PLOT_POINTS, thinned
 
     rng = np.random.default_rng(1)
     x, y = rng.uniform(0, 360, 100_000), rng.normal(0, 1, 100_000)

@@ -1,4 +1,4 @@
-"""Work that cannot finish is refused up front (`jaxwear._budget`), exit 2 before any work.
+"""Work that cannot finish is refused up front (`jaxwear._study.budget`), exit 2 before any work.
 
 The estimate is checked against the schedule the wear loop really builds (an upper bound,
 tight to the snapshot count) and against hand counts; the refusals name the key to change.
@@ -10,8 +10,8 @@ import math
 import pytest
 
 from jaxwear import InputError, load_study
-from jaxwear._budget import check_work, estimate_work, wear_updates
-from jaxwear._wear import build_schedule
+from jaxwear._physics.wear import build_schedule
+from jaxwear._study.budget import check_work, estimate_work, wear_updates
 from jaxwear.cli import main
 
 CRANK = """\
@@ -90,9 +90,9 @@ def test_upper_bound_of_the_real_duty_cycle_schedule(tmp_path, M, hours):
 def forbid_work(monkeypatch):
     import jaxwear.cli.calibrate as cal
     dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
-    import jaxwear._sensitivity as sen
-    import jaxwear._simulate_study as sim
-    import jaxwear._sweep as swe
+    import jaxwear._analyses.sensitivity as sen
+    import jaxwear._analyses.sweep as swe
+    import jaxwear.cli.simulate as sim
 
     def no_work(*a, **k):
         raise AssertionError("work started before the estimate refused it")

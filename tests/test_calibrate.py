@@ -23,8 +23,8 @@ import pytest
 from scipy import stats
 
 import jaxwear as jw
-from jaxwear._calibrate import build_problem, calibrate, fit, parse_fit
-from jaxwear._study import load_study
+from jaxwear._inference.calibrate import build_problem, calibrate, fit, parse_fit
+from jaxwear._study.study import load_study
 from jaxwear.cli import main
 
 NODES, STEPS, M, REVS = 64, 72, 100, 3000

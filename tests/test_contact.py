@@ -15,8 +15,8 @@ import pytest
 from helpers import conforming_groove, mirror_asymmetry, node_angles, random_profile
 
 import jaxwear as jw
-from jaxwear._contact import equivalent_modulus
-from jaxwear._wear import node_area
+from jaxwear._physics.contact import equivalent_modulus
+from jaxwear._physics.wear import node_area
 
 N = 64
 STEPS = 48

@@ -27,11 +27,11 @@ import re
 import numpy as np
 import pytest
 
-from jaxwear import _resolution
-from jaxwear._calibrate import build_problem, fit_study, study_fit_keys
-from jaxwear._residual import forward_run, traces, traces_since
-from jaxwear._study import load_study
-from jaxwear._synth import synthesize
+from jaxwear._analyses.synth import synthesize
+from jaxwear._inference.calibrate import build_problem, fit_study, study_fit_keys
+from jaxwear._inference.residual import forward_run, traces, traces_since
+from jaxwear._study.study import load_study
+from jaxwear._study import resolution as _resolution
 
 LEVELS = ((32, 36), (64, 72))
 

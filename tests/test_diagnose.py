@@ -15,10 +15,7 @@ import pytest
 from helpers import THREE_EXPERIMENTS, paper_three
 
 import jaxwear as jw
-from jaxwear._config import ModelConfig
-from jaxwear._synth import PAPER_MATRIX, synthesize
-from jaxwear.cli import main
-from jaxwear.diagnose import (
+from jaxwear._analyses.diagnose import (
     chi2_sf,
     diagnose,
     f_sf,
@@ -27,7 +24,10 @@ from jaxwear.diagnose import (
     noise_level,
     norm_sf,
 )
-from jaxwear.effects import STRUCTURAL_CANDIDATES, get_effect
+from jaxwear._analyses.synth import PAPER_MATRIX, synthesize
+from jaxwear._physics.config import ModelConfig
+from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect
+from jaxwear.cli import main
 
 SMALL = dict(nodes=64, steps_per_rev=72, revolutions_per_update=500)
 NOISE = 0.3
@@ -147,7 +147,7 @@ def test_null_data_false_alarm_rate_at_the_stated_alpha():
     (miscalibrated p-values, e.g. a discretisation misfit taken as signal, fail this first).
     Measured on the five-experiment matrix: 0 of 30 alarms, p_min < 0.1 in 2 of 10 (0.035,
     0.072); here three of its experiments (the same statement, a third of the cost)."""
-    from jaxwear.diagnose._stats import ALPHA
+    from jaxwear._analyses.diagnose._stats import ALPHA
 
     assert ALPHA == 1e-3  # the level the bounds above are derived for
     diags = [diagnose(_synth_three([], seed=100 + s).study) for s in range(NULL_SEEDS)]

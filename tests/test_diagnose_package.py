@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._calibrate import build_problem, parse_fit
-from jaxwear._study import Profile
-from jaxwear._synth import paper_conditions
-from jaxwear.diagnose import Candidate, Diagnosis, Eval, Fit, Model, Screen, _stats
+from jaxwear._analyses.diagnose import Candidate, Diagnosis, Eval, Fit, Model, Screen, _stats
+from jaxwear._analyses.synth import paper_conditions
+from jaxwear._inference.calibrate import build_problem, parse_fit
+from jaxwear._study.study import Profile
 
 
 def _study():
@@ -72,4 +72,4 @@ def test_model_is_the_calibration_problem_with_candidate_columns():
     i = m.index["clearance_mm/" + st.experiments[0].name]
     u[i] = math.log((0.05 + st.clearance_tolerance_um * 1e-3) / 0.05)
     assert m.packing.prior_rows(u)[0][0] == pytest.approx(1.0, rel=1e-12)
-    assert jw.diagnose.__module__ == "jaxwear.diagnose._verdict"
+    assert jw.diagnose.__module__ == "jaxwear._analyses.diagnose._verdict"

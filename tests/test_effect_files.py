@@ -18,8 +18,8 @@ import pytest
 
 import jaxwear as jw
 from jaxwear import InputError
+from jaxwear._physics.effects import registered_effects
 from jaxwear.cli import main
-from jaxwear.effects import registered_effects
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -111,7 +111,7 @@ def test_synth_conditions_then_calibrate_and_diagnose_candidate(folder):
     """`synth --conditions` hides the file's effect (truth at finer numerics, noise); the
     written study (in another folder) still loads the file; loaded but off, the effect is a
     diagnose candidate; switched on, `calibrate` recovers its strength."""
-    from jaxwear.diagnose import candidate_names
+    from jaxwear._analyses.diagnose import candidate_names
 
     cond = _study(folder)
     out = folder / "virtual"

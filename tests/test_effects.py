@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._config import ModelConfig
-from jaxwear._contact import equivalent_modulus, stiffness_per_area
-from jaxwear._wear import cycle_increment
-from jaxwear.effects import (
+from jaxwear._physics.config import ModelConfig
+from jaxwear._physics.contact import equivalent_modulus, stiffness_per_area
+from jaxwear._physics.effects import (
     STRUCTURAL,
     STRUCTURAL_CANDIDATES,
     Effect,
@@ -24,6 +23,7 @@ from jaxwear.effects import (
     registered_effects,
     unregister_effect,
 )
+from jaxwear._physics.wear import cycle_increment
 
 BUILTIN = ("running_in", "speed_dependence", "pressure_exponent", "friction", "creep")
 SMALL = ModelConfig(nodes=48, steps_per_rev=36)
@@ -179,8 +179,8 @@ def test_strength_gradients_finite_at_off_and_match_finite_differences(small_mod
 def small_model():
     """The extended model of a small synthetic rig study (shared compile with the
     diagnose tests), at the true parameters of null data."""
-    from jaxwear._synth import synthesize
-    from jaxwear.diagnose import Model
+    from jaxwear._analyses.diagnose import Model
+    from jaxwear._analyses.synth import synthesize
 
     res = synthesize([], "paper", noise_um=0.3, seed=3, numerics=dict(
         nodes=64, steps_per_rev=72, revolutions_per_update=500))
@@ -199,7 +199,7 @@ class _Humidity(Effect):
 
 
 def test_register_custom_effect_and_contracts():
-    from jaxwear.diagnose import candidate_names
+    from jaxwear._analyses.diagnose import candidate_names
 
     try:
         register_effect(_Humidity())

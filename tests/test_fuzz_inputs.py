@@ -353,7 +353,7 @@ def test_what_editors_and_scanners_write_loads_as_meant(tmp_path_factory, rows, 
     ["0:1:1e3", "1:2:0", "1:2:-3", "0.05:0.15:11", "nan", "inf,1", "1,,2", "::", "5",
      "0:1:99999999999", "1e400", " 3 , 4 "])))
 def test_fuzzed_sweep_ranges(text):
-    from jaxwear._numbers import parse_range
+    from jaxwear._core.numbers import parse_range
 
     try:
         v = parse_range("--clearance-mm", text)
@@ -368,7 +368,7 @@ def test_fuzzed_sweep_ranges(text):
     ["creep", "creep=1e-15", "creep=nan", "creep=-1", "running_in=0.5=1", "friction=",
      "speed_dependence=inf", "unknown=1", "creep,friction", "=3"])), max_size=3))
 def test_fuzzed_hidden_effects(items):
-    from jaxwear._synth import parse_hidden
+    from jaxwear._analyses.synth import parse_hidden
 
     try:
         parse_hidden(items)

@@ -12,7 +12,7 @@ import pytest
 from helpers import central_fd
 
 import jaxwear as jw
-from jaxwear._wear import build_schedule, wear_loop
+from jaxwear._physics.wear import build_schedule, wear_loop
 
 KEYS = ("K_d_per_Pa", "clearance_mm", "speed_rpm", "spring_N_per_m", "layer_E_GPa")
 # SI values of the rig preset: K_d [1/Pa], c [m], ω [rad/s], k [N/m], E [Pa]

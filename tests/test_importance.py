@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxwear._predict_importance import (
+from jaxwear._analyses.predict.importance import (
     ESS_SHARE_GOOD,
     GROW_MIN,
     K_GOOD,
@@ -204,7 +204,7 @@ def test_sampling_tolerance_bounds_the_log_likelihoods_error():
     stays."""
     from types import SimpleNamespace
 
-    from jaxwear._predict_nuts import LOGP_ERROR, sampling_tolerance_m
+    from jaxwear._analyses.predict.nuts import LOGP_ERROR, sampling_tolerance_m
 
     def problem(n, p, tol_m=2e-9):
         sched = SimpleNamespace(adaptive=True, tolerance=np.asarray(tol_m))

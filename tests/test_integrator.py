@@ -15,8 +15,8 @@ import pytest
 from helpers import central_fd
 
 import jaxwear as jw
-from jaxwear._config import boom_config
-from jaxwear._wear import (
+from jaxwear._physics.config import boom_config
+from jaxwear._physics.wear import (
     DEFAULT_WEAR_TOLERANCE_UM,
     _adaptive_trace,
     build_schedule,
@@ -186,8 +186,8 @@ def test_boom_calibration_right_by_default(tmp_path):
     integration error at the fitted values is reported and within the tolerance."""
     from pathlib import Path
 
-    from jaxwear._calibrate import calibrate
-    from jaxwear._study import load_study
+    from jaxwear._inference.calibrate import calibrate
+    from jaxwear._study.study import load_study
 
     src = Path(__file__).resolve().parents[1] / "calibration" / "boom" / "boom.csv"
     (tmp_path / "boom.csv").write_text(src.read_text())
@@ -227,9 +227,9 @@ def test_a_raised_attempt_count_compiles_nothing_and_changes_nothing(tmp_path):
     (error estimate inf)."""
     from pathlib import Path
 
-    from jaxwear._calibrate import build_problem, parse_fit
-    from jaxwear._residual import evaluate, traces, traces_since
-    from jaxwear._study import load_study
+    from jaxwear._inference.calibrate import build_problem, parse_fit
+    from jaxwear._inference.residual import evaluate, traces, traces_since
+    from jaxwear._study.study import load_study
 
     p, cfg, run = CASES["boom"]
     sched = build_schedule(p, cfg, **run)
@@ -266,9 +266,9 @@ def test_attempt_estimate_in_one_call_is_the_per_experiment_estimate(tmp_path):
     evaluation); it must equal the estimate from each experiment's own parameters and
     schedule (`adaptive_attempts`), here on a rig study of two speeds and clearances and
     at K_d x 50, where the stability limit, not accuracy, sets the count."""
-    from jaxwear._packing import parse_fit
-    from jaxwear._residual import attempts_needed, build_model
-    from jaxwear._wear import adaptive_attempts
+    from jaxwear._inference.packing import parse_fit
+    from jaxwear._inference.residual import attempts_needed, build_model
+    from jaxwear._physics.wear import adaptive_attempts
 
     res = jw.synthesize([], "paper", noise_um=0.3, seed=3,
                         numerics=dict(nodes=48, steps_per_rev=48))
@@ -299,7 +299,7 @@ def test_running_in_is_integrated_on_its_clock(monkeypatch):
     with the same a·S_r), where stepping in cycles with the factor in the rate (the clock
     switched off) takes over twice as many; and both agree within the tolerance, against the
     latter at a tenth of it."""
-    import jaxwear._wear as wear
+    import jaxwear._physics.wear as wear
 
     cfg = boom_config(nodes=48, steps_per_rev=72, effects=("running_in",))
     tol = DEFAULT_WEAR_TOLERANCE_UM

@@ -1,4 +1,4 @@
-"""Inputs cannot be lost: the output guard of every verb, and atomic writes (`jaxwear._io`).
+"""Inputs cannot be lost: the output guard of every verb, and atomic writes (`jaxwear._core.io`).
 
 Each verb must refuse, with exit 2 and before any work, an output (a file under `--out` or
 `--json FILE`) that would replace one of its input files. "Before any work" is checked by
@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from jaxwear import InputError
-from jaxwear._io import OutputDir, atomic_open, atomic_write, input_files
+from jaxwear._core.io import OutputDir, atomic_open, atomic_write
+from jaxwear._study.outputs import input_files
 from jaxwear.cli import main
 
 STUDY = """\
@@ -51,9 +52,9 @@ def _no_work(*a, **k):
 def forbid_work(monkeypatch):
     import jaxwear.cli.calibrate as cal
     dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
-    import jaxwear._sensitivity as sen
-    import jaxwear._simulate_study as sim
-    import jaxwear._sweep as swe
+    import jaxwear._analyses.sensitivity as sen
+    import jaxwear._analyses.sweep as swe
+    import jaxwear.cli.simulate as sim
 
     monkeypatch.setattr(sim, "simulate_study", _no_work)
     monkeypatch.setattr(cal, "build_problem", _no_work)
@@ -152,7 +153,7 @@ def test_synth_conditions_out_dot_regression(tmp_path):
 
 
 def test_synth_library_call_is_guarded_too(tmp_path, forbid_work):
-    from jaxwear._synth import synthesize
+    from jaxwear._analyses.synth import synthesize
 
     study = _study(tmp_path)
     with pytest.raises(InputError, match="study.toml"):
@@ -204,7 +205,7 @@ def test_atomic_write_replaces_and_follows_the_umask(tmp_path):
 
 
 def test_figures_are_written_atomically(tmp_path):
-    from jaxwear._report import plt
+    from jaxwear._report.figures import plt
 
     pl = plt()
     fig, ax = pl.subplots()
@@ -221,7 +222,7 @@ def test_figures_are_written_atomically(tmp_path):
 
 def test_synth_writes_exactly_its_planned_files(tmp_path):
     from jaxwear import load_study
-    from jaxwear._synth import synth_outputs
+    from jaxwear._analyses.synth import synth_outputs
 
     conditions = _study(tmp_path / "c")
     rc = main(["synth", "--hidden", "creep", "--conditions", str(conditions), "--out",
@@ -233,7 +234,7 @@ def test_synth_writes_exactly_its_planned_files(tmp_path):
 
 def test_simulate_writes_only_planned_files(tmp_path):
     from jaxwear import load_study
-    from jaxwear._simulate_study import simulate_outputs
+    from jaxwear.cli.simulate import simulate_outputs
 
     study = _study(tmp_path / "s")
     assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 0

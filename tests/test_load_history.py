@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._config import timed as jw_timed
+from jaxwear._physics.config import timed as jw_timed
 from jaxwear.cli import main
 
 NOISE_UM = 0.1
@@ -97,7 +97,7 @@ profile = "s1.csv"
 def verb_study(tmp_path_factory):
     """The study (64 x 72) and its data (128 x 144, tolerance 5e-4 µm) in one folder; the
     truth's maximum depths per specimen and time."""
-    from jaxwear._simulate_study import simulate_outputs, simulate_study
+    from jaxwear.cli.simulate import simulate_outputs, simulate_study
 
     d = tmp_path_factory.mktemp("lh")
     (d / "rig.toml").write_text(RIG.replace("steps_per_rev = 72", "steps_per_rev = 144"))

@@ -14,7 +14,7 @@ import pytest
 from test_load_history import RIG, profiles
 
 import jaxwear as jw
-from jaxwear._simulate_study import simulate_outputs, simulate_study
+from jaxwear.cli.simulate import simulate_outputs, simulate_study
 
 BOOM = """\
 [model]

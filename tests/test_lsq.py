@@ -1,4 +1,4 @@
-"""The one least-squares core (`jaxwear.lsq`) on problems whose answers are known
+"""The one least-squares core (`jaxwear._inference.lsq`) on problems whose answers are known
 independently: linear and exponential models with closed-form or finite-difference
 references, a cost with the jitter of an adaptive integrator, a wrong Jacobian, a null
 direction. No wear model here (fast); `test_lsq_models.py` checks the core inside
@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxwear import lsq
+from jaxwear._inference import lsq
 
 T = np.linspace(0.0, 5.0, 200)
 TRUE = np.array([math.log(3.0), 0.7])  # u = (ln a, k) of a·exp(-k t)

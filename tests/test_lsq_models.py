@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear import _calibrate as cal
-from jaxwear._errors import InputError
-from jaxwear._study import load_study
-from jaxwear._synth import synthesize
-from jaxwear.diagnose import Model, fit_masked
+from jaxwear._analyses.diagnose import Model, fit_masked
+from jaxwear._analyses.synth import synthesize
+from jaxwear._core.errors import InputError
+from jaxwear._inference import calibrate as cal
+from jaxwear._study.study import load_study
 
 NOISE_UM = 0.3
 
@@ -100,7 +100,7 @@ def _no_evaluation(monkeypatch):
     def fail(*a, **k):
         raise AssertionError("a model evaluation ran before the refusal")
 
-    from jaxwear import _residual
+    from jaxwear._inference import residual as _residual
 
     monkeypatch.setattr(cal, "evaluate", fail)
     monkeypatch.setattr(_residual, "_evaluate_jit", fail)
@@ -170,8 +170,9 @@ def test_auto_resolution_of_a_forward_run_states_its_error(tmp_path):
     next finer level's, and its stated error bounds the distance to a 360 x 360 run within
     a factor 2 (first-order convergence in the grid: the next-level difference is about
     the error)."""
-    from jaxwear._io import open_outputs
-    from jaxwear._simulate_study import run_experiment, simulate_study
+    from jaxwear._analyses.simulate import run_experiment
+    from jaxwear._study.outputs import open_outputs
+    from jaxwear.cli.simulate import simulate_study
 
     path = tmp_path / "s.toml"
     path.write_text('[model]\npreset = "rig"\n[model.parameters]\nK_d_per_Pa = 1.0e-13\n'

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxwear._calibrate import calibrate
-from jaxwear._study import load_study
-from jaxwear._synth import synthesize
-from jaxwear.diagnose import diagnose
+from jaxwear._analyses.diagnose import diagnose
+from jaxwear._analyses.synth import synthesize
+from jaxwear._inference.calibrate import calibrate
+from jaxwear._study.study import load_study
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import numpy_reference as ref  # noqa: E402
@@ -68,7 +68,7 @@ def test_diagnose_honours_the_registration():
     offsets with the base model (calibrate's path) and finds nothing missing; told the
     registration is exact (tolerance 0), the same scans read as systematic misfit (so the
     first half can fail)."""
-    from jaxwear.diagnose import diagnose
+    from jaxwear._analyses.diagnose import diagnose
 
     res = synthesize([], paper_three(SMALL), noise_um=NOISE, seed=3, angle_offset_deg=3.0)
     held = diagnose(res.study, auto_shape=False)  # the verdict alone (not the shape)
@@ -83,8 +83,8 @@ def test_diagnose_honours_the_registration():
 def test_angle_offset_jacobian_matches_finite_differences():
     """d(residual)/d(offset) of the differentiable periodic interpolation, against a
     central difference of the residuals themselves."""
-    from jaxwear._calibrate import build_problem, parse_fit
-    from jaxwear._residual import evaluate
+    from jaxwear._inference.calibrate import build_problem, parse_fit
+    from jaxwear._inference.residual import evaluate
 
     res = synthesize([], "paper", noise_um=NOISE, seed=5, numerics=SMALL, angle_offset_deg=1.3)
     st = replace(res.study, angle_tolerance_deg=5.0)

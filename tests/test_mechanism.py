@@ -13,7 +13,7 @@ import pytest
 from helpers import wrap_deg, wrap_rad
 
 import jaxwear as jw
-from jaxwear import _mechanism as mech
+from jaxwear._physics import mechanism as mech
 
 N_STEPS = 360
 

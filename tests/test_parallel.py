@@ -1,4 +1,4 @@
-"""Sharded batches (`jaxwear._parallel`): the same numbers as unsharded, on 1, 2 devices and
+"""Sharded batches (`jaxwear._core.parallel`): the same numbers as unsharded, on 1, 2 devices and
 across 2 processes.
 
 Sharding changes where a point is computed, never how: every point runs the same point
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxwear._parallel import sharded_fn, sharded_vmap
+from jaxwear._core.parallel import sharded_fn, sharded_vmap
 
 
 def _point(x, y):
@@ -95,8 +95,8 @@ def _run(code, env_extra, timeout):
 TWO_DEVICES = """
     import equinox as eqx, jax, numpy as np
     import jaxwear as jw
-    from jaxwear._parallel import _compiled, _place, _replicate, sharded_vmap
-    from jaxwear._wear import build_schedule, wear_loop
+    from jaxwear._core.parallel import _compiled, _place, _replicate, sharded_vmap
+    from jaxwear._physics.wear import build_schedule, wear_loop
 
     assert jax.device_count() == 2, jax.devices()
     p = jw.preset("rig")
@@ -150,7 +150,7 @@ DISTRIBUTED = """
                                process_id=pid, initialization_timeout=60)
     import numpy as np
     import jaxwear as jw
-    from jaxwear._parallel import sharded_vmap
+    from jaxwear._core.parallel import sharded_vmap
 
     assert jax.process_count() == 2 and jax.device_count() == 2
     cfg = jw.ModelConfig(steps_per_rev=36)

@@ -1,4 +1,4 @@
-"""The plausibility table (`jaxwear._plausible`, issue 29): every key has a range, the
+"""The plausibility table (`jaxwear._study.plausible`, issue 29): every key has a range, the
 presets and the example studies lie inside them, and what the layer-strain check computes
 without the model agrees with the model: the peak joint load with the mechanism's, the
 closed-form Winkler strain with the discrete contact solve's."""
@@ -12,22 +12,19 @@ import pytest
 
 import jaxwear as jw
 from jaxwear import InputError
-from jaxwear._contact import equivalent_modulus, solve_contact, stiffness_per_area
-from jaxwear._load import load_history
-from jaxwear._params import PARAMETER_KEYS, PRESETS
-from jaxwear._plausible import (
+from jaxwear._physics.contact import equivalent_modulus, solve_contact, stiffness_per_area
+from jaxwear._physics.effects import effect_parameter_specs
+from jaxwear._physics.limits import (
     LOAD_BOUNDS,
-    RANGES,
     STRAIN_LIMIT,
-    check_params,
-    check_value,
     crank_slider_peak_load,
-    key_range,
     peak_strain,
     strain_load_limit,
 )
-from jaxwear._wear import node_area
-from jaxwear.effects import effect_parameter_specs
+from jaxwear._physics.load import load_history
+from jaxwear._physics.params import PARAMETER_KEYS, PRESETS
+from jaxwear._physics.wear import node_area
+from jaxwear._study.plausible import RANGES, check_params, check_value, key_range
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_every_key_has_a_range():
     """A key added without a range would go unchecked: every parameter key, every effect
     strength and every number of [numerics], [fit] and [[experiment]] is in the table."""
-    from jaxwear._study import _FIT_KEYS, _NUMERIC_KEYS
+    from jaxwear._study.study import _FIT_KEYS, _NUMERIC_KEYS
 
     for key in PARAMETER_KEYS:
         assert key in RANGES, key
@@ -128,7 +125,7 @@ def test_winkler_strain_matches_the_contact_solve(name, load):
 
 def test_the_docs_list_every_range():
     """docs/plausibility.md is the table in prose: every key and ratio is in it."""
-    from jaxwear._plausible import RELATIONS
+    from jaxwear._study.plausible import RELATIONS
 
     text = (ROOT / "docs" / "plausibility.md").read_text()
     for key in RANGES:

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._predict import forecast_snapshots, t_quantile
-from jaxwear._residual import forward
-from jaxwear._study import load_study
+from jaxwear._analyses.predict.forecast import forecast_snapshots, t_quantile
+from jaxwear._inference.residual import forward
+from jaxwear._study.study import load_study
 from jaxwear.cli import main
 
 NODES, STEPS, M = 64, 72, 100
@@ -132,8 +132,8 @@ def test_intervals_contain_the_truth(forecast, truth):
 def test_propagated_variance_matches_finite_differences(study_path):
     """g C gᵀ with g from jacfwd equals the same with g by central differences of the
     forecast maximum depth (each FD evaluation is the forecast model itself)."""
-    from jaxwear._calibrate import build_problem, fit, parse_fit
-    from jaxwear._predict import forecast_points, forecast_problem, training_study
+    from jaxwear._analyses.predict.forecast import forecast_points, forecast_problem, training_study
+    from jaxwear._inference.calibrate import build_problem, fit, parse_fit
 
     study = load_study(study_path)
     keys = parse_fit(study, "K_d,clearance")
@@ -214,7 +214,7 @@ def test_cli_refuses_to_overwrite_an_input(study_path, tmp_path, capsys):
 def test_cli_nuts_writes_posterior_and_diagnostics(study_path, tmp_path, capsys):
     """Short NUTS run through the CLI: the InferenceData file holds every fitted parameter,
     R-hat and ESS are reported, and the posterior of K_d holds the truth."""
-    from jaxwear._predict_nuts import _arviz
+    from jaxwear._analyses.predict.nuts import _arviz
 
     out = tmp_path / "nuts"
     code = main(["predict", str(study_path), "--at", "3000", "--train-until", "2000",
@@ -255,7 +255,7 @@ def test_cli_importance_stops_at_its_ess_and_holds_the_truth(study_path, tmp_pat
     answer's round stops once every parameter's ESS is 300 (R-hat ≤ 1.01, k̂ ≤ 0.5), before
     drawing all it may; the JSON says what it drew against the cap; the 90 % interval of
     K_d holds the truth and the netCDF file holds the drawn batches."""
-    from jaxwear._predict_nuts import _arviz
+    from jaxwear._analyses.predict.nuts import _arviz
 
     out = tmp_path / "imp"
     code = main(["predict", str(study_path), "--at", "3000", "--train-until", "2000",
@@ -285,8 +285,8 @@ def test_importance_sampling_level_is_checked_and_falls_back(study_path, tmp_pat
     exactly that level's own answer (same seed). (The screen at the answer,
     `SAMPLING_DEFECT_REACH`, would not have tried that level: it is lifted here so that
     the check after sampling is what decides.)"""
-    import jaxwear._predict as pr
-    import jaxwear._predict_importance as pi
+    import jaxwear._analyses.predict.forecast as pr
+    import jaxwear._analyses.predict.importance as pi
 
     def run(name, share, min_nodes=40):
         monkeypatch.setattr(pr, "SAMPLING_NODES_SHARE", share)
@@ -322,7 +322,7 @@ def _converged_rhat_bound(n, ess_fraction, params, chains=2, reps=500, q=0.99):
     (converged) and ESS ≈ ess_fraction x draws (ρ = (1 - f)/(1 + f))."""
     import warnings
 
-    from jaxwear._predict_nuts import _arviz
+    from jaxwear._analyses.predict.nuts import _arviz
 
     az = _arviz()
     rng = np.random.default_rng(0)
@@ -357,9 +357,9 @@ def test_nuts_log_density_is_the_gaussian_posterior(study_path):
     matches central finite differences; outside the σ prior's support it is -inf."""
     import jax
 
-    from jaxwear._calibrate import build_problem, fit, parse_fit
-    from jaxwear._predict import training_study
-    from jaxwear._predict_nuts import initial_position, log_density, whitening
+    from jaxwear._analyses.predict.forecast import training_study
+    from jaxwear._analyses.predict.nuts import initial_position, log_density, whitening
+    from jaxwear._inference.calibrate import build_problem, fit, parse_fit
 
     train = training_study(load_study(study_path), 2000.0)
     problem = build_problem(train, parse_fit(train, "K_d"))
@@ -403,10 +403,10 @@ def test_density_outside_the_prior_runs_no_model(study_path):
     share of the proposal inside the support: a t centred on the bound is half inside."""
     import jax
 
-    from jaxwear._calibrate import build_problem, parse_fit
-    from jaxwear._predict import training_study
-    from jaxwear._predict_importance import _share_in_support
-    from jaxwear._predict_nuts import log_density, prior_density
+    from jaxwear._analyses.predict.forecast import training_study
+    from jaxwear._analyses.predict.importance import _share_in_support
+    from jaxwear._analyses.predict.nuts import log_density, prior_density
+    from jaxwear._inference.calibrate import build_problem, parse_fit
 
     train = training_study(load_study(study_path), 2000.0)
     problem = build_problem(train, parse_fit(train, "K_d"))
@@ -467,9 +467,9 @@ def test_adaptive_study_reports_the_forecast_integration(study_path, forecast, t
 
     import jax
 
-    from jaxwear._calibrate import build_problem, parse_fit
-    from jaxwear._predict import training_study
-    from jaxwear._predict_nuts import log_density
+    from jaxwear._analyses.predict.forecast import training_study
+    from jaxwear._analyses.predict.nuts import log_density
+    from jaxwear._inference.calibrate import build_problem, parse_fit
 
     train = training_study(study, 2000.0)
     problem = build_problem(train, parse_fit(train, "K_d"))

@@ -85,7 +85,7 @@ def _check_life_by_hand(study_path, doc):
     from scipy import stats
 
     import jaxwear as jw
-    from jaxwear._study import load_study
+    from jaxwear._study.study import load_study
 
     life = doc["life"][0]
     b = life["numerical_error_bound"]
@@ -146,7 +146,7 @@ def test_draws_past_their_early_stop_hold_a_lower_bound():
     """A posterior draw's forecast stops once its layer is worn through: the points after
     repeat its last computed profile (depth never decreases: a lower bound past the layer),
     per experiment, and a draw that did not stop is untouched."""
-    from jaxwear._predict import fill_past_stop
+    from jaxwear._analyses.predict.snapshots import fill_past_stop
 
     inf = np.inf
     s = np.array([[[1.0, 2.0], [3.0, 5.0], [inf, inf], [inf, inf]],
@@ -173,7 +173,12 @@ def test_life_crossings_hold_their_bound_and_refine_to_it():
     more than the tolerance. Block boundaries on the grid make it exact (linear within)."""
     from types import SimpleNamespace
 
-    from jaxwear._predict import LIFE_RTOL, life_of, refined_points, regime_boundaries
+    from jaxwear._analyses.predict.forecast import (
+        LIFE_RTOL,
+        life_of,
+        refined_points,
+        regime_boundaries,
+    )
 
     exact = 35.2
     assert _staircase(exact) == pytest.approx(500.0, abs=1e-9)
@@ -228,7 +233,7 @@ def test_draws_forecast_on_the_laplace_life_span_need_no_refinement():
     (each a forecast of every draw)."""
     from types import SimpleNamespace
 
-    from jaxwear._predict import LIFE_RTOL, guided_points, life_of, refined_points
+    from jaxwear._analyses.predict.forecast import LIFE_RTOL, guided_points, life_of, refined_points
 
     study = SimpleNamespace(config=SimpleNamespace(driver="oscillating"))
     grid = [np.linspace(0, 250.0, 49)[1:]]
@@ -260,8 +265,8 @@ def test_worn_through_draws_take_the_prediction_band_past_the_limit():
     filled with the stopped depth plus noise instead, the band's lower edge hovered ~8 µm
     under the limit for good and the life had no upper end. By hand: the lower edge is
     past the limit once over 95 % of the draws have stopped."""
-    from jaxwear._predict import draw_quantile, life_of
-    from jaxwear._predict_draws import new_measurements
+    from jaxwear._analyses.predict.draws import new_measurements
+    from jaxwear._analyses.predict.forecast import draw_quantile, life_of
 
     rng = np.random.default_rng(0)
     t = np.arange(1.0, 101.0)  # hours

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._simulate_study import last_cycle_pressure
-from jaxwear._study import Experiment, Study
-from jaxwear._wear import node_area
+from jaxwear._analyses.simulate import last_cycle_pressure
+from jaxwear._physics.wear import node_area
+from jaxwear._study.study import Experiment, Study
 
 NODES, STEPS = 64, 48
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._sensitivity import relevant_keys, sensitivities
+from jaxwear._analyses.sensitivity import relevant_keys, sensitivities
 from jaxwear.cli import main
 
 NODES, STEPS, M, REVS = 64, 72, 100, 3000

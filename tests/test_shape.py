@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear.diagnose import Model
-from jaxwear.diagnose import _shape_linear as lin
-from jaxwear.diagnose._shape import choose_best, make_basis
-from jaxwear.effects.shape import (
+from jaxwear._analyses.diagnose import Model
+from jaxwear._analyses.diagnose import _shape_linear as lin
+from jaxwear._analyses.diagnose._shape import choose_best, make_basis
+from jaxwear._physics.effects.shape import (
     DEPOSIT_VARIABLES,
     VARIABLES,
     ShapeVariable,
@@ -141,7 +141,7 @@ def test_ar1_coefficient_from_second_differences():
     near 0). The standard error is the correlation's (√(1.944/n)) over the slope of the
     closed form ρ(φ), by hand: ρ = (−4 + 7φ − 4φ² + φ³)/(6 − 8φ + 2φ²), −0.55 at φ = 0.5,
     slope 0.19: second differences see φ only weakly (n = 3 500 rows gave ±0.13)."""
-    from jaxwear._noise import line_residuals
+    from jaxwear._core.noise import line_residuals
 
     rng = np.random.default_rng(5)
     x = np.arange(0.0, 360.0, 2.0)
@@ -290,8 +290,8 @@ def test_packed_coefficients_are_the_same_correction(shaped):
     the coefficients packed equal those read one key at a time, both forms on."""
     import jax
 
-    from jaxwear._wear import cycle_rates, run_history
-    from jaxwear.effects.shape import pack
+    from jaxwear._physics.effects.shape import pack
+    from jaxwear._physics.wear import cycle_rates, run_history
 
     m = shaped
     rng = np.random.default_rng(1)

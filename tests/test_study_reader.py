@@ -4,8 +4,8 @@ depth in mm, a BOM, an angular registration offset."""
 import numpy as np
 import pytest
 
-from jaxwear._errors import InputError
-from jaxwear._study import load_study, read_history, read_profile
+from jaxwear._core.errors import InputError
+from jaxwear._study.study import load_study, read_history, read_profile
 
 STUDY = '''[model]
 preset = "rig"
@@ -124,7 +124,7 @@ def _noisy_scan(rng, sigma=0.3):
 def test_robust_noise_level_of_a_scan():
     """σ from neighbour differences (the one estimator, `_noise`), unaffected by the scar
     and by a few outliers (their differences lie beyond 3.5 robust SDs and are dropped)."""
-    from jaxwear._noise import profile_noise as robust_noise
+    from jaxwear._core.noise import profile_noise as robust_noise
 
     rng = np.random.default_rng(3)
     est, est_out = [], []

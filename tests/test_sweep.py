@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._sweep import parse_range, sweep
+from jaxwear._analyses.sweep import parse_range, sweep
 from jaxwear.cli import main
 
 NODES, STEPS, M, REVS = 64, 72, 100, 3000
@@ -112,8 +112,8 @@ def test_adaptive_sweep_reruns_points_that_need_more_steps():
     base (K_d x30 on the bimetal boom) needs more steps than it allows. It must be rerun,
     not returned as a truncated history: its depth equals `simulate` at that point and its
     error estimate is finite and within the tolerance."""
-    from jaxwear._config import boom_config
-    from jaxwear._wear import build_schedule
+    from jaxwear._physics.config import boom_config
+    from jaxwear._physics.wear import build_schedule
 
     cfg = boom_config(nodes=NODES, steps_per_rev=STEPS)
     p = jw.preset("boom", K_d_per_Pa=1e-13)
@@ -134,7 +134,7 @@ def test_sweep_of_a_study_without_numerics_chooses_its_resolution(tmp_path):
     peaks at the grid's corners agree with the next finer level's within 0.1 % of the largest
     (DESIGN §6)
     and says so; the claim is checked here against that finer level run independently."""
-    from jaxwear._resolution import LEVELS, PEAK_RTOL
+    from jaxwear._study.resolution import LEVELS, PEAK_RTOL
 
     (tmp_path / "s.toml").write_text(
         '[model]\npreset = "rig"\n\n[model.parameters]\nK_d_per_Pa = 2e-13\n\n'
@@ -148,7 +148,7 @@ def test_sweep_of_a_study_without_numerics_chooses_its_resolution(tmp_path):
     assert res.depth_um.shape[-1] == r["nodes"]
     finer = r["checked_against"]
     assert finer is not None and r["within_tolerance"]
-    from jaxwear._resolution import at_level
+    from jaxwear._study.resolution import at_level
 
     ref = sweep(at_level(study, (finer["nodes"], finer["steps_per_rev"])), grid=grid,
                 choose_resolution=False)

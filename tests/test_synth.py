@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from jaxwear import InputError
-from jaxwear._study import load_study
-from jaxwear._synth import PAPER_MATRIX, parse_hidden, synthesize
+from jaxwear._analyses.synth import PAPER_MATRIX, parse_hidden, synthesize
+from jaxwear._study.study import load_study
 from jaxwear.cli import main
 
 SMALL = dict(nodes=64, steps_per_rev=72, revolutions_per_update=500)
@@ -85,7 +85,7 @@ def same_grid(tmp_path_factory):
 
 def test_data_are_the_hidden_model_plus_the_stated_noise(same_grid):
     """At the true parameters (same grid) the residuals are white noise of the stated level."""
-    from jaxwear.diagnose import Model, lag1_autocorrelation, neighbour_pairs
+    from jaxwear._analyses.diagnose import Model, lag1_autocorrelation, neighbour_pairs
 
     out, res = same_grid
     m = Model(load_study(out / "study.toml"))
@@ -118,7 +118,7 @@ def test_noise_free_data_reproduce_the_model_and_seeds_are_deterministic(tmp_pat
     for name, *_ in PAPER_MATRIX:
         assert (tmp_path / "a" / f"{name}.csv").read_text() == \
             (tmp_path / "b" / f"{name}.csv").read_text()
-    from jaxwear.diagnose import Model
+    from jaxwear._analyses.diagnose import Model
 
     m = Model(a.study)
     t = a.truth
@@ -177,7 +177,7 @@ def test_noise_is_zero_mean_on_every_point_and_the_truth_is_finer(tmp_path):
     assert abs(np.mean(diff < 0) - 0.5) < 4 * 0.5 / math.sqrt(m)
     # the clean truth is not the study's own discretisation: the coarse model at the true
     # parameters misses it by a small but nonzero amount
-    from jaxwear.diagnose import Model
+    from jaxwear._analyses.diagnose import Model
 
     m_ = Model(clean.study)
     t = clean.truth

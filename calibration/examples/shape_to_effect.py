@@ -29,7 +29,7 @@ import tempfile
 from pathlib import Path
 
 import jaxwear as jw
-from jaxwear.diagnose import threshold
+from jaxwear._analyses.diagnose import threshold
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -40,7 +40,7 @@ fast the load direction turns beyond OMEGA0 (read off `diagnose --shape`)."""
 import jax.numpy as jnp
 
 import jaxwear as jw
-from jaxwear.effects.shape import state_variables, swept_kernel
+from jaxwear._physics.effects.shape import state_variables, swept_kernel
 
 OMEGA0 = {omega0:.6g}  # deg/s: where the shape's deposit rises
 

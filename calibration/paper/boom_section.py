@@ -14,9 +14,9 @@ import numpy as np
 from page import DATA, NODES, Page, _pct, _plt, _timed
 
 import jaxwear as jw
-from jaxwear._config import boom_config
-from jaxwear._schedule import Schedule
-from jaxwear._wear import build_schedule, check_result
+from jaxwear._physics.config import boom_config
+from jaxwear._physics.schedule import Schedule
+from jaxwear._physics.wear import build_schedule, check_result
 
 # ----------------------------------------------------------------------------------------
 # Table 5: the boom joint
@@ -90,12 +90,12 @@ def section_boom(page: Page):
     t5 = _read_table5()
     hours = t5["hours"]
     meas_um = t5["depth_mm"] * 1e3
-    method = "jaxwear._calibrate.calibrate(study, \"K_d\")"
+    method = "jaxwear._inference.calibrate.calibrate(study, \"K_d\")"
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            from jaxwear._calibrate import calibrate
-            from jaxwear._study import load_study
+            from jaxwear._inference.calibrate import calibrate
+            from jaxwear._study.study import load_study
 
             study = load_study(_boom_study(Path(tmp), t5))
             fit = calibrate(study, "K_d")

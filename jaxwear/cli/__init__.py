@@ -12,17 +12,22 @@ import os
 import sys
 from pathlib import Path
 
-from ._parser import Parser, join_negative_values, value_options
+import jax
+
+from jaxwear._core.errors import InputError
+from jaxwear._core.interrupt import EXIT_CODE, MESSAGE, release
+from jaxwear._core.xla_flags import apply as configure_xla
+from jaxwear.cli._parser import Parser, join_negative_values, value_options
+from jaxwear.cli.calibrate import Calibrate
+from jaxwear.cli.diagnose import Diagnose
+from jaxwear.cli.predict import Predict
+from jaxwear.cli.sensitivity import Sensitivity
+from jaxwear.cli.simulate import Simulate
+from jaxwear.cli.sweep import Sweep
+from jaxwear.cli.synth import Synth
 
 
 def _verbs():
-    from .calibrate import Calibrate
-    from .diagnose import Diagnose
-    from .predict import Predict
-    from .sensitivity import Sensitivity
-    from .simulate import Simulate
-    from .sweep import Sweep
-    from .synth import Synth
 
     return [Simulate(), Calibrate(), Diagnose(), Synth(), Sweep(), Sensitivity(), Predict()]
 
@@ -32,7 +37,6 @@ def _enable_cache():
     # JAXWEAR_NO_CACHE=1. This is the CLI's choice; the library never touches it.
     if os.environ.get("JAXWEAR_NO_CACHE"):
         return
-    import jax
 
     cache = os.environ.get("JAXWEAR_CACHE_DIR",
                            str(Path.home() / ".cache" / "jaxwear" / "jax-compilation"))
@@ -52,8 +56,9 @@ def build_parser() -> Parser:
 
 
 def main(argv=None) -> int:
-    from .._errors import InputError
-    from .._interrupt import release
+    # the command line's own process opts in to XLA:CPU's faster-compiling emitters (the
+    # library leaves XLA's settings to its user); before any computation starts the backend
+    configure_xla()
 
     release()  # Ctrl-C from here on is caught below
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
@@ -65,8 +70,7 @@ def main(argv=None) -> int:
     except InputError as e:
         print(f"jaxwear: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # one line, exit 1 (`jaxwear._interrupt`)
-        from .._interrupt import EXIT_CODE, MESSAGE
+    except KeyboardInterrupt:  # one line, exit 1 (`jaxwear._core.interrupt`)
 
         print(MESSAGE, file=sys.stderr)
         return EXIT_CODE

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import re
 
-from .._errors import InputError
+from jaxwear._core.errors import InputError
 
 
 class UsageError(InputError):

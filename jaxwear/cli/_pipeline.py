@@ -2,7 +2,7 @@
 run. Each step refuses bad input (`InputError`, exit 2, one line) before the next begins, so
 nothing is computed for a run that cannot finish or cannot write its results.
 
-1. `options(args)`: every option's value (numbers by `jaxwear._numbers`), before any file is
+1. `options(args)`: every option's value (numbers by `jaxwear._core.numbers`), before any file is
    read.
 2. `load(args, opts)`: the study (or synth's conditions), validated by `load_study`;
    `resolve(study, opts)` then checks what needs the study (e.g. `--fit` names).
@@ -11,13 +11,18 @@ nothing is computed for a run that cannot finish or cannot write its results.
    unwritable `--out` or `--json` (permissions, /proc, a path under a file) is refused now,
    not after the computation.
 4. `check_work(study, tangents)`: the work and memory estimate of one model evaluation
-   (`jaxwear._budget`), with the Jacobian columns of the parameters really fitted.
+   (`jaxwear._study.budget`), with the Jacobian columns of the parameters really fitted.
 5. `run(study, out, opts)`: the work.
 """
 
 from __future__ import annotations
 
 from argparse import Namespace
+
+from jaxwear._inference.packing import study_columns
+from jaxwear._study.budget import check_work
+from jaxwear._study.outputs import open_outputs
+from jaxwear._study.study import load_study
 
 DEFAULT_OUT = "jaxwear_out"
 
@@ -53,7 +58,6 @@ class Verb:
         return {}
 
     def load(self, args: Namespace, opts: dict):
-        from .._study import load_study
 
         return load_study(args.study)
 
@@ -81,8 +85,6 @@ class Verb:
 
     # -- the path -------------------------------------------------------------------------
     def execute(self, args: Namespace):
-        from .._budget import check_work
-        from .._io import open_outputs
 
         opts = self.options(args)
         opts["args"] = args
@@ -98,6 +100,5 @@ class Verb:
 
 def fit_columns(study, keys) -> int:
     """Jacobian columns of fitting `keys` (one clearance per experiment, ...)."""
-    from .._packing import study_columns
 
     return len(study_columns(study, keys, [study.params(e) for e in study.experiments]))

@@ -18,17 +18,19 @@ import time
 
 import numpy as np
 
-from .._calibrate import (
+from jaxwear._core.errors import InputError
+from jaxwear._inference.calibrate import (
     FitResult,
     build_problem,
     fit_study,
     study_fit_keys,
     unit_of,
 )
-from .._config import timed
-from .._errors import InputError
-from .._resolution import at_level
-from ._pipeline import Verb, fit_columns
+from jaxwear._physics.config import timed
+from jaxwear._report.figures import plt, thinned, thinned_label
+from jaxwear._study.outputs import per_experiment
+from jaxwear._study.resolution import at_level
+from jaxwear.cli._pipeline import Verb, fit_columns
 
 DEFAULT_FIT = "K_d,clearance"
 
@@ -126,7 +128,6 @@ def write_tables(out, study, result: FitResult):
 
 def plot_fits(out, study, result: FitResult):
     """fit_<experiment>.png: measured vs fitted, with the residual below."""
-    from .._report import plt, thinned, thinned_label
 
     pl = plt()
     prob = result.problem
@@ -189,7 +190,6 @@ def plot_fits(out, study, result: FitResult):
 
 def calibrate_outputs(study) -> list[str]:
     """Every file name `calibrate` writes under --out (for the output guard)."""
-    from .._io import per_experiment
 
     return ["calibration.json", "fit_residuals.csv", "fitted_profiles.csv",
             *per_experiment(study, "fit_{}.png")]

@@ -8,102 +8,17 @@ the document too. With the shape analysis (`--shape`, or an unexplained verdict)
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
-from .._config import TIMED_DRIVERS
-from .._errors import InputError
-from ._pipeline import Verb, fit_columns
-
-DIAGNOSE_OUTPUTS = ("diagnosis.json", "residuals.csv", "report.html")
-
-
-def shape_outputs() -> tuple[str, ...]:
-    """The shape analysis's outputs (written when it runs: `--shape`, or an unexplained
-    verdict): `shape_<variable>.png` per variable and form (`shape_deposit_<variable>.png`),
-    `shape_when_where.png`, the effect file `missing_wear.py`, and the same with
-    `shape_after_effect_` / `missing_wear_after_effect.py` on top of an effect found."""
-    from ..diagnose._shape_plot import file_stem
-    from ..effects.shape import DEPOSIT_VARIABLES, VARIABLES
-
-    labels = list(VARIABLES) + [f"deposit:{n}" for n in DEPOSIT_VARIABLES]
-    out = []
-    for prefix in ("shape", "shape_after_effect"):
-        out += [prefix + file_stem(lab).removeprefix("shape") + ".png" for lab in labels]
-        out.append(f"{prefix}_when_where.png")
-    return tuple(out) + ("missing_wear.py", "missing_wear_after_effect.py")
-
-
-def open_diagnose_outputs(study, out_dir, json_file=None):
-    """The output guard of `diagnose` (before any work)."""
-    from .._io import open_outputs
-
-    return open_outputs(study, out_dir, planned=DIAGNOSE_OUTPUTS + shape_outputs(),
-                        json_file=json_file)
-
-
-def residual_table(diag) -> tuple[list[str], list[tuple]]:
-    """(header, rows) of residuals.csv. A history row has one coordinate, its time in hours
-    (it once got an `hours` column twice); a profile row has its angle and the count it was
-    measured at (revolutions, or hours for the oscillating joint); the angle is left empty
-    on history rows of a study that has both."""
-    m = diag.model
-    after = diag.final.ev.pred
-    hist = [bool(x) for x in m.is_max]
-    osc = diag.study.config.driver in TIMED_DRIVERS
-    values = ["measured_um", "base_um", "after_um"]
-    data = list(zip(m.measured, diag.base.ev.pred, after))
-    names = [m.exp_names[e] for e in m.row_exp]
-    if all(hist):
-        return (["experiment", "hours", *values],
-                [(n, t, *v) for n, t, v in zip(names, m.row_time, data)])
-    rows = [(n, "" if h else x, t, *v)
-            for n, h, x, t, v in zip(names, hist, m.row_x, m.row_time, data)]
-    return ["experiment", "angle_deg", "hours" if osc else "revolutions", *values], rows
-
-
-def write_outputs(diag, out_dir, json_file=None) -> dict:
-    """Write diagnosis.json, report.html and residuals.csv under `out_dir` (a folder, or the
-    `OutputDir` from `open_diagnose_outputs`) and the JSON to `json_file` if given. Returns
-    the JSON document."""
-    from .._io import OutputDir
-    from ..diagnose._html import report_html
-
-    out = out_dir if isinstance(out_dir, OutputDir) else open_diagnose_outputs(
-        diag.study, out_dir, json_file)
-    doc = diag.to_json()
-    saved = {}
-    for prefix, key, res in (("shape", "shape", diag.shape),
-                             ("shape_after_effect", "shape_after_effect",
-                              diag.shape_after_effect)):
-        if res is None:
-            continue
-        from .._report import plt
-        from ..diagnose._effect_file import effect_file_source
-        from ..diagnose._shape_plot import file_stem, shape_figure, when_where_figure
-
-        mine = saved.setdefault(key, {})
-        for v in res.variables:
-            name = prefix + file_stem(v.label).removeprefix("shape") + ".png"
-            if v.label in res.pngs:  # drawn while the refit ran (`diagnose(figures=)`)
-                mine[v.label] = out.write_bytes(name, res.pngs[v.label])
-                continue
-            fig = shape_figure(res, v.label)
-            mine[v.label] = out.savefig(fig, name)
-            plt().close(fig)
-        if res.when_where is not None:
-            fig = when_where_figure(res)
-            mine["when_where"] = out.savefig(fig, f"{prefix}_when_where.png")
-            plt().close(fig)
-        if res.best is not None and res.correction:
-            name = "missing_wear.py" if key == "shape" else "missing_wear_after_effect.py"
-            out.write_text(name, effect_file_source(res, str(diag.study.path)))
-            doc[key]["effect_file"] = name
-    out.write_json("diagnosis.json", doc)
-    header, rows = residual_table(diag)
-    out.write_csv("residuals.csv", header, rows)
-    out.write_text("report.html", report_html(diag, doc, saved))
-    out.write_json_file(doc)
-    return doc
+from jaxwear._analyses.diagnose._refit import MIN_TRIPLES, too_few_triples
+from jaxwear._analyses.diagnose._stats import noise_triples
+from jaxwear._core.errors import InputError
+from jaxwear._inference.packing import study_fit_keys
+from jaxwear._physics.effects import effect_parameter_specs
+from jaxwear._report.diagnosis import DIAGNOSE_OUTPUTS, shape_outputs, write_outputs
+from jaxwear._report.shape_plot import shape_pngs
+from jaxwear.cli._pipeline import Verb, fit_columns
 
 
 class Diagnose(Verb):
@@ -120,8 +35,6 @@ class Diagnose(Verb):
         return list(DIAGNOSE_OUTPUTS + shape_outputs())
 
     def tangents(self, study, opts):
-        from .._packing import study_fit_keys
-        from ..effects import effect_parameter_specs
 
         # the base fit's columns, and every candidate's strengths: one extended model
         # carries them all (effects switched by masks)
@@ -133,10 +46,7 @@ class Diagnose(Verb):
         return fit_columns(study, keys) + len(effect_parameter_specs())
 
     def run(self, study, out, opts):
-        import importlib
 
-        from ..diagnose._refit import MIN_TRIPLES, too_few_triples
-        from ..diagnose._stats import noise_triples
 
         # the data must give their own noise level (unless the study states it): counted
         # from the files before the engine starts, not after its model has compiled
@@ -151,7 +61,7 @@ class Diagnose(Verb):
 
         args = opts["args"]
         diag = dia.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)),
-                            figures=True)
+                            figures=shape_pngs)
         doc = write_outputs(diag, out)
         v = doc["verdict"]
         name = " + ".join(v["effects"]) if v["effects"] else "none"

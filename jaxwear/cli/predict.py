@@ -15,13 +15,22 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 
-from .._config import timed
-from .._errors import InputError
-from .._numbers import number, number_list
-from ._pipeline import Verb, fit_columns
+from jaxwear._analyses.predict import forecast as _predict
+from jaxwear._analyses.predict.forecast import LIFE_HORIZON
+from jaxwear._core.errors import InputError
+from jaxwear._core.jsonfmt import json_float
+from jaxwear._core.numbers import number, number_list
+from jaxwear._inference.packing import study_fit_keys
+from jaxwear._physics.config import timed
+from jaxwear._report.figures import plt, thinned, thinned_label
+from jaxwear._study.outputs import per_experiment
+from jaxwear._study.plausible import check_value
+from jaxwear._study.resolution import amplification_warnings
+from jaxwear.cli._pipeline import Verb, fit_columns
 
 
 def parse_at(text: str) -> list[float]:
@@ -31,7 +40,6 @@ def parse_at(text: str) -> list[float]:
 
 def predict_outputs(study, method: str) -> list[str]:
     """Every file name `predict` writes under --out (for the output guard)."""
-    from .._io import per_experiment
 
     names = ["prediction.json", "predictions.csv", "forecast_curves.csv",
              *per_experiment(study, "fan_{}.png", "profile_{}.png")]
@@ -40,7 +48,6 @@ def predict_outputs(study, method: str) -> list[str]:
 
 def write_outputs(out, study, res):
     """predictions.csv, forecast_curves.csv, the plots; returns the paths written."""
-    from .._report import json_float
 
     rows = [(p.experiment, p.at, p.unit, p.depth_um, p.lower_um, p.upper_um, p.conf_lower_um,
              p.conf_upper_um, json_float(p.measured_um) if p.measured_um is not None else "")
@@ -63,7 +70,6 @@ def write_outputs(out, study, res):
 
 def plot_fans(out, res):
     """fan_<experiment>.png: measured points (trained / held out), forecast and both bands."""
-    from .._report import plt
 
     pl = plt()
     paths = []
@@ -127,7 +133,6 @@ def plot_profiles(out, study, res):
     """profile_<experiment>.png (crank-slider studies): the profile at the last --at point."""
     if timed(study.config):
         return []
-    from .._report import plt, thinned, thinned_label
 
     pl = plt()
     paths = []
@@ -266,8 +271,6 @@ class Predict(Verb):
         return {"kw": opts, "nuts": nuts, "method": args.method, "fit": args.fit}
 
     def resolve(self, study, opts):
-        from .._packing import study_fit_keys
-        from .._plausible import check_value
 
         # the flags against the ranges of what they stand for (revolutions or hours, noise)
         osc = timed(study.config)
@@ -290,9 +293,7 @@ class Predict(Verb):
     def work_study(self, study, opts):
         """The study run to its forecast horizon: the last `--at` point, and the life's
         search up to `LIFE_HORIZON` x the last measured count."""
-        from dataclasses import replace
 
-        from .._predict import LIFE_HORIZON
 
         osc = timed(study.config)
         exps = []
@@ -305,7 +306,6 @@ class Predict(Verb):
 
     def length_from(self, study, opts):
         """`--at` when its largest point sets the forecast's length (not the study's)."""
-        from .._predict import LIFE_HORIZON
 
         osc = timed(study.config)
         at = max(opts["kw"]["at"])
@@ -321,8 +321,6 @@ class Predict(Verb):
         return fit_columns(study, opts["keys"])
 
     def run(self, study, out, opts):
-        from .. import _predict  # looked up now: tests stand in for the engine
-        from .._simulate_study import amplification_warnings
 
         for line in amplification_warnings(study):
             print(line, file=sys.stderr, flush=True)

@@ -6,7 +6,9 @@ import sys
 
 import numpy as np
 
-from ._pipeline import Verb
+from jaxwear._analyses import sensitivity as sen
+from jaxwear._physics.params import PARAMETER_KEYS
+from jaxwear.cli._pipeline import Verb
 
 SENSITIVITY_OUTPUTS = ("sensitivity.csv", "sensitivity.json", "sensitivity.png")
 
@@ -19,12 +21,10 @@ class Sensitivity(Verb):
         return list(SENSITIVITY_OUTPUTS)
 
     def tangents(self, study, opts):
-        from .._params import PARAMETER_KEYS
 
         return len(PARAMETER_KEYS)
 
     def run(self, study, out, opts):
-        from .. import _sensitivity as sen  # looked up now: tests stand in for the engine
 
         print(f"sensitivity: {len(study.experiments)} experiments, forward-mode autodiff "
               f"through the wear loop (the first compiles it)", file=sys.stderr, flush=True)

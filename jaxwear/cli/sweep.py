@@ -3,22 +3,27 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 
-from .._config import timed
-from .._errors import InputError
-from .._numbers import MAX_POINTS, parse_range
-from ._pipeline import Verb
+from jaxwear._analyses import sweep as _sweep
+from jaxwear._core.errors import InputError
+from jaxwear._core.numbers import MAX_POINTS, parse_range
+from jaxwear._physics.config import timed
+from jaxwear._physics.params import key_to_si, preset
+from jaxwear._study.plausible import check_params, check_value
+from jaxwear._study.study import _check_geometry
+from jaxwear.cli._pipeline import Verb
 
 SWEEP_OUTPUTS = ("sweep.csv", "sweep_peak_depth.png", "sweep_worn_volume.png")
 
 
 def _preset(study, values: dict):
-    from .._params import preset
 
     return preset(study.preset, **values)
 
@@ -76,10 +81,7 @@ class Sweep(Verb):
         # the grid's ends against the geometry of the swept experiment (clearance > 0 and
         # below the bore radius, speed > 0: each check is monotone in its value), now rather
         # than inside the sweep
-        import itertools
 
-        from .._plausible import check_params, check_value
-        from .._study import _check_geometry
 
         exp = study.experiments[0]
         ends = {}
@@ -112,7 +114,6 @@ class Sweep(Verb):
 
     def work_study(self, study, opts):
         """The swept experiment run to the longest duration of a duration axis."""
-        from dataclasses import replace
 
         grid = opts["grid"]
         e = study.experiments[0]
@@ -123,8 +124,6 @@ class Sweep(Verb):
         return study.with_experiments([e])
 
     def run(self, study, out, opts):
-        from .. import _sweep  # looked up now: tests stand in for the engine
-        from .._params import key_to_si
 
         grid, total = opts["grid"], opts["total"]
         exp = study.experiments[0]

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
-from .._numbers import number
-from ._pipeline import Verb
+from jaxwear._analyses.synth import _conditions, parse_hidden, synth_outputs, synthesize
+from jaxwear._core.numbers import number
+from jaxwear._study.plausible import check_value
+from jaxwear.cli._pipeline import Verb
 
 
 class Synth(Verb):
@@ -23,7 +25,6 @@ class Synth(Verb):
                        help="registration offset of every scan [deg] (truth.json only)")
 
     def options(self, args):
-        from .._plausible import check_value
 
         noise = number("--noise-um", args.noise_um, nonneg=True)
         if noise > 0:  # 0: noise-free data
@@ -36,23 +37,19 @@ class Synth(Verb):
                 "angle_offset_deg": offset}
 
     def load(self, args, opts):
-        from .._synth import _conditions
 
         return _conditions(args.conditions, None)
 
     def resolve(self, study, opts):
-        from .._synth import parse_hidden
 
         # after the conditions: their effect files may define the hidden effects
         opts["hidden"] = parse_hidden(opts["args"].hidden)
 
     def outputs(self, study, opts):
-        from .._synth import synth_outputs
 
         return synth_outputs(study)
 
     def run(self, study, out, opts):
-        from .._synth import synthesize
 
         res = synthesize(opts["hidden"], study, noise_um=opts["noise_um"], seed=opts["seed"],
                          out=out, angle_offset_deg=opts["angle_offset_deg"], verbose=True)

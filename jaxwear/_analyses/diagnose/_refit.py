@@ -1,0 +1,157 @@
+"""Refits of the leading candidates (single and pairs), the noise level, and the check
+that the wear loop's derivatives are stable."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from jaxwear._analyses.diagnose._evidence import STRONG_LOG_BF, evidence
+from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
+from jaxwear._analyses.diagnose._model import Eval, Model, objective
+from jaxwear._analyses.diagnose._result import Candidate
+from jaxwear._analyses.diagnose._screen import Screen, screen
+from jaxwear._analyses.diagnose._stats import Tests, neighbour_differences, run_tests
+from jaxwear._core.errors import InputError
+from jaxwear._core.noise import stated_noise
+
+# A refit's budget of evaluations (each a full run of every experiment with its Jacobian:
+# seconds at the default numerics); it stops earlier when done (`jaxwear._inference.lsq.solve`), and
+# one that runs out is reported as not converged.
+REFIT_MAX_EVALUATIONS = 20
+
+
+def _tests_for(model, fit, noise, nu, pairs, scores=None) -> Tests:
+    t = run_tests(model, fit.ev.r, fit.k, noise, nu, pairs)
+    if scores:
+        best = min(scores, key=lambda s: s.p)
+        t = replace(t, p_score=min(1.0, best.p * len(scores)), score_effect=best.effect)
+    return t
+
+
+def _start_for(model: Model, fit: Fit, scr: Screen | None) -> np.ndarray:
+    u = fit.ev.u.copy()
+    if scr is not None:
+        for k, v in scr.start.items():
+            u[model.index[k]] = model.u_of(k, v, u)
+    return u
+
+
+def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) -> Fit:
+    contact = "unsymmetric" if "unsymmetric" in groups else None
+    mdl = by_contact(contact)
+    mask = mdl.group_mask([g for g in groups if g != "unsymmetric"])
+    label = "+".join(groups)
+    _log(verbose, f"  refit with {label}")
+    # Start at the screen's (capped) step with K_d rescaled to the data; where that is
+    # worse than the fit we come from, start from that fit instead (strength off): a
+    # refit can then only improve on it.
+    u0 = _start_for(mdl, from_fit, scr)
+    ev0 = mdl.evaluate(u0)
+    kd = mdl.index.get("K_d_per_Pa")
+    if kd is not None and mask[kd] and ev0.usable:
+        d = ev0.pred
+        a = float(d @ mdl.measured) / max(float(d @ d), 1e-300)
+        if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
+            u0[kd] += math.log(a)
+            ev0 = mdl.evaluate(u0)
+    same = contact == from_fit.contact
+    if not ev0.usable or (same and objective(ev0, noise) > objective(from_fit.ev, noise)):
+        u0 = from_fit.ev.u.copy()
+        ev0 = from_fit.ev if same else mdl.evaluate(u0)
+    f = fit_masked(mdl, mask, u0, noise_um=noise, noise_dof=nu, label=label,
+                   groups=tuple(groups), ev0=ev0, max_evaluations=REFIT_MAX_EVALUATIONS,
+                   verbose=verbose)
+    f = replace(f, contact=contact)
+    if not _derivatives_ok(mdl, f.ev):
+        f = replace(f, status="unstable", message=f.message + (
+            "; the wear loop's derivatives are unstable here (lower "
+            + ("revolutions_per_update" if mdl.study.integrator == "paper"
+               else "wear_tolerance_um") + "): this fit is not reliable"))
+        _log(verbose, f"    {label}: unstable derivatives, not used")
+    return f
+
+
+def _derivative_ratio(model: Model, ev: Eval) -> float:
+    """(d·∂d/∂ln K_d)/(d·d): about 1, since depth is nearly proportional to K_d."""
+    k = model.index.get("K_d_per_Pa")
+    if k is None or model.columns[k].group != "" or not model.columns[k].log:
+        return 1.0
+    d, j = ev.pred, ev.J[:, k]
+    if not np.all(np.isfinite(j)):
+        return math.nan
+    return float(d @ j) / max(float(d @ d), 1e-300)
+
+
+def _derivatives_ok(model: Model, ev: Eval) -> bool:
+    return 0.2 < _derivative_ratio(model, ev) < 5.0
+
+
+def _check_derivatives(model: Model, fit: Fit):
+    """A Jacobian far from d depth/d ln K_d ≈ depth means the forward-mode derivative of the
+    wear loop is unstable (too many revolutions per update for a fast-wearing joint): the
+    fits would be meaningless, so stop and say what to change."""
+    ratio = _derivative_ratio(model, fit.ev)
+    if not 0.2 < ratio < 5.0:
+        if model.study.integrator != "paper":
+            raise InputError(
+                f"{model.study.path}: the derivative of depth with respect to K_d is "
+                f"{ratio:.3g} times the depth (expected about 1): lower "
+                f"numerics.wear_tolerance_um ({model.study.wear_tolerance_um:g} µm)")
+        raise InputError(
+            f"{model.study.path}: numerics.revolutions_per_update = "
+            f"{model.study.revolutions_per_update:g} is too large for this joint: the "
+            f"derivative of depth with respect to K_d is {ratio:.3g} times the depth "
+            f"(expected about 1), so the amplified wear updates are unstable for "
+            f"derivatives; halve revolutions_per_update")
+
+
+def _noise(model: Model, known: float | None = None):
+    """Noise level [µm] and its degrees of freedom by the one rule (`_noise.stated_noise`):
+    given, else the data's own neighbouring points. Where those are too few for the rule's
+    `MIN_DOF` (a depth history of a handful of points), the diagnosis still needs one
+    level to compare its candidates at: the data's estimate with its few degrees of
+    freedom (the F tests pay for them), refused only when there is none."""
+
+    if known is not None and not known > 0:
+        raise InputError(f"noise_um must be > 0, got {known}")
+    nz = stated_noise(model.ext.data, known)
+    if nz.sigma_um is not None:
+        return float(nz.sigma_um), float(nz.dof)
+    e, _ = neighbour_differences(model, model.measured)
+    if len(e) < MIN_TRIPLES:
+        raise InputError(too_few_triples(model.study, len(e), model.n))
+    return float(nz.data_sigma_um), float(nz.data_dof)
+
+
+MIN_TRIPLES = 2  # neighbour triples for a noise level (each one degree of freedom)
+
+
+def too_few_triples(study, triples: int, rows: int) -> str:
+    """The message when the data cannot give their own noise level."""
+    return (f"{study.path}: {rows} data row(s) give {triples} neighbour triple(s) (a point "
+            f"and its two neighbours in one profile scan or history, spaced within 2.5x the "
+            f"median); estimating the noise level needs {MIN_TRIPLES}: 4 or more evenly "
+            f"spaced points in one profile or history, or give the noise as [fit] noise_um")
+
+
+def _second_stage(model, by_contact, best: Candidate, rest, noise, nu, pairs, max_refits,
+                  verbose):
+    """With the first effect in, look for a second one that brings the misfit to noise."""
+    tries = [(s_.effect, s_) for s_ in rest if s_.feasible and s_.score > 0]
+    tries = tries[:max(1, max_refits - 1)]
+    if "unsymmetric" in model.candidates and best.effect != "unsymmetric":
+        tries.append(("unsymmetric", None))
+    results = []
+    for name, scr in tries:
+        f = _refit(by_contact, best.fit, [best.effect, name], scr, noise, verbose, nu)
+        mdl = by_contact(f.contact)
+        t = _tests_for(mdl, f, noise, nu, pairs, screen(mdl, f, noise, nu))
+        results.append((evidence(model, f, best.fit, noise), f, t))
+    results = [x for x in results if not x[1].unstable]
+    results.sort(key=lambda x: -x[0])
+    if results and results[0][0] > STRONG_LOG_BF and not results[0][2].systematic:
+        return results[0][1], results[0][2]
+    return None

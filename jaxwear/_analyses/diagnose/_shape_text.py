@@ -1,0 +1,143 @@
+"""The shape of the missing wear in words (`_shape`): one plain sentence a machine designer
+can act on."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from jaxwear._analyses.diagnose._shape_linear import DRAWS, trend
+from jaxwear._analyses.diagnose._stats import ALPHA
+
+# cycle phase: the crank angle, the swing's phase, or the phase within a load file's period
+LABELS = {"cycle_phase_deg": "cycle phases", "pressure_MPa": "contact pressures",
+          "sliding_speed_m_per_s": "sliding speeds", "sliding_distance_m": "sliding distances",
+          "load_turn_rate_deg_per_s": "load turn rates",
+          "load_turn_deg_per_deg": "load turns per degree of the cycle",
+          "load_N": "joint loads", "bore_angle_deg": "bore angles"}
+LABEL = {"pressure_MPa": "contact pressure", "sliding_speed_m_per_s": "sliding speed",
+         "sliding_distance_m": "sliding distance", "load_turn_rate_deg_per_s": "load turn rate",
+         "load_turn_deg_per_deg": "load turn per degree of the cycle", "load_N": "joint load"}
+FORM_WORDS = {"factor": "more of the wear Archard already makes there (a factor of the "
+                        "local rate)",
+              "deposit": "extra wear not tied to sliding, made where the pin presses (as "
+                         "impacts, fretting or cold flow make it)"}
+
+
+def _levels(v) -> tuple[float, float]:
+    """(low, high) of the correction where the data determine it: over the grid points
+    whose band is no wider than twice its median width (where little wears, it is free to
+    wander)."""
+    width = v.g_upper - v.g_lower
+    ok = width <= 2.0 * np.median(width)
+    g = v.g[ok] if ok.any() else v.g
+    return float(g.min()), float(g.max())
+
+
+def _region(v) -> tuple[float, float]:
+    """Where the correction is above half-way between its low and high levels, around the
+    peak: for a step, from the step on."""
+    g = v.g
+    low, high = _levels(v)
+    half = low + 0.5 * (high - low)
+    k = int(np.argmax(g))
+    n = len(g)
+    lo = hi = k
+    step = (lambda i: i % n) if v.name in ("cycle_phase_deg", "bore_angle_deg") else (
+        lambda i: min(max(i, 0), n - 1))
+    for _ in range(n):
+        nxt = step(lo - 1)
+        if g[nxt] < half or nxt == lo:
+            break
+        lo = nxt
+    for _ in range(n):
+        nxt = step(hi + 1)
+        if g[nxt] < half or nxt == hi:
+            break
+        hi = nxt
+    return float(v.z[lo]), float(v.z[hi])
+
+
+def threshold(v, rising: bool = True) -> float:
+    """Where the correction steps up (`rising`; else down): the best two-level step fitted to
+    it over the plotting grid (uniform in the wear-weighted quantile), each point weighted
+    by 1/(its band width)², so that where the data leave it free it counts little. Returns
+    z at the first point past the step (for a rate that jumps at a threshold, the
+    threshold)."""
+    g = v.g if rising else -v.g
+    w = 1.0 / np.maximum(v.g_upper - v.g_lower, 1e-12) ** 2
+    best, k_best = math.inf, 1
+    for k in range(1, len(g)):
+        sse = 0.0
+        for part, wp in ((g[:k], w[:k]), (g[k:], w[k:])):
+            m = float(np.sum(wp * part) / np.sum(wp))
+            sse += float(np.sum(wp * (part - m) ** 2))
+        if sse < best:
+            best, k_best = sse, k
+    return float(v.z[k_best])
+
+
+def p_text(p: float) -> str:
+    """"p 3.1e-03", or "p ≤ 5.0e-05" where no simulated draw reached the statistic (the
+    p-value (1 + 0)/(1 + draws) is then a bound)."""
+
+    return f"p ≤ {p:.1e}" if p <= 1.5 / (1.0 + DRAWS) else f"p {p:.1e}"
+
+
+def where_along(v) -> str:
+    """Where along its variable a correction concentrates, in words."""
+
+    lo, hi = _region(v)
+    rising = trend(v) > 0
+    unit = v.unit
+    if v.name in ("cycle_phase_deg", "bore_angle_deg"):
+        return f"at {LABELS[v.name]} {lo:.0f}-{hi:.0f}°"
+    if rising and hi >= v.z[int(0.85 * (len(v.z) - 1))]:
+        return f"above {LABEL[v.name]} {threshold(v):.3g} {unit}, rising with it"
+    if not rising and lo <= v.z[int(0.15 * (len(v.z) - 1))]:
+        return (f"below {LABEL[v.name]} {threshold(v, rising=False):.3g} {unit}, "
+                f"falling with it")
+    return f"at {LABELS[v.name]} {lo:.3g}-{hi:.3g} {unit}"
+
+
+def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=None) -> str:
+    on_top = "" if after == "base" else f" on top of {after}"
+    if best is None:
+        return (f"No state variable explains the misfit{on_top} beyond noise and the model's "
+                f"own numerical error (family-wise α = {ALPHA:g} over {len(results)} "
+                f"variable-forms).")
+    v = next(r for r in results if r.name == best and r.form == form)
+    s = (f"The missing wear{on_top} is {FORM_WORDS[form]}, following {best} (explains "
+         f"{v.explained_fraction:.0%} of the misfit, {p_text(v.p_value)}): it concentrates "
+         f"{where_along(v)}")
+    others = [c for c in carriers if c != best]
+    if others:
+        s += f"; together with {', '.join(others)}, which carry part of it too"
+    s += "."
+    if ww is not None and ww.made:
+        s += (f" It is made at cycle phases {_arcs(ww.made)} and lands on the bore at "
+              f"{_arcs(ww.lands)} ({ww.experiment})")
+        if ww.reversals_deg and ww.share_at_reversals >= 0.5:
+            s += (f", {ww.share_at_reversals:.0%} of it within {20:.0f}° of the load's "
+                  f"reversals ({', '.join(f'{r:.0f}°' for r in ww.reversals_deg)}): look at "
+                  f"what happens when the joint load swings round (impacts across the "
+                  f"clearance)")
+        elif math.isfinite(ww.peak_load_deg) and any(
+                abs(np.mod(0.5 * (a + b) - ww.peak_load_deg + 180.0, 360.0) - 180.0) <= 30.0
+                for a, b, _ in ww.made[:1]):
+            s += f", around the load's peak ({ww.peak_load_deg:.0f}°)"
+        s += "."
+    stand = sorted({r.name: r.stand_in_for for r in results
+                    if r.form == form and r.stand_in_for}.items())
+    if stand:
+        s += (" Stand-ins on this experiment matrix (they vary together): "
+              + ", ".join(f"{a} for {b}" for a, b in stand) + ".")
+    if alternatives:
+        s += (f" The data cannot tell it from {', '.join(alternatives)} (AIC within ln 20).")
+    return s
+
+
+def _arcs(arcs) -> str:
+    """"50-70° (55 %) and 290-310° (43 %)"."""
+    return " and ".join(f"{a:.0f}-{b:.0f}° ({w:.0%})" for a, b, w in arcs)

@@ -1,0 +1,134 @@
+"""The verdict in words."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from jaxwear._analyses.diagnose._evidence import derived, where_it_fails
+from jaxwear._analyses.diagnose._fit import Fit
+from jaxwear._analyses.diagnose._result import Diagnosis, _mean_sq
+from jaxwear._inference.calibrate import unit_of
+from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect
+
+
+def _fmt_value(v, se, unit=""):
+    """`v ± se unit`, rounded to the standard error's second significant digit."""
+    if se is None or not math.isfinite(se) or se <= 0:
+        return f"{v:.3g}{unit}"
+    if se >= abs(v) or abs(v) >= 1e4 or abs(v) < 1e-3:
+        return f"{v:.3g} ± {se:.2g}{unit}"
+    digits = max(0, 1 - int(math.floor(math.log10(se))))
+    return f"{v:.{digits}f} ± {se:.{digits}f}{unit}"
+
+
+def _strength_text(diag: Diagnosis, fit: Fit, effect: str) -> str:
+
+    if effect == "unsymmetric":
+        return "no extra parameter"
+    m = diag.model
+    parts = []
+    for i in np.flatnonzero(fit.mask):
+        c = m.columns[i]
+        if c.group == effect:
+            u = unit_of(m.names[i])
+            parts.append(f"{m.names[i]} = " + _fmt_value(
+                float(fit.values[i]), float(fit.stderr[i]), "" if u == "-" else f" {u}"))
+    if effect == "running_in":
+        for k, (v, se) in derived(m, fit).items():
+            parts.append(f"identifiable product a·S_r = {_fmt_value(v, se, ' m')}")
+    return ", ".join(parts)
+
+
+def _signature_text(diag: Diagnosis) -> str:
+    """Where the base residuals (model - measured) were largest, in words."""
+    w = where_it_fails(diag.model, diag.base.ev.r)
+    unit = "rev" if w["time_unit"] == "revolutions" else "h"
+    bits = []
+    if len(w["per_time"]) > 1:
+        t = max(w["per_time"], key=lambda d: abs(d["mean_um"]))
+        side = "shallower" if t["mean_um"] < 0 else "deeper"
+        bits.append(f"at {t['at']:g} {unit} the base model predicts {side} wear than measured "
+                    f"by {abs(t['mean_um']):.2f} µm on average")
+    if len(w["per_experiment"]) > 1:
+        e = max(w["per_experiment"], key=lambda d: d["rmse_um"])
+        bits.append(f"the worst experiment is {e['experiment']} ({e['speed_rpm']:.0f} r/min, "
+                    f"{e['clearance_mm']:.3g} mm; RMSE {e['rmse_um']:.2f} µm)")
+    if w["per_angle"]:
+        a = max(w["per_angle"], key=lambda d: abs(d["mean_um"]))
+        bits.append(f"over angle the largest mean residual is {a['mean_um']:+.2f} µm at "
+                    f"{a['from_deg']}-{a['to_deg']}°")
+    return "; ".join(bits)
+
+
+def _describe(effect: str) -> str:
+    if effect in STRUCTURAL_CANDIDATES:
+        return STRUCTURAL_CANDIDATES[effect].signature
+    return get_effect(effect).signature
+
+
+def summarize_verdict(diag: Diagnosis) -> str:
+    """The verdict paragraph, ending with the fits that did not converge (a refit out of its
+    budget or stalled still counts with what it reached: its evidence is a lower bound)."""
+    text = _verdict_text(diag)
+    fits = [("the base fit", diag.base)] + [(f"the refit with {c.effect}", c.fit)
+                                              for c in diag.candidates if c.fit is not None]
+    late = [f"{name} ({f.status}, {f.evaluations} evaluations)" for name, f in fits
+            if not f.converged]
+    if late:
+        text += (f" Not converged: {'; '.join(late)}; each is used with the misfit it "
+                 f"reached, so its evidence is a lower bound.")
+    return text
+
+
+def _verdict_text(diag: Diagnosis) -> str:
+    t = diag.base_tests
+    noise = diag.noise_um
+    head = (f"The base model (as the study states it, {diag.base.k} fitted parameters) fits "
+            f"{diag.model.n} measured points with RMSE {diag.base.rmse:.3f} µm against a noise "
+            f"level of {noise:.3f} µm estimated from neighbouring points "
+            f"(chi-square ratio {t.ratio:.2f}, p = {t.p_chi2:.1e}; lag-1 residual "
+            f"autocorrelation {t.rho:.2f}, p = {t.p_autocorr:.1e}")
+    if t.score_effect:
+        head += f"; best single-candidate score test {t.score_effect}, p = {t.p_score:.1e}"
+    head += ")."
+    if diag.status == "adequate":
+        return head + (" The misfit is consistent with measurement noise: no missing effect "
+                       "is needed to explain these data.")
+    sig = _signature_text(diag)
+    if diag.status == "effect_found":
+        f = diag.final
+        eff = diag.effects
+        names = " and ".join(eff)
+        strength = "; ".join(f"{e}: {_strength_text(diag, f, e)}" for e in eff)
+        lb, la = _mean_sq(diag.loo_before), _mean_sq(diag.loo_after)
+        verb = "effects are" if len(eff) > 1 else "effect is"
+        if not t.systematic:
+            lead = next(c for c in diag.candidates if c.fit is f)
+            head += (f" With so few points these tests are inconclusive, but the evidence for "
+                     f"{names} over the base model is very strong (ln Bayes factor "
+                     f"{lead.evidence:.1f} > ln 150, BIC with the noise level unknown).")
+        text = (f"{head} The misfit is systematic, and the missing {verb} {names} "
+                f"({strength}). With it the RMSE falls to {f.rmse:.3f} µm, at the noise "
+                f"level (p = {diag.final_tests.p_min:.2f})"
+                + (f", and the left-out-experiment prediction error from {lb:.3f} to "
+                   f"{la:.3f} µm" if lb is not None and la is not None else "")
+                + f". What pointed to it: {sig}"
+                f" — the signature of {eff[0]} ({_describe(eff[0])}).")
+        if diag.alternatives:
+            text += (f" The data cannot tell it apart from {', '.join(diag.alternatives)}, "
+                     f"which fits nearly as well (evidence gap < ln 20): treat the name as "
+                     f"one of these, not as certain.")
+        return text
+    text = f"{head} The misfit is systematic ({sig})."
+    if diag.partial:
+        c = next(c for c in diag.candidates if c.effect == diag.partial[0])
+        text += (f" The best candidate, {c.effect} ({_strength_text(diag, c.fit, c.effect)}),"
+                 f" lowers the RMSE to {c.rmse_um:.3f} µm but leaves a systematic remainder "
+                 f"(p = {c.tests.p_min:.1e}); no candidate or pair of candidates brings the "
+                 f"misfit to noise level.")
+    else:
+        text += " No candidate explains it."
+    return text + (" The missing physics is not among the library's candidates: look at the "
+                   "residual figures for where the model fails.")

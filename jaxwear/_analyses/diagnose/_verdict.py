@@ -1,0 +1,291 @@
+"""`diagnose`: base fit, screen, refits, verdict (the steps of the package docstring)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from jaxwear._analyses.diagnose._evidence import (
+    AMBIGUOUS_LOG_BF,
+    EXPLAINED_FOR_SECOND_STAGE,
+    STRONG_LOG_BF,
+    evidence,
+    evidence_from,
+    loo,
+)
+from jaxwear._analyses.diagnose._fit import _log, fit_masked
+from jaxwear._analyses.diagnose._model import Model, objective
+from jaxwear._analyses.diagnose._refit import (
+    _check_derivatives,
+    _noise,
+    _refit,
+    _second_stage,
+    _tests_for,
+)
+from jaxwear._analyses.diagnose._result import Candidate, Diagnosis
+from jaxwear._analyses.diagnose._screen import screen
+from jaxwear._analyses.diagnose._shape import Background, at_answer, prepare_design, shape_analysis
+from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs
+from jaxwear._analyses.diagnose._text import summarize_verdict
+from jaxwear._core.errors import InputError
+from jaxwear._inference.calibrate import fit_study, registered, study_fit_keys
+from jaxwear._inference.residual import traces, traces_since
+from jaxwear._study.resolution import at_level
+from jaxwear._study.study import Study
+
+# A refit is skipped when a candidate already fits to noise level and the skipped one's
+# score (the χ² its linearised refit would remove) is below this fraction of the χ² that
+# candidate removed.
+COMPARABLE = 0.5
+
+
+def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
+             noise_um: float | None = None, shape: bool = False, seed: int = 0,
+             auto_shape: bool = True, figures=None) -> Diagnosis:
+    """Diagnose a study (module docstring). Progress on stderr when `verbose`.
+
+    `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
+    else estimated from the data. `shape`: always analyse the shape of the missing wear
+    (`_shape`); without it, only when the verdict is `unexplained` (DESIGN §7), unless
+    `auto_shape` is False (the verdict alone, e.g. a validation script's many studies: the
+    shape never changes the verdict and costs more than it); `seed` of its null
+    simulations. `figures`: None, or a function [ShapeResult | None] -> [{label: PNG bytes}]
+    (the report's `shape_pngs`) run in a background thread while the shape's refit runs, for
+    the caller to write (the CLI's `--out`); passed in because the analysis layer draws
+    nothing itself.
+    """
+    if noise_um is None:
+        noise_um = study.noise_um
+    t0 = time.perf_counter()
+    before = traces()
+    calibrate_evals = 0
+    resolution = None
+    start = None
+    defect = None
+    finer_minus_rows = None  # calibrate's resolution check at its answer (µm per row)
+    if study.auto_resolution or study.angle_tolerance_deg > 0:
+        # the base model's fit by calibrate's path: the resolution it needs, checked at its
+        # answer (DESIGN §6), and the scans' registration where the study fits it; the
+        # candidates are then compared at that answer's numerics: the Jacobian's level,
+        # its rows corrected as the answer's are (defect correction to a finer level: the
+        # same fixed correction) and that registration (held); the base fit starts from
+        # that answer (the same residual model and noise rule: it only re-evaluates there
+        # with the candidates' columns)
+
+        _log(verbose, f"diagnose {study.path}: the base fit by calibrate's path (resolution"
+                      f"{', registration' if study.angle_tolerance_deg > 0 else ''})")
+        r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose)
+        calibrate_evals = r.iterations
+        if study.auto_resolution:
+            resolution = r.resolution
+            jac = resolution["jacobian"]
+            study = at_level(study, (jac["nodes"], jac["steps_per_rev"]))
+            defect = r.problem.defect
+            finer_minus_rows = r.finer_minus_rows_um
+            if resolution.get("corrected_to"):
+                _log(verbose, f"  rows corrected to {resolution['nodes']} x "
+                              f"{resolution['steps_per_rev']} (defect correction, held "
+                              f"for every candidate)")
+        if study.angle_tolerance_deg > 0:
+            study = registered(study, r)
+            _log(verbose, "  registration held at the fitted offsets: " + ", ".join(
+                f"{n.split('/', 1)[1]} {v:+.2f}°" for n, v in zip(r.names, r.values)
+                if n.startswith("angle_offset_deg/")))
+        start = {n: float(v) for n, v in zip(r.names, r.values)
+                 if not n.startswith("angle_offset_deg/")}
+    evals0 = Model.evaluations
+    _log(verbose, f"diagnose {study.path}: {len(study.experiments)} experiments")
+    model = Model(study, start=start, defect_um=defect)
+    if model.n < 3:
+        raise InputError(f"{study.path}: diagnose needs at least 3 measured points, "
+                         f"got {model.n}")
+    _log(verbose, f"  {model.n} data rows; candidates: {', '.join(model.candidates) or 'none'}"
+                  " (the first evaluation compiles the extended model)")
+    models = {None: model}
+    job = None
+    if shape and start is not None:
+        # the shape's design needs the base model's answer only: calibrate's path has it
+        # (u = 0 here), so its Jacobian compiles and runs while the verdict's base fit,
+        # screens and refits run (`_shape.Background`)
+
+        job = Background(prepare_design, model, at_answer(model, r.evaluation),
+                         verbose=verbose)
+
+    def by_contact(contact):
+        if contact not in models:
+            _log(verbose, f"  compiling the model with {contact} contact")
+            models[contact] = model.with_contact(contact)
+        return models[contact]
+
+    # 1. the base model, as the study states it, at the noise level of the one rule
+    # (`_noise`: given, else the data's own neighbouring points)
+    noise, nu = _noise(model, noise_um)
+    u0 = np.zeros(len(model.names))
+    ev0 = model.evaluate(u0)
+    kd = model.index.get("K_d_per_Pa")
+    if start is None and kd is not None and ev0.usable:
+        d = ev0.pred
+        a = float(d @ model.measured) / max(float(d @ d), 1e-300)
+        if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
+            u0[kd] += math.log(a)  # depth is nearly proportional to K_d
+            ev0 = None
+    _log(verbose, f"  base fit ({int(model.base_mask.sum())} parameters)")
+    base = fit_masked(model, model.base_mask, u0, noise_um=noise, noise_dof=nu, label="base",
+                      ev0=ev0, verbose=verbose)
+    _check_derivatives(model, base)
+    if shape and job is None:
+        # the shape's design needs only the base fit: computed while the verdict runs
+
+        job = Background(prepare_design, model, base, verbose=verbose)
+    pairs = neighbour_pairs(model)
+    _log(verbose, f"  base RMSE {base.rmse:.4f} µm, noise {noise:.4f} µm (ν = {nu:.4g})")
+
+    # 2-3. is it noise? score tests of every candidate at the base fit
+    scores = screen(model, base, noise, nu, verbose=verbose)
+    base_tests = _tests_for(model, base, noise, nu, pairs, scores)
+    _log(verbose, f"  base: chi-square ratio {base_tests.ratio:.3f} (p {base_tests.p_chi2:.1e})"
+                  f", lag-1 autocorrelation {base_tests.rho:.3f} "
+                  f"(p {base_tests.p_autocorr:.1e}), best score p {base_tests.p_score:.1e}")
+    q_base = objective(base.ev, noise)
+    cands = {}
+    for s_ in scores:
+        q_lin = max(q_base - s_.delta_rss, 1e-12 * q_base)
+        cands[s_.effect] = Candidate(
+            s_.effect, s_, None, evidence_from(model.n, q_base, q_lin, len(s_.start)),
+            math.sqrt(max(base.rss - s_.delta_rss, 0.0) / model.n))
+    status, effects, partial, alternatives = "adequate", [], [], []
+    final, final_tests = base, base_tests
+    promising = [c for c in cands.values() if c.evidence > STRONG_LOG_BF]
+    if base_tests.systematic or promising:
+        # refit the leading candidates (and the parameter-free structural ones)
+        # the leader always; others only where their own score test is significant and
+        # not negligible next to the leader's (a refit costs ~10 model evaluations)
+        live = [s_ for s_ in scores if s_.feasible and s_.score > 0]
+        todo = [(s_.effect, s_) for i, s_ in enumerate(live)
+                if i == 0 or (s_.p < ALPHA and s_.score >= 0.1 * live[0].score)][:max_refits]
+        if "unsymmetric" in model.candidates:
+            todo.append(("unsymmetric", None))
+        settled = None  # χ² improvement of a refit that reached noise level
+        for name, scr in todo:
+            if settled is not None and scr is not None and scr.score < COMPARABLE * settled:
+                # a candidate already fits to noise level and this one's score is not
+                # comparable to what it removed: its refit cannot tie with it (the evidence
+                # gap would exceed ln 20), so it is not spent (issue 10: minutes, not hours)
+                _log(verbose, f"  {name}: not refitted (score {scr.score:.1f} < "
+                              f"{COMPARABLE:g} x {settled:.1f} of a fit at noise level)")
+                continue
+            f = _refit(by_contact, base, [name], scr, noise, verbose, nu)
+            c = cands.get(name) or Candidate(name, None, None, 0.0, math.nan)
+            c = replace(c, fit=f, rmse_um=f.rmse, evidence=evidence(model, f, base, noise))
+            cands[name] = c
+            if (not f.unstable and c.evidence > STRONG_LOG_BF
+                    and not _tests_for(by_contact(f.contact), f, noise, nu, pairs).systematic):
+                gain = (q_base - objective(f.ev, noise)) / noise ** 2
+                settled = gain if settled is None else max(settled, gain)
+        refitted = sorted([c for c in cands.values() if c.refit and not c.fit.unstable],
+                          key=lambda c: -c.evidence)
+        best = refitted[0] if refitted else None
+        systematic = base_tests.systematic or (best is not None
+                                               and best.evidence > STRONG_LOG_BF)
+        if systematic and best is not None and best.evidence > STRONG_LOG_BF:
+            mdl = by_contact(best.fit.contact)
+            rest = screen(mdl, best.fit, noise, nu)
+            best = replace(best, tests=_tests_for(mdl, best.fit, noise, nu, pairs, rest))
+            refitted = [best] + [
+                replace(c, tests=_tests_for(by_contact(c.fit.contact), c.fit, noise, nu, pairs))
+                for c in refitted[1:]]
+            cands.update({c.effect: c for c in refitted})
+            if not best.tests.systematic:
+                status, effects, final, final_tests = "effect_found", [best.effect], \
+                    best.fit, best.tests
+                alternatives = [c.effect for c in refitted[1:]
+                                if not c.tests.systematic
+                                and best.evidence - c.evidence < AMBIGUOUS_LOG_BF]
+            else:
+                explained = (q_base - objective(best.fit.ev, noise)) / max(
+                    q_base - (model.n - base.k) * noise ** 2, 1e-300)
+                status, partial, final, final_tests = "unexplained", [best.effect], \
+                    best.fit, best.tests
+                if explained >= EXPLAINED_FOR_SECOND_STAGE:
+                    found = _second_stage(model, by_contact, best, rest, noise, nu, pairs,
+                                          max_refits, verbose)
+                    if found is not None:
+                        pair_fit, pair_tests = found
+                        status, effects, partial = "effect_found", list(pair_fit.groups), []
+                        final, final_tests = pair_fit, pair_tests
+                        cands[pair_fit.label] = Candidate(
+                            pair_fit.label, None, pair_fit,
+                            evidence(model, pair_fit, base, noise),
+                            pair_fit.rmse, pair_tests)
+        elif systematic:
+            status = "unexplained"
+            if best is not None:
+                mdl = by_contact(best.fit.contact)
+                best = replace(best, tests=_tests_for(mdl, best.fit, noise, nu, pairs))
+                cands[best.effect] = best
+    # best first: the verdict's model, then by evidence (refits and linearised screens)
+    lead_label = final.label if final is not base else None
+    ordered = sorted(cands.values(), key=lambda c: (c.effect != lead_label, -c.evidence))
+    diag = Diagnosis(study=study, model=model, noise_um=noise, noise_dof=nu, base=base,
+                     base_tests=base_tests, screens=scores, candidates=ordered, status=status,
+                     effects=effects, partial=partial, alternatives=alternatives, final=final,
+                     final_tests=final_tests, loo_before=loo(model, base, noise),
+                     loo_after=loo(by_contact(final.contact), final, noise),
+                     resolution=resolution)
+    summary = summarize_verdict(diag)
+    if shape or (auto_shape and status == "unexplained"):
+
+        # both analyses' linear parts first, their refits through the loop after (`defer`),
+        # so that the figures the refits do not change are drawn while they run
+        shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
+                             verbose=verbose, design=None if job is None else job.result(),
+                             numerical_um=(finer_minus_rows if _at_start(base, 0.1)
+                                           else None), defer=figures is not None)
+        after = None
+        if status == "effect_found":
+            # with the effect's own contact model, on the first analysis's columns (its
+            # design carries every candidate, held at off: nesting)
+            share = by_contact(final.contact) is model and set(final.groups) <= set(
+                shp.design.groups)
+            after = shape_analysis(by_contact(final.contact), final, noise, nu,
+                                   after=" + ".join(effects), seed=seed, verbose=verbose,
+                                   design=shp.design if share else None, defer=figures is not None)
+        drawing = None
+        if figures is not None:
+            drawing = Background(figures, [shp, after])
+        shp = shp.finished()
+        after = after.finished() if after is not None else None
+        if drawing is not None:
+            pngs, pngs_after = drawing.result()
+            shp = replace(shp, pngs=pngs)
+            if after is not None:
+                after = replace(after, pngs=pngs_after)
+        diag = replace(diag, shape=shp, shape_after_effect=after)
+        summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else []))
+    own = Model.evaluations - evals0
+    cost = {"model_evaluations": calibrate_evals + own,
+            "calibrate_path_evaluations": calibrate_evals, "diagnose_evaluations": own,
+            "base_fit_evaluations": 1 + base.evaluations,  # its start ev0 and the fit
+            "compiles": traces_since(before)}
+    diag = replace(diag, summary=summary, wall_s=time.perf_counter() - t0, cost=cost)
+    comp = cost["compiles"]
+    _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
+                  + f" in {diag.wall_s:.1f} s ({calibrate_evals + own} model evaluations: "
+                    f"{calibrate_evals} by calibrate's path, {own} by diagnose, of them "
+                    f"{cost['base_fit_evaluations']} for its base fit; "
+                    f"{comp['jacobian']} Jacobian and {comp['forward']} forward "
+                    f"compilations)")
+    return diag
+
+
+def _at_start(fit, se: float) -> bool:
+    """True where `fit` ended within `se` standard errors of its start (u = 0: the answer
+    of calibrate's path), so that what was computed at that answer holds at this one."""
+    if fit.cov is None:
+        return False
+    u = np.asarray(fit.ev.u)[np.asarray(fit.mask, bool)]
+    sd = np.sqrt(np.clip(np.diag(np.asarray(fit.cov.cov)), 0.0, None))
+    return bool(np.all(np.abs(u) <= se * np.where(np.isfinite(sd), sd, 0.0)))

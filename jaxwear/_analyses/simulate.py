@@ -1,0 +1,65 @@
+"""Running a study's experiments forward (the `simulate` verb's engine)."""
+
+from __future__ import annotations
+
+import sys
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from jaxwear._physics.wear import (
+    WearResult,
+    build_schedule,
+    check_result,
+    cycle_increment,
+    schedule_numerics,
+    simulate,
+)
+from jaxwear._study.study import Experiment, Study
+
+
+def progress(msg: str):
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _numerics(study: Study, M):
+    num = schedule_numerics(study)
+    if M is not None:
+        num.update(M=M, integrator="paper")
+    return num
+
+
+def common_length(study: Study, M=None) -> int:
+    """Update count (bucketed) that fits every experiment: one compilation for the study."""
+    return max(build_schedule(study.params(e), study.config, revolutions=e.revolutions,
+                              hours=e.hours, snapshots=e.snapshot_points,
+                              **_numerics(study, M)).updates
+               for e in study.experiments)
+
+
+def run_experiment(study: Study, exp: Experiment, *, M=None, check=True,
+                   pad_to: int | None = None) -> WearResult:
+    """Simulate one experiment with snapshots at its measured revolution counts / hours."""
+    p = study.params(exp)
+    res = simulate(p, study.config, revolutions=exp.revolutions, hours=exp.hours,
+                   snapshots=exp.snapshot_points, check=False, pad_to=pad_to,
+                   **_numerics(study, M))
+    if check:
+        check_result(res, study.config, f"{study.path}: experiment {exp.name!r}", p)
+    return res
+
+
+@eqx.filter_jit
+def _pressure(p, cfg, h, hist, regime):
+    # The contact call of the wear itself (friction and every effect's contact terms), so
+    # that the plotted pressure is the pressure that wore the bore.
+    return cycle_increment(p, cfg, hist, regime, h, jnp.zeros(()))[2].pressure
+
+
+def last_cycle_pressure(study: Study, exp: Experiment, res: WearResult, regime: int = 0):
+    """Pressure map (steps, nodes) [Pa] of the last cycle, on the final profile."""
+    return np.asarray(_pressure(study.params(exp), study.config, res.depth, res.history,
+                                regime))
+
+

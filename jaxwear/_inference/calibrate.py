@@ -1,0 +1,657 @@
+"""Calibration: least squares of measured minus predicted depth over a whole study (§6-7).
+
+The study is posed as a residual model (`_residual.ResidualModel`, its parameter vector
+packed by `_packing`) and solved by the one least-squares core (`jaxwear._inference.lsq`); this module
+drives it: the noise rule (`_noise.stated_noise`), the robust start, the guard against
+trials that would make the integrator crawl, the integration error re-checked at the
+answer, the resolution chosen by the error (DESIGN §6), and the result (`FitResult`, its
+DESIGN §7 JSON).
+
+Outcome semantics: a fit that stops without meeting its convergence test still returns its
+result, with `status` ("stalled", "budget", "undetermined", "worn_through",
+"contact_unresolved") and a `message` saying why; `converged` is `status == "converged"`.
+Only a start that cannot be evaluated at all (worn through whatever K_d, or non-finite)
+raises `FitError`, and a noise level the data cannot determine raises `InputError` before
+any evaluation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass, replace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxwear._core.errors import InputError
+from jaxwear._core.noise import Noise, stated_noise
+from jaxwear._inference import lsq
+from jaxwear._inference.packing import parse_fit, study_fit_keys, unit_of, with_registration
+from jaxwear._inference.residual import (
+    Evaluation,
+    Forward,
+    Layout,
+    ResidualModel,
+    build_model,
+    evaluate,
+    forward_run,
+    integration_report,
+    needs_more_attempts,
+    traces,
+    traces_since,
+    unusable_point,
+)
+from jaxwear._study.resolution import amplification_warnings
+from jaxwear._study.study import Study
+from jaxwear._study import resolution as res
+
+__all__ = ["FitError", "FitResult", "Problem", "build_problem", "calibrate", "fit",
+           "fit_study", "parse_fit", "registered", "study_fit_keys", "unit_of",
+           "with_registration"]
+
+Problem = ResidualModel  # calibrate's name for the study's residual model
+
+
+class FitError(RuntimeError):
+    """The fit could not start: the model cannot be evaluated at any usable start."""
+
+
+def build_problem(study: Study, keys: list[str], start: dict | None = None,
+                  layout: Layout | None = None) -> ResidualModel:
+    """The residual model of `study` fitting `keys` (`_residual.build_model`; `layout`:
+    shared schedule capacities)."""
+    return build_model(study, keys, start, layout=layout)
+
+
+def registered(study: Study, result) -> Study:
+    """`study` with every scan rotated by its fitted registration (`angle_offset_deg/EXP`
+    of `result`) and the registration then held (`angle_tolerance_deg` 0): what diagnose
+    compares its candidates at, after the base fit found the offsets."""
+
+    fitted = dict(zip(result.names, map(float, result.values)))
+    exps = []
+    for e in study.experiments:
+        name = f"angle_offset_deg/{e.name}"
+        if e.profile is not None and name in fitted:
+            shift = fitted[name] - e.profile.angle_offset_deg
+            prof = replace(e.profile, angle=np.mod(e.profile.angle + np.deg2rad(shift),
+                                                   2 * np.pi),
+                           angle_offset_deg=fitted[name])
+            e = replace(e, profile=prof)
+        exps.append(e)
+    return replace(study.with_experiments(exps), angle_tolerance_deg=0.0)
+
+
+@dataclass
+class FitResult:
+    """Outcome of a calibration. Values and standard errors in the names' units.
+
+    `noise` is the noise level of the rule (`_noise`): `noise_um` its value (given, or the
+    data's own estimate, or σ̂ of the residuals); `error_scale_um` what the standard
+    errors were computed with (the noise, or the misfit where that is larger).
+    `evaluation` is the model at the answer; `covariance` the core's at the error scale
+    (free u)."""
+
+    names: list[str]
+    values: np.ndarray
+    stderr: np.ndarray
+    correlation: np.ndarray
+    u: np.ndarray
+    rmse_um: float
+    rmse_per_experiment: dict
+    noise_um: float
+    residuals_um: np.ndarray  # data rows
+    predicted_um: np.ndarray
+    measured_um: np.ndarray
+    row_experiment: np.ndarray
+    iterations: int
+    message: str
+    flags: list[str]
+    problem: ResidualModel
+    evaluation: Evaluation
+    covariance: lsq.Covariance
+    snapshots_um: np.ndarray  # (experiments, snapshots, nodes)
+    max_contact_residual: float
+    integration: dict | None = None  # error estimate at the fitted values (see `calibrate`)
+    status: str = "converged"
+    noise: Noise | None = None
+    error_scale_um: float = math.nan
+    error_dof: float = math.inf
+    step_se: float = 0.0  # the next Gauss-Newton step at the answer, in standard errors
+    resolution: dict | None = None  # the spatial resolution and its check (`calibrate`)
+    clearance_tolerance_um: float = 5.0
+    forward_runs: int = 0  # of `iterations`, those without a Jacobian (finer levels)
+    compiles: dict | None = None  # compilations for this answer by kind (`fit_study`)
+    # rows of the level the answer was checked against minus the answer's rows (rows,)
+    # [µm], at `u`: its numerical error, from the check's own forward run (`correct_to_finer`;
+    # None where no finer level was run)
+    finer_minus_rows_um: np.ndarray | None = None
+    finer_level: tuple | None = None
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    @property
+    def jacobian(self) -> np.ndarray:
+        """d rows / d u (data rows [µm], then prior rows [SD])."""
+        return np.vstack([self.evaluation.J, self.evaluation.J_prior])
+
+    @property
+    def noise_given(self) -> bool:
+        return self.noise is not None and self.noise.source == "given"
+
+    def parameters_json(self) -> dict:
+        return {n: {"value": float(v), "stderr": (float(s) if np.isfinite(s) else None)}
+                for n, v, s in zip(self.names, self.values, self.stderr)}
+
+    def to_json(self) -> dict:
+        """The DESIGN §7 document: `parameters` and `rmse_um`, then diagnostics."""
+        tol = float(self.clearance_tolerance_um)
+        noise = self.noise
+        return {
+            "parameters": self.parameters_json(),
+            "rmse_um": float(self.rmse_um),
+            "rmse_per_experiment_um": {k: float(v) for k, v in self.rmse_per_experiment.items()},
+            "noise_um": float(self.noise_um),
+            "noise": noise.describe() if noise else "estimated from the residuals",
+            "error_scale_um": _jf(self.error_scale_um),
+            "units": {n: unit_of(n) for n in self.names},
+            "correlation": {"names": list(self.names),
+                            "matrix": [[float(x) if np.isfinite(x) else None for x in row]
+                                       for row in np.asarray(self.correlation)]},
+            "converged": bool(self.converged),
+            "status": self.status,
+            "iterations": int(self.iterations),
+            "model_evaluations": int(self.iterations),
+            "evaluations": {"jacobian": int(self.iterations - self.forward_runs),
+                            "forward": int(self.forward_runs)},
+            "compiles": (None if self.compiles is None
+                         else int(sum(self.compiles.values()))),
+            "compiles_by_kind": self.compiles,
+            "next_step_standard_errors": _jf(self.step_se),
+            "message": self.message,
+            "flags": list(self.flags),
+            "n_data": int(self.n_data),
+            "clearance_tolerance_um": tol if math.isfinite(tol) else "inf",
+            "max_contact_residual": float(self.max_contact_residual),
+            "integration": self.integration,
+            "resolution": self.resolution,
+        }
+
+    @property
+    def n_data(self) -> int:
+        return len(self.residuals_um)
+
+    @property
+    def rss(self) -> float:
+        return float(np.sum(self.residuals_um ** 2))
+
+
+def _jf(x):
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+def _log(verbose, msg):
+    if verbose:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def check_noise_determined(problem: ResidualModel, noise_um: float | None, *, hint: str
+                           ) -> None:
+    """Refuse, before any evaluation, what is known then: a noise level neither given nor
+    measurable from the data, which the residuals cannot determine either (no more data
+    rows than fitted parameters; `hint` names how to give σ), and a per-experiment
+    parameter that no measured row can see (an experiment without data, its clearance
+    free of any prior)."""
+    n, p = problem.n_data, problem.packing.size
+    noise = stated_noise(problem.data, problem.noise_um if noise_um is None else noise_um)
+    if noise.sigma_um is None and p and n <= p:
+        raise InputError(f"the {n} data rows do not determine the noise level with {p} fitted "
+                         f"parameters ({', '.join(problem.names)}); give the measurement "
+                         f"noise with {hint} (or fit fewer parameters, or add data)")
+    seen = set(np.asarray(problem.data.exp).tolist())
+    blind = [c.name for c in problem.columns if c.experiment is not None
+             and c.experiment not in seen and not c.has_prior]
+    if blind:
+        raise InputError(f"no measured row can see {', '.join(blind)}: the experiment has no "
+                         f"profile or history; give its data, a finite [fit] "
+                         f"clearance_tolerance_um, or leave it out of the fit")
+
+
+def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
+        max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
+        label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None
+        ) -> FitResult:
+    """Least-squares fit through the one core (`jaxwear._inference.lsq.solve`), then standard errors,
+    correlations and flags.
+
+    **Arguments:**
+    - `u0`: start in the problem's parameterisation (default: the problem's start values).
+    - `noise_um`: measurement noise σ [µm] if known; default: the study's `[fit]
+      noise_um`, else the noise rule (`_noise.stated_noise`: the data's own estimate, or
+      re-estimated from the residuals inside the loop).
+    - `max_evaluations`: budget of the iteration (the robust start's evaluations come on
+      top; all are counted in `iterations`).
+    - `verbose`: one line per evaluation on stderr. `robust`: rescale K_d first.
+    - `se_tol`: the stop, as a fraction of a standard error (`lsq.solve`).
+    - `ev0`: the problem's evaluation at `u0` when known (no start evaluation, no robust
+      start: a refit from an answer).
+
+    Raises `InputError` before any evaluation when σ is not given and the data rows do not
+    outnumber the fitted parameters; `FitError` when no start can be evaluated.
+    """
+    given = problem.noise_um if noise_um is None else noise_um
+    check_noise_determined(problem, given, hint="[fit] noise_um")
+    noise = stated_noise(problem.data, given)
+    P = problem.packing.size
+    u = np.zeros(P) if u0 is None else np.asarray(u0, np.float64)
+    log = (lambda m: _log(True, m)) if verbose else None
+    held = [problem]
+
+    def run(v, doublings):
+        ev, used = evaluate(held[0], v, doublings=doublings)
+        if used.schedule.attempts > held[0].schedule.attempts:
+            _log(verbose, f"    {label}: integration attempts raised {held[0].schedule.attempts}"
+                          f" -> {used.schedule.attempts} for these values")
+            held[0] = used  # the largest attempt count any evaluation needed is kept
+        return ev.point()
+
+    def model(v):
+        # A trial that needs far more integration steps than the fit's current point (a
+        # stiff corner: running-in over a millimetre, K_d 100x) is cut off unevaluated and
+        # counts as a rejected step: the trust region then shrinks towards where the model
+        # is affordable, and a fit that truly goes there gets there in steps (at most 4x
+        # the cost each). A trial doubles the attempt count once at most.
+        if needs_more_attempts(held[0], v):
+            _log(verbose, f"    {label}: trial cut off unevaluated: it needs over 4x the "
+                          f"integration steps of the current point (a stiff corner); "
+                          f"counted as a rejected step")
+            return unusable_point(held[0], v)
+        return run(v, 1)
+
+    k = next((i for i, c in enumerate(problem.columns) if c.key == "K_d_per_Pa"), None)
+    if ev0 is not None:
+        pt, evals0 = ev0.point(), 0
+    elif robust and P:
+        u, pt, evals0, why = lsq.robust_start(lambda v: run(v, 3), u, k,
+                                              measured=problem.measured, log=log)
+        if why:
+            raise FitError(f"cannot start the fit: {why} "
+                           f"{dict(zip(problem.names, problem.packing.values_np(u)))}")
+    else:
+        pt, evals0 = run(u, 3), 1
+    lo, hi = problem.packing.bounds_u()
+    _log(verbose, f"  fit: {P} parameters, {problem.n_data} data rows; noise "
+                  + (f"{noise.sigma_um:.3g} µm ({noise.describe()})" if noise.sigma_um
+                     else "estimated from the residuals"))
+    out = lsq.solve(model, u, point0=pt, lower=lo, upper=hi, noise_um=noise.sigma_um,
+                    noise_dof=noise.dof, max_evaluations=max_evaluations, label=label,
+                    log=log, project=problem.packing.project, se_tol=se_tol)
+    return summarize(held[0], out, evals0 + out.evaluations, noise)
+
+
+def value_errors(packing, u, cov: lsq.Covariance, free=None):
+    """(se (P,), correlation (P, P), undetermined (P,) bool) of the values from the core's
+    covariance of the free u (delta method through the packing: exact for its diagonal
+    part); a value that depends on an undetermined u is undetermined."""
+    P = packing.size
+    free = np.ones(P, bool) if free is None else np.asarray(free, bool)
+    idx = np.flatnonzero(free)
+    G = packing.value_jacobian(u)[np.ix_(idx, idx)]
+    cov_v = G @ cov.cov @ G.T
+    bad = np.any((np.abs(G) > 0) & cov.undetermined[None, :], axis=1)
+    se = np.full(P, np.nan)
+    se[idx] = np.where(bad, np.inf, np.sqrt(np.clip(np.diag(cov_v), 0, None)))
+    d = np.sqrt(np.clip(np.diag(cov_v), 1e-300, None))
+    corr_f = cov_v / np.outer(d, d)
+    corr_f[bad, :] = np.nan
+    corr_f[:, bad] = np.nan
+    corr = np.full((P, P), np.nan)
+    corr[np.ix_(idx, idx)] = corr_f
+    und = np.zeros(P, bool)
+    und[idx] = bad
+    return se, corr, und
+
+
+def _product_flag(names, vals, se, corr, und) -> list[str]:
+    """With K_d and load_scale both fitted: only their product is identifiable from depths
+    (the wear rate is K_d p dS and the pressure scales with the load; the load's size moves
+    the contact arc only a little), so say so, with the product and its standard error."""
+    if not ("K_d_per_Pa" in names and "load_scale" in names):
+        return []
+    i, j = names.index("K_d_per_Pa"), names.index("load_scale")
+    prod = vals[i] * vals[j]
+    r = corr[i, j]
+    rel2 = ((se[i] / vals[i]) ** 2 + (se[j] / vals[j]) ** 2
+            + 2 * r * se[i] * se[j] / (vals[i] * vals[j]))
+    se_p = "undetermined" if und[i] or und[j] or not rel2 >= 0 else \
+        f"{abs(prod) * np.sqrt(rel2):.3g}"
+    return [f"K_d_per_Pa and load_scale: only their product K_d x load_scale = {prod:.4g} "
+            f"(standard error {se_p}) 1/Pa is identifiable from depth data (wear is K_d p dS and "
+            f"p scales with the load); each alone (correlation {r:+.3f}) rests on how the "
+            f"load's size shapes the contact arc: fix one of them (the load from the "
+            f"multibody model, or K_d from a wear test)"]
+
+
+def summarize(problem: ResidualModel, out: lsq.Outcome, evaluations: int,
+              noise: Noise | None = None) -> FitResult:
+    """FitResult at the core's answer: values, standard errors (the core's covariance at
+    the error scale the data support), correlations, RMSE, flags and the status."""
+    u, ev = out.u, out.point.extra
+    names = list(problem.names)
+    P = len(names)
+    pred, meas = ev.pred, problem.measured
+    r = pred - meas
+    flags = []
+    status, msg = out.status, out.message
+    if P:
+        vals = problem.packing.values_np(u)
+        se, corr, und = value_errors(problem.packing, u, out.errors)
+        if np.any(und):
+            flags.append(f"the data do not determine {', '.join(np.array(names)[und])} "
+                         f"(Jacobian rank deficient: no standard error)")
+        for i, c in enumerate(problem.columns):
+            if c.log:
+                rel = se[i] / max(abs(vals[i]), 1e-300)
+                if rel > 1.0:
+                    flags.append(f"{names[i]}: standard error {rel:.0%} of the value "
+                                 f"(not identifiable from these data)")
+            elif se[i] > 10 * c.scale:
+                flags.append(f"{names[i]}: standard error {se[i]:.3g} is > 10x its typical "
+                             f"size {c.scale:g} (not identifiable from these data)")
+            for j in range(i + 1, P):
+                if abs(corr[i, j]) > 0.99:
+                    flags.append(f"{names[i]} and {names[j]}: correlation "
+                                 f"{corr[i, j]:+.3f} (|r| > 0.99, not separately identifiable)")
+        flags += _product_flag(names, vals, se, corr, und)
+    else:
+        vals, se, corr = np.zeros(0), np.zeros(0), np.zeros((0, 0))
+    if out.error_scale_um > out.noise_um * (1 + 1e-9) and noise is not None \
+            and noise.source != "residuals":
+        flags.append(f"the misfit ({out.error_scale_um:.3g} µm per degree of freedom) exceeds "
+                     f"the noise ({out.noise_um:.3g} µm, {noise.describe()}): standard "
+                     f"errors are widened by the misfit; `jaxwear diagnose` looks for the "
+                     f"physics the model lacks")
+    if status == "converged" and float(ev.worn) >= 0:
+        status = "worn_through"
+        msg += "; but the layer wears through at the fitted values"
+    if status == "converged" and not float(ev.max_residual) < 1e-9:
+        status = "contact_unresolved"
+        msg += (f"; but the contact residual {float(ev.max_residual):.1e} ≥ 1e-9 at the "
+                f"fitted values (try more nodes)")
+    if status != "converged":
+        flags.append(f"the fit did not converge ({status}): {msg}")
+    exp_idx = np.asarray(problem.data.exp)
+    per = {name: float(np.sqrt(np.mean(r[exp_idx == i] ** 2)))
+           for i, name in enumerate(problem.exp_names) if np.any(exp_idx == i)}
+    tol = next((c.prior_sd * 1e3 for c in problem.columns if c.key == "clearance_mm"),
+               math.inf)
+    return FitResult(names=names, values=np.asarray(vals), stderr=np.asarray(se),
+                     correlation=np.asarray(corr), u=np.asarray(u),
+                     rmse_um=float(np.sqrt(np.mean(r ** 2))), rmse_per_experiment=per,
+                     noise_um=float(out.noise_um), residuals_um=r, predicted_um=pred,
+                     measured_um=meas, row_experiment=exp_idx, iterations=int(evaluations),
+                     message=msg, flags=flags, problem=problem, evaluation=ev,
+                     covariance=out.errors, snapshots_um=ev.snaps,
+                     max_contact_residual=float(ev.max_residual),
+                     integration=integration_report(problem, ev), status=status,
+                     noise=noise, error_scale_um=float(out.error_scale_um),
+                     error_dof=float(out.error_dof), step_se=float(out.step_se),
+                     clearance_tolerance_um=tol)
+
+
+def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=False,
+              max_evaluations: int = 30, noise_um: float | None = None) -> FitResult:
+    """Fit a study's parameters to its data (DESIGN §7 `calibrate`).
+
+    **Arguments:**
+    - `study`: a loaded study with profile and/or history data.
+    - `fit_spec`: "K_d,clearance" (default) or any comma-separated study keys; strengths of
+      the effects the study switches on are always added.
+    - `start`: optional start values by output name (user units), e.g.
+      `{"K_d_per_Pa": 1e-12, "clearance_mm/n276": 0.06}`.
+    - `noise_um`: measurement noise σ [µm] if known (default: the study's `[fit] noise_um`,
+      else the noise rule of `_noise`).
+    - `max_evaluations`: the fit's budget of model evaluations.
+
+    **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
+    """
+    keys = with_registration(study, parse_fit(study, fit_spec))
+    return fit_study(study, keys, start=start, noise_um=noise_um,
+                     max_evaluations=max_evaluations, verbose=verbose)
+
+
+def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | None = None,
+              max_evaluations: int = 30, verbose: bool = False,
+              se_tol: float = lsq.SE_TOL, layout: Layout | None = None) -> FitResult:
+    """The whole fit of a study: build the problem, refuse what is known before any
+    evaluation, fit, re-check the integration error at the answer and, where the study
+    leaves the resolution to the error (DESIGN §6), fit at the coarsest level of
+    `_resolution.LEVELS` and consult the finer levels by forward runs only
+    (`correct_to_finer`): one Jacobian compilation per answer. `result.resolution` reports
+    it, `result.iterations` counts every model evaluation (forward runs and checks
+    included, `result.forward_runs` of them without a Jacobian) and `result.compiles` the
+    compilations by kind. `layout`: shared schedule capacities (a forecast's)."""
+
+    before = traces()
+    noise_um = study.noise_um if noise_um is None else noise_um
+    kw = dict(noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
+              se_tol=se_tol)
+    if not study.auto_resolution:
+        result = _fit_at(study, keys, start, layout, **kw)
+        result.resolution = res.given(study)
+    else:
+        result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
+        result = correct_to_finer(study, keys, result, layout, **kw)
+    result.compiles = traces_since(before)
+    return result
+
+
+MAX_CORRECTIONS = 4  # defect corrections towards one level before it is called unsettled
+
+
+def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | None = None,
+                     **fit_kw) -> FitResult:
+    """`result` (a fit at the coarsest level) checked against the finer levels, and
+    corrected to them where needed, by forward runs there only (DESIGN §6).
+
+    At the answer û, one forward run at the next finer level gives its rows; the
+    change those residuals make to the Gauss-Newton step with the fit's own Jacobian (the
+    step from the coarse rows, what the fit's own stop left, subtracted), in standard
+    errors, is the check (what a finer grid changes is mostly the residual, by the discretisation
+    error; its change of the Jacobian moves the answer by that relative change times the
+    residuals, in standard errors about the Jacobian's relative discretisation error,
+    which this check does not see: README, "Resolution chosen by the error"). Within
+    `FIT_SE_TOL` (0.1): the answer stands, checked against that level. Else defect
+    correction: the difference δ = rows_fine(û) − rows_coarse(û) is held as a fixed
+    correction of the rows (`ResidualModel.defect_um`), the coarse model refitted from û
+    with its Jacobian (no recompilation), δ recomputed at the new answer, until the finer
+    level moves no parameter by 0.1 SE; the answer is then that level's (its residuals,
+    fitted rows and snapshots), and it is checked against the next finer level the same
+    way. The finest level is not checked against a finer one (flagged)."""
+
+    verbose = fit_kw.get("verbose")
+    levels = res.LEVELS
+    coarse = result.problem
+    tol = (result.integration or {}).get("tolerance_um")
+    base = study if tol is None else dataclasses.replace(study, wear_tolerance_um=tol)
+    start = dict(zip(coarse.names, map(float, np.asarray(coarse.start))))
+    lo, hi = coarse.packing.bounds_u()
+    at, corrections, correction_step = 0, 0, None
+    spent = result.iterations  # every evaluation of the answer, the first fit's on
+    forward = 0  # of them, forward runs
+    report = None
+    for i in range(1, len(levels)):
+        fine = build_problem(res.at_level(base, levels[i]), keys, start, layout=layout)
+        ratio, tries, still = math.inf, 0, False
+        while True:
+            f = forward_run(fine, result.u)
+            fine = f.model
+            spent, forward = spent + 1, forward + 1
+            if not f.usable:
+                result.flags.append(f"resolution: the model at {_lv(levels[i])} is not "
+                                    f"usable at the answer (worn through or not finite): "
+                                    f"the answer is not checked against it")
+                break
+            ev = result.evaluation
+            shift = f.rows - ev.pred  # the change of the correction that gives its rows
+            pt = ev.shifted(shift).point()
+            ratio = lsq.step_in_standard_errors(pt, result.error_scale_um, lo, hi,
+                                                relative_to=ev.point())[0]
+            ok = ratio <= res.FIT_SE_TOL
+            _log(verbose, f"  resolution: a Gauss-Newton step with the rows of "
+                          f"{_lv(levels[i])} (forward run) moves the answer at "
+                          f"{_lv(levels[at])} by {ratio:.2g} standard errors"
+                          + ("" if ok else f" (> {res.FIT_SE_TOL:g}): defect correction"))
+            if ok or tries >= MAX_CORRECTIONS or not result.converged:
+                break
+            tries += 1
+            corrections += 1
+            refit = fit(coarse.with_defect(coarse.defect + shift), result.u,
+                        ev0=ev.shifted(shift), label=f"corrected to {_lv(levels[i])}",
+                        **fit_kw)
+            spent += refit.iterations
+            # a refit that converged where it started leaves δ, and so the check, as they
+            # were: another round would repeat them (the fit's own stop, which judges the
+            # step against the scale the residuals will support, found it settled)
+            still = refit.converged and np.array_equal(np.asarray(refit.u),
+                                                       np.asarray(result.u))
+            coarse, result, at = refit.problem, _carry(refit, result), i
+            if still:  # its rows already carry this δ: nothing more to add below
+                shift = np.zeros_like(shift)
+                break
+        if not f.usable:
+            report = res.report(levels[at], None, kind="fit", value=None, ok=False)
+            break
+        if at < i:  # the answer stands at its level, checked against this one
+            report = res.report(levels[at], levels[i], kind="fit", value=ratio,
+                                ok=ratio <= res.FIT_SE_TOL)
+            # the check's rows are the answer's numerical error (a diagnosis's shape
+            # analysis counts it without a forward run of its own)
+            result = dataclasses.replace(result, finer_minus_rows_um=f.rows - ev.pred,
+                                         finer_level=tuple(levels[i]))
+            break
+        # corrected to this level: the answer is this level's, to within `ratio`
+        coarse = coarse.with_defect(coarse.defect + shift)
+        result = at_corrected(result, coarse, shift, f, ratio)
+        correction_step = ratio
+        if (ratio > res.FIT_SE_TOL and not still) or not result.converged:
+            result.flags.append(f"resolution: the defect correction to {_lv(levels[i])} did "
+                                f"not settle ({tries} corrections; the last step is "
+                                f"{ratio:.2g} standard errors)")
+            report = res.report(levels[i], None, kind="fit", value=ratio, ok=False)
+            break
+        if i + 1 == len(levels):
+            result.flags.append(f"resolution: the fit needed the finest level "
+                                f"{_lv(levels[i])}, which is not checked against a finer "
+                                f"one")
+            report = res.report(levels[i], None, kind="fit", value=None, ok=False)
+    report.update(res.correction_report(levels[0], levels[at] if at else None, corrections,
+                                        correction_step))
+    result.resolution = report
+    result.iterations = spent
+    result.forward_runs = forward
+    return result
+
+
+def _lv(level) -> str:
+    return f"{level[0]} x {level[1]}"
+
+
+def _carry(refit: FitResult, before: FitResult) -> FitResult:
+    """A corrected refit keeps the flags of what came before it (integration notes)."""
+    refit.flags = list(dict.fromkeys(before.flags + refit.flags))
+    return refit
+
+
+def at_corrected(result: FitResult, problem: ResidualModel, shift, f: Forward,
+                 step_se: float) -> FitResult:
+    """`result` reported at the level its correction reaches: `problem` carries the
+    correction recomputed at the answer, so its rows there are the finer level's (`f`, its
+    forward run): fitted rows, residuals and RMSE are that level's, the snapshots its
+    `f.snaps`; standard errors stay those of the last corrected fit (its residuals differ
+    from these by less than the check's `step_se` standard errors)."""
+    ev = result.evaluation.shifted(shift)
+    r = ev.r
+    exp_idx = np.asarray(problem.data.exp)
+    per = {name: float(np.sqrt(np.mean(r[exp_idx == i] ** 2)))
+           for i, name in enumerate(problem.exp_names) if np.any(exp_idx == i)}
+    return dataclasses.replace(result, problem=problem, evaluation=ev, residuals_um=r,
+                               predicted_um=ev.pred, rmse_um=float(np.sqrt(np.mean(r ** 2))),
+                               rmse_per_experiment=per, snapshots_um=f.snaps,
+                               step_se=float(step_se))
+
+
+def _fit_at(study: Study, keys, start, layout=None, *, noise_um, max_evaluations, verbose,
+            se_tol) -> FitResult:
+    problem = build_problem(study, keys, start, layout)
+    result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
+                 se_tol=se_tol)
+    return recheck_integration(study, result, noise_um=noise_um,
+                               max_evaluations=max_evaluations, verbose=verbose,
+                               se_tol=se_tol)
+
+
+def recheck_integration(study: Study, result: FitResult, *, refits: int = 2, **fit_kw
+                        ) -> FitResult:
+    """Re-check the integration error at the **fitted** parameters (the schedule, its
+    attempt count and the error all depend on K_d): adaptive fits whose error estimate
+    exceeds the tolerance are refitted from the fitted values with the tolerance divided
+    by 4 and schedules built at the fitted values, up to `refits` times; the paper
+    integrator gets the M-stability warning at the fitted values. What remains above
+    tolerance is said in the message and flags."""
+
+    problem = result.problem
+    names = list(problem.exp_names)
+
+    def per_exp(u):
+        pb = problem.batched_params(np.asarray(u, np.float64))
+        return [jax.tree.map(lambda x: x[i], pb) for i in range(len(names))]
+
+    if study.integrator == "paper":
+
+        for line in amplification_warnings(study, per_exp(result.u)):
+            result.flags.append(line.removeprefix("warning: "))
+        return result
+    tol = study.wear_tolerance_um
+    checks = 0  # evaluations of the check itself (counted with the fit's)
+    for k in range(refits + 1):
+        # the attempt count at the fitted values (`evaluate` raises it where they need
+        # more; never lowered: the same shapes, no recompilation)
+        fitted = at_tolerance(problem, tol)
+        ev, fitted = evaluate(fitted, result.u)
+        checks += 1
+        err = float(ev.error_um)
+        if err <= study.wear_tolerance_um or k == refits:
+            break
+        tol /= 4
+        _log(fit_kw.get("verbose"), f"  integration error {err:.3g} µm above tolerance at "
+                                    f"the fitted values: refit at {tol:.3g} µm")
+        result = fit(fitted.with_schedule(at_tolerance(fitted, tol).schedule), result.u,
+                     **fit_kw)
+        problem = result.problem
+    result.integration = integration_report(fitted, ev)
+    result.iterations += checks
+    if err <= study.wear_tolerance_um:
+        return result
+    note = (f"integration error estimate {err:.3g} µm at the fitted values exceeds the "
+            f"tolerance {study.wear_tolerance_um:g} µm (after {refits} refits); lower "
+            f"[numerics] wear_tolerance_um")
+    result.flags.append(note)
+    result.message += "; " + note
+    return result
+
+
+def at_tolerance(problem: ResidualModel, tol_um: float) -> ResidualModel:
+    """`problem` with its adaptive schedules' error tolerance set to `tol_um` [µm] (a traced
+    value: no recompilation; the attempt count follows in `evaluate`)."""
+    sched = problem.schedule
+    if not sched.adaptive:
+        return problem
+
+    return problem.with_schedule(dataclasses.replace(
+        sched, tolerance=jnp.full_like(sched.tolerance, tol_um * 1e-6)))

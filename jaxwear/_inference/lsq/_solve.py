@@ -1,0 +1,413 @@
+"""`solve`: Levenberg-Marquardt from optimistix's pieces, stopped when the answer is known.
+
+Why a host loop around optimistix's descent and search rather than `optx.least_squares`
+on the whole fit: a model evaluation is a compiled wear history taking seconds, and
+between two evaluations the fit must do what cannot be traced: count and report the
+evaluations, honour a budget, re-estimate the noise level (which weights the prior rows),
+and stop on a statistical test that needs the covariance. The LM arithmetic itself is
+optimistix's: `DampedNewtonDescent` solves the damped step by QR on the stacked system
+[J; √λ I] and `ClassicalTrustRegion` accepts or rejects a trial from the ratio of actual
+to predicted decrease and sets the next λ = 1/step_size. They run as two small compiled
+functions on (rows × free) arrays.
+
+The stop ("done, statistically"): before every trial the full Gauss-Newton step from the
+current point is computed with the covariance. Converged when that step moves every free
+parameter by less than `se_tol` (0.01) of its standard error: a further evaluation could
+not change the answer by anything the data resolve. The predicted decrease of the misfit is
+compared with what the model's numerical error can cause (`floor`: every residual shifted
+by the integrator's error estimate); a step that predicts less than that is not evidence
+and, up to 0.1 standard error, counts as converged (the resolution check's threshold). A
+run of rejected trials is reported as a stall, with the numbers, not as convergence.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from scipy.stats import chi2
+
+from jaxwear._inference.lsq._covariance import Covariance, covariance, gauss_newton
+from jaxwear._inference.lsq._point import Point
+
+_DESCENT = optx.DampedNewtonDescent(linear_solver=lx.QR())
+# λ x10 on a rejection (optimistix's default x4 spends more evaluations, each seconds here);
+# λ / 3.5 on a step whose actual decrease is over 3/4 of the predicted one (Moré's
+# threshold; optimistix's default 0.99 kept λ fixed along the boom's curved valley)
+_SEARCH = optx.ClassicalTrustRegion(low_constant=0.1, high_cutoff=0.75)
+GAUSS_NEWTON_WITHIN_SE = 1.0
+SE_TOL = 0.01  # the stop of a reported fit: the next step under 1 % of a standard error
+NO_GAIN = 1e-4  # an accepted step lowering ½χ² by less than this changed nothing the data see
+_BAD = 1e20  # residual of an unusable trial: the trust region rejects it and shrinks
+
+
+class NoiseUndetermined(ValueError):
+    """Fewer data rows than free parameters and no noise level given."""
+
+
+def _info(r, J):
+    return optx.FunctionInfo.ResidualJac(r, lx.MatrixLinearOperator(J))
+
+
+@jax.jit
+def _propose(y, r, J, step_size):
+    """optimistix's damped Newton step from y for the system (r, J) at trust 1/λ."""
+    f_info = _info(r, J)
+    state = _DESCENT.query(y, f_info, _DESCENT.init(y, f_info))
+    diff, _ = _DESCENT.step(step_size, state)
+    return diff
+
+
+@jax.jit
+def _judge(y, y_eval, r, J, r_eval, J_eval, step_size):
+    """optimistix's trust-region verdict on a trial: (next step size, accept)."""
+    f_info, f_eval = _info(r, J), _info(r_eval, J_eval)
+    state = eqx.tree_at(lambda s: s.step_size, _SEARCH.init(y, f_info), step_size)
+    new_size, accept, _, _ = _SEARCH.step(jnp.array(False), y, y_eval, f_info, f_eval, state)
+    return new_size, accept
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """The end of a fit.
+
+    - `u` (P,), `point`: the answer and its evaluation.
+    - `status`: "converged"; "stalled" (trials keep failing); "budget" (evaluations
+      spent); "unusable" (the model cannot be evaluated at the start); "undetermined"
+      (the data and priors determine none of the fitted parameters: a lost, all-zero
+      Jacobian). `converged` is `status == "converged"`, nothing else; `message` says why,
+      with the numbers.
+    - `evaluations`: model evaluations this solve made (the start's not counted when given).
+    - `noise_um`: σ the data rows were weighted with at the end; `noise_given`: σ was
+      stated (given, or measured from the data's neighbouring points), not re-estimated
+      from the residuals; `noise_dof`: σ's degrees of freedom (inf: given).
+    - `free` (P,) bool; `cov`: `Covariance` of the free u at the answer with the data rows
+      weighted by σ (the fit's own curvature).
+    - `errors`: the same at the error scale the data support (`error_scale`: σ, or the
+      residual misfit where it exceeds σ), with `error_scale_um` and `error_dof`: what
+      standard errors and bands are reported from.
+    - `step_se`: largest |Gauss-Newton step| / standard error at the answer.
+    - `predicted_decrease`, `floor`: the next step's predicted decrease of ½χ² and what the
+      model's numerical error can cause (same unit).
+    - `history`: one line per evaluation (what `log` printed).
+    """
+
+    u: np.ndarray
+    point: Point
+    status: str
+    message: str
+    evaluations: int
+    noise_um: float
+    noise_given: bool
+    free: np.ndarray
+    cov: Covariance
+    step_se: float
+    predicted_decrease: float
+    floor: float
+    errors: Covariance | None = None
+    error_scale_um: float = math.nan
+    error_dof: float = math.inf
+    noise_dof: float = math.inf
+    history: list = field(default_factory=list)
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+
+def noise_estimate(pt: Point, k_eff: float) -> float:
+    """σ̂ = √(Σr² / (n − k_eff)) [µm] of the data rows, k_eff the effective number of
+    parameters the data determine (`Covariance.k_eff`: a parameter its prior fixes costs
+    the data no degree of freedom); floored to stay positive."""
+    n = pt.r.size
+    return max(float(np.sqrt(np.sum(pt.r ** 2) / max(n - k_eff, 1.0))), 1e-9)
+
+
+def whitened(pt: Point, noise_um: float, free):
+    """(rw, Jw): data rows divided by σ, prior rows as they are, free columns only."""
+    rw = np.concatenate([pt.r / noise_um, pt.r_prior])
+    Jw = np.vstack([pt.J[:, free] / noise_um, pt.J_prior[:, free]])
+    return rw, Jw
+
+
+def _column_scale(Jw, D_old):
+    """Column norms of the whitened Jacobian, never below the previous scale; a zero column
+    (no information yet) gets the largest norm."""
+    D = np.sqrt(np.sum(Jw ** 2, axis=0))
+    top = max(float(np.max(D, initial=0.0)), 1e-300)
+    D = np.where(D > 1e-8 * top, D, top if D_old is None else 0.0)
+    if D_old is not None:
+        D = np.maximum(D, D_old)
+    return np.where(D > 0, D, 1.0)
+
+
+def _held(u, free, lo, hi, g):
+    """Free columns held at a bound that the gradient pushes against."""
+    uf = u[free]
+    return ((uf <= lo[free] + 1e-12) & (g > 0)) | ((uf >= hi[free] - 1e-12) & (g < 0))
+
+
+def gauss_newton_step(u, free, lo, hi, rw, Jw, n_data: int):
+    """The full Gauss-Newton step over the free columns, projected on the bounds (a column
+    the step would push past its bound goes to the bound and is held while the others are
+    solved again), from the SVD of the scaled whitened Jacobian (`_covariance.gauss_newton`,
+    the same factorisation as the covariance). Returns (step (k,), covariance of the free
+    columns, predicted decrease of ½χ²)."""
+    g = Jw.T @ rw
+    uf, lof, hif = u[free], lo[free], hi[free]
+    step, cov = gauss_newton(rw, Jw, n_data)
+    held = _held(u, free, lo, hi, g)
+    if held.any() or np.any((uf + step < lof) | (uf + step > hif)):
+        step = np.zeros(len(uf))
+        for _ in range(len(uf)):
+            k = ~held
+            if k.any():
+                rhs = rw + Jw[:, held] @ step[held]
+                step[k] = gauss_newton(rhs, Jw[:, k], n_data)[0]
+            out = k & ((uf + step < lof) | (uf + step > hif))
+            if not out.any():
+                break
+            step[out] = np.clip(uf + step, lof, hif)[out] - uf[out]
+            held |= out
+    pred = -(float(g @ step) + 0.5 * float(np.sum((Jw @ step) ** 2)))
+    if pred < 0:
+        # the clipped step is no descent (the bounds cut across a curved valley): judge by
+        # the step over the columns free to move, unclipped
+        held = _held(u, free, lo, hi, g)
+        step = np.zeros(len(uf))
+        if (~held).any():
+            step[~held] = gauss_newton(rw, Jw[:, ~held], n_data)[0]
+        pred = -(float(g @ step) + 0.5 * float(np.sum((Jw @ step) ** 2)))
+    return step, cov, pred
+
+
+def _ratio(step, cov: Covariance) -> float:
+    """Largest |step| / standard error over the determined parameters."""
+    det = ~cov.undetermined
+    return float(np.max(np.abs(step[det]) / cov.se[det], initial=0.0))
+
+
+def error_scale(rss: float, n: int, k_eff: float, sigma: float, sigma_dof: float,
+                estimated: bool) -> tuple[float, float]:
+    """The noise rule for the errors the data support: (s [µm], its degrees of freedom).
+
+    σ estimated from the residuals (`estimated`): s = σ̂ with n − k_eff dof. σ given or
+    measured from the data's own neighbouring points: s = max(σ, √(RSS/(n − k_eff))), so a
+    model that misfits beyond the noise gets standard errors widened by its misfit (with
+    n − k_eff dof), never narrower than the noise allows."""
+    dof = max(n - k_eff, 1.0)
+    if estimated:
+        return sigma, dof
+    s_res = math.sqrt(max(rss, 0.0) / dof)
+    if s_res > sigma and n - k_eff >= 1.0:
+        return s_res, dof
+    return sigma, sigma_dof
+
+
+def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None = None,
+          free=None, lower=None, upper=None, noise_um: float | None = None,
+          noise_dof: float = math.inf, max_evaluations: int = 30, se_tol: float = SE_TOL,
+          max_rejections: int = 6, label: str = "fit",
+          log: Callable[[str], None] | None = None,
+          project: Callable[[np.ndarray], np.ndarray] | None = None) -> Outcome:
+    """Least squares of the data rows (weighted by 1/σ) and the prior rows.
+
+    **Arguments:**
+    - `evaluate`: u (P,) ↦ `Point` (one compiled model evaluation).
+    - `u0` (P,), `point0`: the start and, when already known, its evaluation.
+    - `free` (P,) bool: the columns fitted (others held at u0); default all.
+    - `lower`, `upper` (P,): bounds on u (projection: a nested strength may sit at its
+      "off" bound, where a transform would put the nested model at infinity).
+    - `noise_um`, `noise_dof`: σ if stated (given by the user: dof inf; or measured from
+      the data's own neighbouring points, with its dof); None: re-estimated from the
+      residuals after every accepted step (one pass: the prior rows need no re-weighting,
+      they are in units of their standard deviation).
+    - `max_evaluations`: the budget; `se_tol`: the stop (fraction of a standard error).
+    - `label`, `log`: progress, one line per evaluation.
+    - `project`: u ↦ u inside constraints the box cannot state (a bound on a value that
+      depends on two coordinates), applied to every trial after the box.
+
+    **Returns:** an `Outcome`. Raises `NoiseUndetermined` before any evaluation when σ is
+    not given and the data rows do not outnumber the free parameters.
+    """
+    u = np.array(u0, np.float64)
+    P = len(u)
+    free = np.ones(P, bool) if free is None else np.asarray(free, bool)
+    lo = np.full(P, -np.inf) if lower is None else np.asarray(lower, np.float64)
+    hi = np.full(P, np.inf) if upper is None else np.asarray(upper, np.float64)
+    k = int(free.sum())
+    if point0 is not None and noise_um is None and point0.r.size <= k:
+        raise NoiseUndetermined(f"{point0.r.size} data rows do not determine the noise level "
+                                f"with {k} fitted parameters")
+    u = np.clip(u, lo, hi)
+    t0 = time.perf_counter()
+    history: list[str] = []
+
+    def say(msg):
+        history.append(msg)
+        if log:
+            log(msg)
+
+    pt = evaluate(u) if point0 is None else point0
+    evals = 0 if point0 is not None else 1
+    n = pt.r.size
+    if noise_um is None and n <= k:
+        raise NoiseUndetermined(f"{n} data rows do not determine the noise level with {k} "
+                                f"fitted parameters")
+    estimated = noise_um is None
+    sigma = float(noise_um) if not estimated else noise_estimate(pt, k)
+
+    def outcome(status, message, cov=None, ratio=math.nan, pred=math.nan, floor=math.nan):
+        rw, Jw = whitened(pt, sigma, free)
+        if cov is None:
+            cov = covariance(Jw, n)
+        s, dof = error_scale(float(pt.r @ pt.r), n, cov.k_eff, sigma,
+                             noise_dof if not estimated else n - cov.k_eff, estimated)
+        errors = cov if s == sigma else covariance(whitened(pt, s, free)[1], n)
+        return Outcome(u=u, point=pt, status=status, message=message, evaluations=evals,
+                       noise_um=sigma, noise_given=not estimated, free=free, cov=cov,
+                       step_se=ratio, predicted_decrease=pred, floor=floor, errors=errors,
+                       error_scale_um=s, error_dof=dof,
+                       noise_dof=noise_dof if not estimated else max(n - cov.k_eff, 1.0),
+                       history=history)
+
+    if not pt.usable:
+        return outcome("unusable", "the model is not usable at the start (worn through or "
+                                   "not finite)")
+    if k == 0:
+        return outcome("converged", "nothing to fit", ratio=0.0, pred=0.0, floor=0.0)
+    rw, Jw = whitened(pt, sigma, free)
+    # Variable scaling y = D·u: optimistix damps with λI, and u mixes log-multipliers with
+    # linear strengths; in y every column of the whitened Jacobian has about unit norm
+    # (Marquardt's scaling; D only grows, as MINPACK's, so the trust region keeps its
+    # meaning, and a column that was zero at the start, a shape parameter of a strength at
+    # its off value, gets its scale once it matters).
+    D = _column_scale(Jw, None)
+    # λ = 0.01 of the (unit) diagonal at first: near-Gauss-Newton steps, since the robust
+    # start has brought the scale in
+    step_size = jnp.asarray(1e2)
+    rejections = 0  # trials in a row that were rejected or gained nothing (< NO_GAIN)
+    gauss_newton_failed, ratio_at_failure = False, math.inf
+    say(f"    {label}: start, rms {pt.rms_um:.4f} µm, σ {sigma:.3g} µm"
+        f"{'' if estimated else ' (stated)'}")
+    while True:
+        rw, Jw = whitened(pt, sigma, free)
+        gn, cov, pred = gauss_newton_step(u, free, lo, hi, rw, Jw, n)
+        if not cov.any_determined:
+            return outcome("undetermined", "the data and priors determine none of the "
+                           "fitted parameters (the Jacobian is zero or not finite): no step "
+                           "can be judged", cov, math.inf, pred, 0.0)
+        # the stop judges the step against the standard errors the data will support at
+        # the answer the step predicts: σ, widened by a misfit that remains (`error_scale`);
+        # with σ from the residuals, σ̂ overstates the noise while the misfit still falls,
+        # and with few dof it is itself uncertain (one dof: σ could be a third of σ̂), so
+        # its lower 99 % bound is used, or a large early misfit reads as "within a
+        # standard error" (the boom: 5 rows, 4 parameters).
+        dof = max(n - cov.k_eff, 1.0)
+        low = math.sqrt(dof / chi2.ppf(0.995, dof))
+        rss_next = max(float(pt.r @ pt.r) - 2.0 * sigma ** 2 * max(pred, 0.0),
+                       1e-6 * float(pt.r @ pt.r))
+        s_next = math.sqrt(rss_next / dof) * low
+        s_stop = min(s_next, sigma * low) if estimated else max(sigma, s_next)
+        ratio = _ratio(gn, cov) * sigma / max(s_stop, 1e-12)
+        # ½χ² moves by Σ|r_i|ε/σ² when every residual shifts by the model's error ε
+        floor = float(np.sum(np.abs(rw[:n]))) * pt.error_um / sigma
+        if ratio <= se_tol:
+            return outcome("converged", f"converged: the next Gauss-Newton step moves every "
+                           f"determined parameter by < {se_tol:g} standard errors "
+                           f"({ratio:.2g}); predicted decrease of ½χ² {pred:.2g} (numerical "
+                           f"floor {floor:.2g})", cov, ratio, pred, floor)
+        if pred <= floor and ratio <= 0.1:
+            return outcome("converged", f"converged within the model's numerical error: the "
+                           f"next step predicts a decrease of ½χ² {pred:.2g} below the floor "
+                           f"{floor:.2g} its error {pt.error_um:.2g} µm can cause, and moves "
+                           f"no parameter by more than {ratio:.2g} standard errors",
+                           cov, ratio, pred, floor)
+        if rejections >= max_rejections:
+            why = (f"the model's numerical error ({pt.error_um:.2g} µm) hides the remaining "
+                   f"predicted decrease {pred:.2g} (floor {floor:.2g})" if pred <= floor else
+                   f"the quadratic model does not predict the misfit (predicted decrease "
+                   f"{pred:.2g})")
+            return outcome("stalled", f"stalled after {rejections} trials that were rejected "
+                           f"or gained nothing: {why}; "
+                           f"the next Gauss-Newton step is {ratio:.2g} standard errors",
+                           cov, ratio, pred, floor)
+        if evals >= max_evaluations:
+            return outcome("budget", f"not converged within {max_evaluations} model "
+                           f"evaluations: the next Gauss-Newton step is {ratio:.2g} standard "
+                           f"errors", cov, ratio, pred, floor)
+        # Within a standard error of the minimum the quadratic model is as good as the data
+        # can tell: take the Gauss-Newton step itself (the same factorisation as the stop
+        # and the covariance), as the trust region would after a few very good steps,
+        # rather than creep in with λ; on a rejection λ takes over.
+        near = ratio <= GAUSS_NEWTON_WITHIN_SE and rejections == 0 and not gauss_newton_failed
+        trial = u.copy()
+        y = D * u[free]
+        if near:
+            trial[free] = np.clip(u[free] + gn, lo[free], hi[free])
+        else:
+            Jy = Jw / D
+            # columns held at a bound drop out of the proposal (zero column: no step)
+            Jy = np.where(_held(u, free, lo, hi, Jw.T @ rw)[None, :], 0.0, Jy)
+            diff = np.asarray(_propose(jnp.asarray(y), jnp.asarray(rw), jnp.asarray(Jy),
+                                       step_size))
+            trial[free] = np.clip((y + diff) / D, lo[free], hi[free])
+        if project is not None:
+            trial = np.where(free, project(trial), u)
+        pt_t = evaluate(trial)
+        evals += 1
+        if pt_t.usable and np.all(np.isfinite(pt_t.r)):
+            rw_t, Jw_t = whitened(pt_t, sigma, free)
+        else:
+            rw_t, Jw_t = np.full_like(rw, _BAD), np.zeros_like(Jw)
+        step_size, accept = _judge(jnp.asarray(y), jnp.asarray(D * trial[free]),
+                                   jnp.asarray(rw), jnp.asarray(Jw / D), jnp.asarray(rw_t),
+                                   jnp.asarray(Jw_t / D), step_size)
+        accept = bool(accept) and pt_t.usable
+        if accept:
+            gain = 0.5 * (float(rw @ rw) - float(rw_t @ rw_t))
+            u, pt = trial, pt_t
+            D = _column_scale(whitened(pt, sigma, free)[1], D)
+            if gauss_newton_failed and ratio < 0.5 * ratio_at_failure:
+                gauss_newton_failed = False  # closer now: the quadratic model may hold
+            rejections = rejections + 1 if gain < NO_GAIN else 0
+            if estimated:
+                sigma = noise_estimate(pt, cov.k_eff)
+        else:
+            rejections += 1
+            if near:
+                gauss_newton_failed, ratio_at_failure = True, ratio
+        why = "" if pt_t.usable else " (not usable: worn through, not finite or cut off)"
+        say(f"    {label} {evals:2d}: rms {pt_t.rms_um:.4f} µm, "
+            f"{'accepted' if accept else 'rejected'}{why}, step was {ratio:.2g} SE by "
+            f"Gauss-Newton, λ {1 / float(step_size):.1e} ({time.perf_counter() - t0:.1f} s)")
+
+
+def step_in_standard_errors(pt: Point, noise_um: float, lower=None, upper=None,
+                            free=None, relative_to: Point | None = None) -> tuple[float, float]:
+    """How far one Gauss-Newton step from `pt` would move the answer: (largest |step| /
+    standard error over the determined free parameters, predicted decrease of ½χ²). Used to
+    check an answer against a finer discretisation of the same model: `relative_to`, the
+    same point with the coarse rows, whose own step (what the fit's stop left, up to 0.1 SE
+    within the numerical floor) is subtracted, so that the ratio is what refining moves."""
+    P = len(pt.u)
+    free = np.ones(P, bool) if free is None else np.asarray(free, bool)
+    lo = np.full(P, -np.inf) if lower is None else np.asarray(lower, np.float64)
+    hi = np.full(P, np.inf) if upper is None else np.asarray(upper, np.float64)
+    if not pt.usable:
+        return math.inf, math.inf
+    rw, Jw = whitened(pt, noise_um, free)
+    u = np.asarray(pt.u, np.float64)
+    step, cov, pred = gauss_newton_step(u, free, lo, hi, rw, Jw, pt.r.size)
+    if relative_to is not None and relative_to.usable:
+        rw0, _ = whitened(relative_to, noise_um, free)
+        step = step - gauss_newton_step(u, free, lo, hi, rw0, Jw, pt.r.size)[0]
+    return _ratio(step, cov), pred

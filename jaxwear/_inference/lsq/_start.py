@@ -1,0 +1,62 @@
+"""The robust start: bring the scale parameter (ln K_d) to the data before iterating."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from jaxwear._inference.lsq._point import Point
+
+
+def robust_start(evaluate: Callable[[np.ndarray], Point], u, scale_index: int | None, *,
+                 measured: np.ndarray, log: Callable[[str], None] | None = None,
+                 max_reductions: int = 8, rescales: int = 3):
+    """Depth is nearly proportional to K_d, so a start far off is first brought in line:
+
+    1. while the model is not usable (worn through, not finite), ln K_d -= ln 10;
+    2. K_d times the least-squares factor a = Σ m·d / Σ d·d between measured m and
+       predicted d, repeated while |ln a| > 2 % (wear changes the contact a little), at most
+       `rescales` times.
+
+    `scale_index`: the index of ln K_d in u (None: step 1 and 2 are skipped).
+    Returns (u, point, evaluations, why) with `why` None on success, else the reason the
+    model cannot be evaluated at any reduced start.
+    """
+    u = np.array(u, np.float64)
+    pt = evaluate(u)
+    evals = 1
+    tries = 0
+    while not pt.usable:
+        if scale_index is None or tries >= max_reductions:
+            why = "the model is not usable (worn through or not finite) at the start values"
+            if scale_index is not None:
+                why += f" even with K_d reduced {10 ** max_reductions:.0e}-fold"
+            return u, pt, evals, why
+        u[scale_index] -= math.log(10.0)
+        tries += 1
+        if log:
+            log("  start: layer worn through or model not finite; K_d / 10")
+        pt, evals = evaluate(u), evals + 1
+    if scale_index is None:
+        return u, pt, evals, None
+    meas = np.asarray(measured, np.float64)
+    for _ in range(rescales):
+        d = pt.predicted
+        dd = float(d @ d)
+        if not dd > 0:
+            break
+        a = float(d @ meas) / dd
+        if not (a > 0 and math.isfinite(a)) or abs(math.log(a)) < 0.02:
+            break
+        trial = u.copy()
+        trial[scale_index] += math.log(a)
+        pt_t = evaluate(trial)
+        evals += 1
+        if not pt_t.usable:
+            break
+        u, pt = trial, pt_t
+        if log:
+            log(f"  start: K_d rescaled x{a:.3g} to the data")
+    return u, pt, evals, None

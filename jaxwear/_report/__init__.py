@@ -1,0 +1,1 @@
+"""_report layer."""
