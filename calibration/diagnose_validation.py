@@ -42,7 +42,7 @@ import jaxwear as jw  # noqa: E402
 from jaxwear._analyses.diagnose import ALPHA, diagnose  # noqa: E402
 from jaxwear._analyses.synth import PAPER_MATRIX, synthesize  # noqa: E402
 from jaxwear._physics.config import ModelConfig  # noqa: E402
-from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect  # noqa: E402
+from jaxwear.effects import STRUCTURAL_CANDIDATES, get_effect  # noqa: E402
 
 EFFECTS = ("running_in", "speed_dependence", "pressure_exponent", "friction", "creep",
            "double_layer")

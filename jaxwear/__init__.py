@@ -14,35 +14,35 @@ from jaxwear._core import interrupt as _interrupt
 
 _interrupt.guard_import()  # only in the command line's process: Ctrl-C while JAX imports
 
-import jax  # noqa: E402
+import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from jaxwear._analyses.diagnose import Candidate, Diagnosis, ShapeResult  # noqa: E402
-from jaxwear._analyses.diagnose import diagnose as diagnose  # noqa: E402
-from jaxwear._analyses.predict.forecast import PredictResult, predict  # noqa: E402
+from jaxwear import effects  # the public effect interface (a façade module)
+from jaxwear._analyses.diagnose import Candidate, Diagnosis, ShapeResult, VariableShape
+from jaxwear._analyses.diagnose import diagnose as diagnose
+from jaxwear._analyses.predict.forecast import PredictResult, predict
 from jaxwear._analyses.sensitivity import Sensitivities, sensitivities, study_sensitivities
-from jaxwear._analyses.sweep import SweepResult, sweep  # noqa: E402
-from jaxwear._analyses.synth import SynthResult, synthesize  # noqa: E402
-from jaxwear._core.errors import InputError, WornThroughError  # noqa: E402
-from jaxwear._core.parallel import points_mesh, sharded_fn, sharded_vmap  # noqa: E402
-from jaxwear._core.xla_flags import apply as configure_xla  # noqa: E402
-from jaxwear._inference.calibrate import FitError, FitResult, calibrate  # noqa: E402
-from jaxwear._physics import effects as effects  # noqa: E402
-from jaxwear._physics.config import DutyBlock, ModelConfig  # noqa: E402
+from jaxwear._analyses.sweep import SweepResult, sweep
+from jaxwear._analyses.synth import SynthResult, synthesize
+from jaxwear._core.errors import InputError, WornThroughError
+from jaxwear._core.parallel import points_mesh, sharded_fn, sharded_vmap
+from jaxwear._core.xla_flags import apply as configure_xla
+from jaxwear._inference.calibrate import FitError, FitResult, calibrate
+from jaxwear._physics.config import DutyBlock, ModelConfig
 from jaxwear._physics.contact import ContactSolution, solve_contact, stiffness_per_area
 from jaxwear._physics.effects import Effect, EffectParameter, register_effect, unregister_effect
-from jaxwear._physics.load import LoadHistory, load_history  # noqa: E402
-from jaxwear._physics.load_cycle import LoadCycle  # noqa: E402
-from jaxwear._physics.mechanism import crank_slider_forces  # noqa: E402
-from jaxwear._physics.params import Params, preset  # noqa: E402
-from jaxwear._physics.schedule import Schedule, make_schedule  # noqa: E402
-from jaxwear._physics.wear import WearResult, build_schedule, simulate, wear_loop  # noqa: E402
-from jaxwear._report.diagnosis import write_outputs as write_diagnosis  # noqa: E402
-from jaxwear._study.budget import WorkEstimate, check_work, estimate_work  # noqa: E402
-from jaxwear._study.load_file import make_cycle, read_load_file  # noqa: E402
-from jaxwear._study.outputs import input_files, open_outputs  # noqa: E402
-from jaxwear._study.study import Experiment, Study, load_study  # noqa: E402
+from jaxwear._physics.load import LoadHistory, load_history
+from jaxwear._physics.load_cycle import LoadCycle
+from jaxwear._physics.mechanism import crank_slider_forces
+from jaxwear._physics.params import Params, preset
+from jaxwear._physics.schedule import Schedule, make_schedule
+from jaxwear._physics.wear import WearResult, build_schedule, simulate, wear_loop
+from jaxwear._report.diagnosis import write_outputs as write_diagnosis
+from jaxwear._study.budget import WorkEstimate, check_work, estimate_work
+from jaxwear._study.load_file import make_cycle, read_load_file
+from jaxwear._study.outputs import input_files, open_outputs
+from jaxwear._study.study import Experiment, Study, load_study
 
 __version__ = "0.1.0"
 
@@ -52,11 +52,12 @@ __all__ = [
     "Candidate", "ContactSolution", "Diagnosis", "DutyBlock", "Effect", "EffectParameter",
     "Experiment", "FitError", "FitResult", "InputError", "LoadCycle", "LoadHistory",
     "ModelConfig", "Params", "PredictResult", "Schedule", "Sensitivities", "ShapeResult",
-    "Study", "SweepResult", "SynthResult", "WearResult", "WorkEstimate", "WornThroughError",
-    "build_schedule", "calibrate", "check_work", "configure_xla", "crank_slider_forces",
-    "diagnose", "effects", "estimate_work", "input_files", "load_history", "load_study",
-    "make_cycle", "make_schedule", "open_outputs", "points_mesh", "predict", "preset",
-    "read_load_file", "register_effect", "sensitivities", "sharded_fn", "sharded_vmap",
-    "simulate", "solve_contact", "stiffness_per_area", "study_sensitivities", "sweep",
-    "synthesize", "unregister_effect", "wear_loop", "write_diagnosis",
+    "Study", "SweepResult", "SynthResult", "VariableShape", "WearResult", "WorkEstimate",
+    "WornThroughError", "build_schedule", "calibrate", "check_work", "configure_xla",
+    "crank_slider_forces", "diagnose", "effects", "estimate_work", "input_files",
+    "load_history", "load_study", "make_cycle", "make_schedule", "open_outputs",
+    "points_mesh", "predict", "preset", "read_load_file", "register_effect",
+    "sensitivities", "sharded_fn", "sharded_vmap", "simulate", "solve_contact",
+    "stiffness_per_area", "study_sensitivities", "sweep", "synthesize", "unregister_effect",
+    "wear_loop", "write_diagnosis",
 ]

@@ -89,7 +89,7 @@ def rig():
 def engines_stubbed(monkeypatch):
     import jaxwear._analyses.predict.forecast as pre
     import jaxwear.cli.calibrate as cal
-    dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
+    dia = importlib.import_module("jaxwear._analyses.diagnose")
     import jaxwear._analyses.sensitivity as sen
     import jaxwear._analyses.sweep as swe
     import jaxwear.cli.simulate as sim

@@ -89,7 +89,7 @@ def test_upper_bound_of_the_real_duty_cycle_schedule(tmp_path, M, hours):
 @pytest.fixture
 def forbid_work(monkeypatch):
     import jaxwear.cli.calibrate as cal
-    dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
+    dia = importlib.import_module("jaxwear._analyses.diagnose")
     import jaxwear._analyses.sensitivity as sen
     import jaxwear._analyses.sweep as swe
     import jaxwear.cli.simulate as sim

@@ -51,7 +51,7 @@ def _no_work(*a, **k):
 @pytest.fixture
 def forbid_work(monkeypatch):
     import jaxwear.cli.calibrate as cal
-    dia = importlib.import_module("jaxwear.diagnose")  # the package, not the function
+    dia = importlib.import_module("jaxwear._analyses.diagnose")
     import jaxwear._analyses.sensitivity as sen
     import jaxwear._analyses.sweep as swe
     import jaxwear.cli.simulate as sim

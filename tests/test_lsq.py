@@ -7,6 +7,7 @@ calibrate, diagnose and predict.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -352,11 +353,19 @@ def test_a_parameter_its_prior_determines_costs_the_noise_no_dof():
     assert out.cov.se[1] == pytest.approx(tau, rel=1e-9)
 
 
-def test_converged_and_status_cannot_disagree():
+def test_status_says_why_the_fit_stopped():
+    """Converged means the stop's own criterion holds at the answer; a budget spent before
+    it holds is `BUDGET`, and an unknown status is refused."""
     y = data(13)
-    for kw in ({}, {"max_evaluations": 1}):
-        out = lsq.solve(exp_model(y), np.array([1.5, 0.1]), **kw)
-        assert out.converged == (out.status == "converged")
+    out = lsq.solve(exp_model(y), np.array([1.5, 0.1]))
+    assert out.status is lsq.Status.CONVERGED and out.converged
+    assert out.step_se <= lsq.SE_TOL
+    short = lsq.solve(exp_model(y), np.array([1.5, 0.1]), max_evaluations=1)
+    assert short.status is lsq.Status.BUDGET and not short.converged
+    assert short.step_se > lsq.SE_TOL
+    assert short.status == "budget"  # its JSON string
+    with pytest.raises(ValueError):
+        dataclasses.replace(out, status="done")
 
 
 def test_errors_widen_where_the_misfit_exceeds_the_noise():

@@ -192,3 +192,22 @@ def test_auto_resolution_of_a_forward_run_states_its_error(tmp_path):
                           study.experiments[0])
     ref = float(np.max(np.asarray(full.depth))) * 1e6
     assert abs(peak - ref) <= 2 * res["error_estimate_um"] + 1e-6 * peak, (peak, ref, res)
+
+
+def test_calibrate_honours_the_study_fit_parameters(monkeypatch, small):
+    """`jw.calibrate(study)` fits what the study's `[fit] parameters` name, as the command
+    line and `jw.predict` do (it used to fit K_d and the clearances whatever the study
+    said); a `fit_spec` given still wins."""
+    import jaxwear._inference.calibrate as calmod
+
+    seen = []
+    monkeypatch.setattr(calmod, "fit_study", lambda study, keys, **kw: seen.append(keys))
+    text = small.read_text().replace("[fit]", '[fit]\nparameters = ["K_d"]')
+    alt = small.parent / "k_only.toml"
+    alt.write_text(text)
+    jw.calibrate(load_study(alt))
+    jw.calibrate(load_study(alt), "K_d,clearance")
+    jw.calibrate(load_study(small))
+    assert seen[0] == ["K_d_per_Pa"]
+    assert seen[1] != seen[0] and "K_d_per_Pa" in seen[1] and len(seen[1]) > 1
+    assert seen[2] == seen[1]  # no [fit] parameters: K_d and the clearances

@@ -24,9 +24,8 @@ def main(argv=None):
     ap.add_argument("--out", default="out/boom-diagnose")
     args = ap.parse_args(argv)
 
-    from jaxwear._report.diagnosis import write_outputs
-
     from jaxwear._analyses.diagnose import diagnose
+    from jaxwear._report.diagnosis import write_outputs
     from jaxwear._study.study import load_study
 
     study = load_study(HERE / "study.toml")

@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 
 import jaxwear as jw
-from jaxwear._physics.effects import load_effect_file
+from jaxwear.effects import load_effect_file
 
 # The effect lives in a file of its own (debris_effect.py, 15 lines), as a study loads it
 # with `[model] effect_files = ["debris_effect.py"]`; here the script loads it directly.

@@ -29,7 +29,6 @@ import tempfile
 from pathlib import Path
 
 import jaxwear as jw
-from jaxwear._analyses.diagnose import threshold
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -40,7 +39,7 @@ fast the load direction turns beyond OMEGA0 (read off `diagnose --shape`)."""
 import jax.numpy as jnp
 
 import jaxwear as jw
-from jaxwear._physics.effects.shape import state_variables, swept_kernel
+from jaxwear.effects import state_variables, swept_kernel
 
 OMEGA0 = {omega0:.6g}  # deg/s: where the shape's deposit rises
 
@@ -121,7 +120,7 @@ def _run(work: Path, full: bool):
                                                     work / "with_missing_wear")))
     # 4. the user's law: ω0 read off the deposit along the turn rate
     v = shp.variable("load_turn_rate_deg_per_s", "deposit")
-    omega0 = threshold(v)
+    omega0 = v.threshold()
     print(f"read off the shape: the deposit rises above ω0 ≈ {omega0:.0f} deg/s")
     law_file = work / "impact_law.py"
     law_file.write_text(LAW.format(omega0=omega0))

@@ -69,6 +69,10 @@ HISTORY_EVERY_H = 5.0
 
 @dataclass
 class SynthResult:
+    """What `synthesize` made: `study` as written (with its data), `study_path` its TOML
+    file (None when nothing was written), `truth` the hidden parameters and offsets (the
+    content of truth.json)."""
+
     study: Study  # the study as written (with its data)
     study_path: Path | None
     truth: dict

@@ -1,7 +1,7 @@
 """Calibration: least squares of measured minus predicted depth over a whole study (§6-7).
 
 The study is posed as a residual model (`_residual.ResidualModel`, its parameter vector
-packed by `_packing`) and solved by the one least-squares core (`jaxwear._inference.lsq`); this module
+packed by `_packing`) and solved by the one least-squares core (`_inference.lsq`); this module
 drives it: the noise rule (`_noise.stated_noise`), the robust start, the guard against
 trials that would make the integrator crawl, the integration error re-checked at the
 answer, the resolution chosen by the error (DESIGN §6), and the result (`FitResult`, its
@@ -44,9 +44,9 @@ from jaxwear._inference.residual import (
     traces_since,
     unusable_point,
 )
+from jaxwear._study import resolution as res
 from jaxwear._study.resolution import amplification_warnings
 from jaxwear._study.study import Study
-from jaxwear._study import resolution as res
 
 __all__ = ["FitError", "FitResult", "Problem", "build_problem", "calibrate", "fit",
            "fit_study", "parse_fit", "registered", "study_fit_keys", "unit_of",
@@ -226,7 +226,7 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
         label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None
         ) -> FitResult:
-    """Least-squares fit through the one core (`jaxwear._inference.lsq.solve`), then standard errors,
+    """Least-squares fit through the one core (`_inference.lsq.solve`), then standard errors,
     correlations and flags.
 
     **Arguments:**
@@ -404,14 +404,15 @@ def summarize(problem: ResidualModel, out: lsq.Outcome, evaluations: int,
                      clearance_tolerance_um=tol)
 
 
-def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=False,
+def calibrate(study: Study, fit_spec=None, *, start=None, verbose=False,
               max_evaluations: int = 30, noise_um: float | None = None) -> FitResult:
     """Fit a study's parameters to its data (DESIGN §7 `calibrate`).
 
     **Arguments:**
     - `study`: a loaded study with profile and/or history data.
-    - `fit_spec`: "K_d,clearance" (default) or any comma-separated study keys; strengths of
-      the effects the study switches on are always added.
+    - `fit_spec`: comma-separated study keys (a string or a list), e.g. "K_d,clearance";
+      None (default): the study's `[fit] parameters`, else "K_d,clearance", as the command
+      line does. Strengths of the effects the study switches on are always added.
     - `start`: optional start values by output name (user units), e.g.
       `{"K_d_per_Pa": 1e-12, "clearance_mm/n276": 0.06}`.
     - `noise_um`: measurement noise σ [µm] if known (default: the study's `[fit] noise_um`,
@@ -420,7 +421,7 @@ def calibrate(study: Study, fit_spec="K_d,clearance", *, start=None, verbose=Fal
 
     **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
     """
-    keys = with_registration(study, parse_fit(study, fit_spec))
+    keys = study_fit_keys(study, fit_spec)
     return fit_study(study, keys, start=start, noise_um=noise_um,
                      max_evaluations=max_evaluations, verbose=verbose)
 

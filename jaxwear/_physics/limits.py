@@ -1,4 +1,5 @@
-"""What the Winkler model can carry: the peak load of a driver, the elastic strain it puts on the layer, and the error for a contact solve that did not converge (docs/design.md §3)."""
+"""What the Winkler model can carry: the peak load of a driver, the elastic strain it puts on the
+layer, and the error for a contact solve that did not converge (docs/design.md §3)."""
 
 from __future__ import annotations
 

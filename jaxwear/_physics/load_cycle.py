@@ -1,4 +1,6 @@
-"""One period of a joint's load and motion (`LoadCycle`) and its resampling onto the wear loop's steps (docs/design.md §2). Reading and checking a load file is the study layer's (`_study.load_file`)."""
+"""One period of a joint's load and motion (`LoadCycle`) and its resampling onto the wear loop's
+steps (docs/design.md §2). Reading and checking a load file is the study layer's
+(`_study.load_file`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""What `diagnose` writes: diagnosis.json, residuals.csv, report.html, the shape figures and the effect file (docs/design.md §7)."""
+"""What `diagnose` writes: diagnosis.json, residuals.csv, report.html, the shape figures and the
+effect file (docs/design.md §7)."""
 
 from __future__ import annotations
 

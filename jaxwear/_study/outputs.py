@@ -1,4 +1,5 @@
-"""Which files a study was read from, and the output folder of a verb opened against them (never over an input)."""
+"""Which files a study was read from, and the output folder of a verb opened against them (never
+over an input)."""
 
 from __future__ import annotations
 

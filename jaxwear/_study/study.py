@@ -20,10 +20,10 @@ from jaxwear._core.noise import profile_noise
 from jaxwear._physics.config import DutyBlock, ModelConfig
 from jaxwear._physics.effects import STRUCTURAL, effect_parameter_specs, registered_effects
 from jaxwear._physics.params import DERIVED_KEYS, PARAMETER_KEYS, PRESETS, Params, preset
+from jaxwear._study import load_file as _load_file
 from jaxwear._study.csv import _exists, _read_csv, read_text
 from jaxwear._study.effect_files import load_effect_files
 from jaxwear._study.plausible import check_repeats, check_study
-from jaxwear._study import load_file as _load_file
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,16 @@ class History:
 
 @dataclass(frozen=True)
 class Experiment:
+    """One `[[experiment]]` of a study (docs/design.md §6).
+
+    - `name`; `overrides`: its study keys and values in their units (`speed_rpm`,
+      `clearance_mm`, ...), applied over the study's `[model.parameters]`.
+    - `revolutions` (crank-slider) or `hours` (oscillating joint, load history): how long
+      it runs; the last measured point when the data have several.
+    - `profile` (bore scans: angle [rad], depth [m], revolutions) or `history` (maximum
+      depth [m] against hours): its measurements, None for a forward run.
+    """
+
     name: str
     overrides: dict  # study keys → values in their units (speed_rpm, clearance_mm, ...)
     revolutions: float | None = None
@@ -73,6 +83,19 @@ class Experiment:
 
 @dataclass(frozen=True)
 class Study:
+    """A study file read and checked (`load_study`; docs/design.md §6).
+
+    - `path`: the TOML file; `preset` ("rig", "boom", "load_history"); `config`: the
+      static model choices (`ModelConfig`: contact, effects, nodes, steps per cycle, ...).
+    - `parameters`: `[model.parameters]` overrides (study keys in their units).
+    - `experiments`: the `Experiment`s, in file order.
+    - Numerics: `integrator` ("adaptive" or "paper"), `wear_tolerance_um` [µm],
+      `revolutions_per_update` (eq 23's M), `auto_resolution` (nodes and steps chosen by
+      the error).
+    - Fit: `fit` (the `[fit] parameters`), `clearance_tolerance_um` [µm] and
+      `angle_tolerance_deg` [deg] (the priors' SDs), `noise_um` (σ if stated) [µm].
+    """
+
     path: Path
     preset: str
     config: ModelConfig

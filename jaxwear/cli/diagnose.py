@@ -8,9 +8,9 @@ the document too. With the shape analysis (`--shape`, or an unexplained verdict)
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
+from jaxwear._analyses import diagnose as _diagnosis
 from jaxwear._analyses.diagnose._refit import MIN_TRIPLES, too_few_triples
 from jaxwear._analyses.diagnose._stats import noise_triples
 from jaxwear._core.errors import InputError
@@ -55,12 +55,9 @@ class Diagnose(Verb):
             if triples < MIN_TRIPLES:
                 raise InputError(too_few_triples(study, triples, rows))
 
-        # the package (`jaxwear.diagnose` the attribute is the function), looked up now:
-        # tests stand in for the engine
-        dia = importlib.import_module("jaxwear.diagnose")
-
         args = opts["args"]
-        diag = dia.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)),
+        # the engine looked up at the call: tests stand in for it
+        diag = _diagnosis.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)),
                             figures=shape_pngs)
         doc = write_outputs(diag, out)
         v = doc["verdict"]

@@ -17,6 +17,14 @@ from jaxwear._study.study import Study
 
 @dataclass(frozen=True)
 class Candidate:
+    """One candidate effect of a diagnosis, best first in `Diagnosis.candidates`.
+
+    - `effect`: its name (a registered effect, a structural choice, or a pair `a + b`).
+    - `screen`: its score test at the base fit; `fit`: its refit (None: screened only).
+    - `evidence`: log Bayes factor against the base model (Laplace; > 0 favours it).
+    - `rmse_um`: RMSE of the study with it refitted [µm]; `tests`: its misfit tests.
+    """
+
     effect: str
     screen: Screen | None
     fit: Fit | None

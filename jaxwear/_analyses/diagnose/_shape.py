@@ -53,7 +53,7 @@ from jaxwear._analyses.diagnose._fit import Fit, _log
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._shape_linear import DRAWS, trend
 from jaxwear._analyses.diagnose._shape_map import compile_maps, when_where
-from jaxwear._analyses.diagnose._shape_text import describe
+from jaxwear._analyses.diagnose._shape_text import describe, threshold
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_differences
 from jaxwear._inference import lsq
 from jaxwear._physics.effects.shape import (
@@ -123,6 +123,12 @@ class VariableShape:
     @property
     def label(self) -> str:
         return self.name if self.form == "factor" else f"deposit:{self.name}"
+
+    def threshold(self, rising: bool = True) -> float:
+        """Where the correction steps up (`rising`; else down), in the variable's unit: the
+        best two-level step fitted to it, weighted by its band (`_shape_text.threshold`).
+        For a rate that jumps at a threshold, the threshold."""
+        return threshold(self, rising)
 
     def to_json(self) -> dict:
         return {"name": self.name, "unit": self.unit, "form": self.form,

@@ -70,9 +70,9 @@ from jaxwear._inference.residual import (
 from jaxwear._physics.config import timed
 from jaxwear._physics.schedule import bucket
 from jaxwear._physics.wear import stable_amplification
+from jaxwear._study import resolution as _resolution
 from jaxwear._study.resolution import at_level
 from jaxwear._study.study import Experiment, History, Profile, Study
-from jaxwear._study import resolution as _resolution
 
 # The forecast's fit stops when the next step would move every parameter by < 0.1 of its
 # standard error (calibrate's reported values: 0.01): a forecast then moves by < 0.1 of

@@ -1,4 +1,5 @@
-"""Snapshots of a forecast: rows past an early stop filled, and values read at another node count."""
+"""Snapshots of a forecast: rows past an early stop filled, and values read at another node
+count."""
 
 from __future__ import annotations
 

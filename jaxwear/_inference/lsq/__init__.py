@@ -24,6 +24,7 @@ from jaxwear._inference.lsq._solve import (
     whitened,
 )
 from jaxwear._inference.lsq._start import robust_start
+from jaxwear._inference.lsq._status import Status
 
 __all__ = [
     "Covariance",
@@ -31,6 +32,7 @@ __all__ = [
     "Outcome",
     "Point",
     "SE_TOL",
+    "Status",
     "covariance",
     "error_scale",
     "gauss_newton",

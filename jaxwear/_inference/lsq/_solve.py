@@ -37,6 +37,7 @@ from scipy.stats import chi2
 
 from jaxwear._inference.lsq._covariance import Covariance, covariance, gauss_newton
 from jaxwear._inference.lsq._point import Point
+from jaxwear._inference.lsq._status import Status
 
 _DESCENT = optx.DampedNewtonDescent(linear_solver=lx.QR())
 # λ x10 on a rejection (optimistix's default x4 spends more evaluations, each seconds here);
@@ -80,11 +81,8 @@ class Outcome:
     """The end of a fit.
 
     - `u` (P,), `point`: the answer and its evaluation.
-    - `status`: "converged"; "stalled" (trials keep failing); "budget" (evaluations
-      spent); "unusable" (the model cannot be evaluated at the start); "undetermined"
-      (the data and priors determine none of the fitted parameters: a lost, all-zero
-      Jacobian). `converged` is `status == "converged"`, nothing else; `message` says why,
-      with the numbers.
+    - `status`: a `Status` (converged, stalled, budget, unusable, undetermined; given as
+      its string, converted on construction); `message` says why, with the numbers.
     - `evaluations`: model evaluations this solve made (the start's not counted when given).
     - `noise_um`: σ the data rows were weighted with at the end; `noise_given`: σ was
       stated (given, or measured from the data's neighbouring points), not re-estimated
@@ -102,7 +100,7 @@ class Outcome:
 
     u: np.ndarray
     point: Point
-    status: str
+    status: Status
     message: str
     evaluations: int
     noise_um: float
@@ -118,9 +116,12 @@ class Outcome:
     noise_dof: float = math.inf
     history: list = field(default_factory=list)
 
+    def __post_init__(self):
+        object.__setattr__(self, "status", Status(self.status))  # an unknown one raises
+
     @property
     def converged(self) -> bool:
-        return self.status == "converged"
+        return self.status is Status.CONVERGED
 
 
 def noise_estimate(pt: Point, k_eff: float) -> float:
