@@ -156,7 +156,8 @@ def section_boom(page: Page):
              "> *Paper:* \"the predicted wear depth is smaller than the actual wear depth, but "
              "the relative error is small enough [...] along with the increase of wear time, "
              "the relative error of the predicted wear depth decreases\".", "",
-             "Oscillating joint (DESIGN §2): bimetal bearing of Table 4 (double elastic layer), "
+             "Oscillating joint ([design §2](../design.md#s2)): bimetal bearing of Table 4 "
+             "(double elastic layer), "
              "duty cycle 20° for 1 h then 1° for 4 h, five 5-h phases. The paper gives neither "
              f"the load nor the swing period: we use the boom preset's |W| = "
              f"{float(p.load) / 1e3:.0f} kN at θ_W0 = {math.degrees(float(p.load_angle)):.0f}° "
