@@ -10,7 +10,7 @@ point, zero-mean (negative depths outside the scar included). The truth is made 
 `jaxwear synth` noise-free at finer numerics than the study states (`--fine-*`: the
 discretisation mismatch a real part brings), the noise is added here, and the study is
 diagnosed at `--nodes` x `--steps` (default 360 x 360) with eq 23 at `--M` (default 100,
-`--integrator paper`, as the README's table) or the adaptive integrator at its default
+`--integrator paper`, as docs/performance.md's table) or the adaptive integrator at its default
 tolerance (`--integrator adaptive`, the package default for a study without numerics).
 
 Printed: wall and process CPU time of `diagnose` (compilation included: a fresh process;

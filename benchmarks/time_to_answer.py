@@ -7,8 +7,8 @@ cache). Wall clock per command, with the model evaluations and compilations its 
 reports, and every answer checked against an independent fact:
 - calibrate the rig study: K_d within 5 % of the truth the data were made with
   (`jaxwear synth`, truth at finer numerics, `truth.json`);
-- calibrate the boom: the RMSE documented in the README (16.9 µm for the base model, 2.0 µm
-  with running-in), within 10 %;
+- calibrate the boom: the RMSE documented in docs/guide/diagnose.md (16.9 µm for the base
+  model, 2.0 µm with running-in), within 10 %;
 - predict: every forecast within 5 % of the held-out measurement;
 - diagnose: the verdict the data were made for (null: adequate; speed: effect_found
   speed_dependence);
@@ -115,7 +115,7 @@ def check_calibrate_rig(doc, truth):
 def check_rmse(ref):
     def check(doc, _):
         r = doc["rmse_um"]
-        return within(r, ref, 0.10), f"RMSE {r:.2f} µm (README {ref} µm)"
+        return within(r, ref, 0.10), f"RMSE {r:.2f} µm (docs {ref} µm)"
     return check
 
 

@@ -156,14 +156,15 @@ def section_boom(page: Page):
              "> *Paper:* \"the predicted wear depth is smaller than the actual wear depth, but "
              "the relative error is small enough [...] along with the increase of wear time, "
              "the relative error of the predicted wear depth decreases\".", "",
-             "Oscillating joint (DESIGN §2): bimetal bearing of Table 4 (double elastic layer), "
+             "Oscillating joint ([design §2](../design.md#s2)): bimetal bearing of Table 4 "
+             "(double elastic layer), "
              "duty cycle 20° for 1 h then 1° for 4 h, five 5-h phases. The paper gives neither "
              f"the load nor the swing period: we use the boom preset's |W| = "
              f"{float(p.load) / 1e3:.0f} kN at θ_W0 = {math.degrees(float(p.load_angle)):.0f}° "
              f"and T_s = {float(p.swing_period):.0f} s (`jaxwear/_params.py`); only K_d·|W| "
              "is identifiable from depth-vs-time data. K_d is calibrated on the five measured "
-             "depths (`calibration/paper/boom_table5.csv`, a copy of "
-             f"`shared/data/boom_table5.csv`) with {method}; {BOOM_NUMERICS['nodes']} nodes × "
+             "depths (`calibration/paper/boom_table5.csv`, the paper's Table 5) "
+             f"with {method}; {BOOM_NUMERICS['nodes']} nodes × "
              f"{BOOM_NUMERICS['steps_per_rev']} steps per swing, M = {M} swings per update.",
              "")
     page.table(["phase", "measured [mm]", "paper's prediction [mm]", "paper's rel. error",

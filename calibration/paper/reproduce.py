@@ -221,7 +221,8 @@ def section_pressure(page: Page):
 
     page.add("## Fig. 7: joint load over one revolution, k = 1800 N/m", "",
              "Table 1 with k = 1800 N/m, 276 r/min, spring free at inner dead centre "
-             "(x0 = L2 − L1, DESIGN §1: the paper does not give x0), bushing in the coupler eye.",
+             "(x0 = L2 − L1, [design §1](../design.md#s1): the paper does not give x0), "
+             "bushing in the coupler eye.",
              "")
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(8.5, 3.0))
     a1.plot(steps, fx, lw=1.0, label="F_Cx")
@@ -464,7 +465,8 @@ def section_rig(page: Page):
              "(15 000).", "",
              f"Rig: Table 1 with k = 1009.4 N/m, Table 3 joint, K_d = {kd:.0e} 1/Pa (nominal: "
              f"the paper does not state its K_d), unsymmetric contact, {NODES} nodes × "
-             f"{STEPS} steps, M = 100. Angles in the bushing frame from B→D (DESIGN §6).", "")
+             f"{STEPS} steps, M = 100. Angles in the bushing frame from B→D ([design "
+             "§6](../design.md#s6)).", "")
     ang = np.arange(NODES) * 360.0 / NODES
     fig, axes = plt.subplots(1, 3, figsize=(9.5, 2.9), sharey=True)
     groups = [("Fig. 12: 276 r/min, c = 0.05 mm", (0, 1)),
@@ -507,7 +509,7 @@ def section_rig(page: Page):
              f"the paper's 9 s and 12 s. {zones} The worn volume equals Archard's volume "
              "K_d Σ M Σ_i (Σ_j p_ij A_j) dS_i to the digits shown. **Not comparable with the "
              "measurements:** the paper publishes the measured profiles only as plots "
-             "(no numbers; DESIGN §6, `shared/data/README.md`), and leaves K_d, x0 and the "
+             "(no numbers; [design §6](../design.md#s6)), and leaves K_d, x0 and the "
              "coupler's inertia unstated, so these are predictions with our documented "
              "assumptions, not a check of the paper's agreement claim.", "")
     page.numbers["fig12_14"] = [{k: v for k, v in r.items() if k != "h"} for r in out]
@@ -517,16 +519,18 @@ def section_rig(page: Page):
 
 ASSUMPTIONS = [
     "Spring free position x0 = L2 − L1 (relaxed at inner dead centre) and coupler inertia "
-    "I_G = m2 L2²/12 (uniform bar): not in the paper (DESIGN §1).",
+    "I_G = m2 L2²/12 (uniform bar): not in the paper ([design §1](../design.md#s1)).",
     "Crank speed 276 r/min for Figs 3-9 (Table 1 gives none); the rig speeds of §3.3 for "
     "Figs 12-14.",
     "K_d = 1e-13 1/Pa for Figs 8-9 and 12-14 (the paper never states K_d); the boom K_d is "
     "calibrated on Table 5.",
     "Boom: |W| = 10 kN, swing period 10 s, load at 90° in the bushing frame "
     "(`jaxwear/_params.py`); only K_d·|W| is identified by the data.",
-    "Bushing in the coupler eye; bushing-frame angles from the coupler axis B→D (DESIGN §1, "
+    "Bushing in the coupler eye; bushing-frame angles from the coupler axis B→D ([design "
+    "§1](../design.md#s1), "
     "§6). The paper's angle origin for Figs 8-9 and 12-14 is not stated.",
-    "Contact never separates (clearance-link model, DESIGN §3); wear updated every M "
+    "Contact never separates (clearance-link model, [design §3](../design.md#s3)); wear "
+    "updated every M "
     "revolutions (eq 23) with M = 100 on the rig and M = 10 on the boom (see Table 5).",
 ]
 
@@ -560,7 +564,8 @@ def main(argv=None) -> int:
         "# The paper, reproduced with jaxwear",
         "",
         "*An improved practical model for wear prediction of revolute clearance "
-        "joints in crank slider mechanisms* (`shared/paper/`), figure by figure: what the "
+        "joints in crank slider mechanisms* (the paper is not distributed with the package), "
+        "figure by figure: what the "
         "paper states, what jaxwear computes, and where they differ. Regenerate with",
         "",
         "    python calibration/paper/reproduce.py --out docs/paper",
