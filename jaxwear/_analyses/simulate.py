@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -17,10 +15,6 @@ from jaxwear._physics.wear import (
     simulate,
 )
 from jaxwear._study.study import Experiment, Study
-
-
-def progress(msg: str):
-    print(msg, file=sys.stderr, flush=True)
 
 
 def _numerics(study: Study, M):

@@ -46,6 +46,7 @@ from jaxwear._analyses.diagnose import Model
 from jaxwear._analyses.diagnose._extended import candidate_names
 from jaxwear._core.errors import InputError
 from jaxwear._core.io import OutputDir
+from jaxwear._core.periodic import interp_periodic
 from jaxwear._physics.config import ModelConfig, timed
 from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
 from jaxwear._study.budget import check_work
@@ -188,15 +189,6 @@ def _with_placeholder_data(study: Study, step_deg: float) -> Study:
     return study.with_experiments(exps)
 
 
-def _interp_periodic(profile, nodes_deg_step, angle_deg):
-    """Periodic linear interpolation of node values (node k at k·step degrees)."""
-    n = len(profile)
-    x = np.mod(np.asarray(angle_deg, float) / nodes_deg_step, n)
-    i0 = np.floor(x).astype(int) % n
-    w = x - np.floor(x)
-    return profile[i0] * (1 - w) + profile[(i0 + 1) % n] * w
-
-
 _snapshots_jit = None
 
 
@@ -324,7 +316,6 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     if not (worn < 0 and np.all(np.isfinite(snaps))):
         raise InputError("the hidden model wears through the layer (or is not finite) for "
                          "these conditions; choose a smaller strength")
-    step = 360.0 / fine_cfg.nodes
     exps = []
     for ei, e in enumerate(planned.experiments):
         pts = e.snapshot_points
@@ -340,7 +331,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
         bushing = np.mod(ang + angle_offset_deg, 360.0)
         rows = []
         for si, s in enumerate(pts):
-            d = _interp_periodic(snaps[ei, si], step, bushing)
+            d = np.asarray(interp_periodic(np.asarray(snaps[ei, si]), np.deg2rad(bushing)))
             if perturb is not None:
                 d = np.asarray(perturb(e.name, s, bushing, d), float)
             y = d + noise_um * rng.standard_normal(len(ang))  # every point, zero mean

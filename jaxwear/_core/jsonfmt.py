@@ -26,6 +26,9 @@ def _json_default(o):
 
 
 def json_float(x):
-    """JSON has no NaN/inf: map them to None."""
+    """A number for JSON: float(x), or None for None, NaN and ±inf (JSON has no such
+    numbers)."""
+    if x is None:
+        return None
     x = float(x)
     return x if math.isfinite(x) else None

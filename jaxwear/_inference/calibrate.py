@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import sys
 from dataclasses import dataclass, replace
 
 import jax
@@ -27,6 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.jsonfmt import json_float as _jf
+from jaxwear._core.log import log as _log
 from jaxwear._core.noise import Noise, stated_noise
 from jaxwear._inference import lsq
 from jaxwear._inference.packing import parse_fit, study_fit_keys, unit_of, with_registration
@@ -189,15 +190,6 @@ class FitResult:
     @property
     def rss(self) -> float:
         return float(np.sum(self.residuals_um ** 2))
-
-
-def _jf(x):
-    return float(x) if x is not None and math.isfinite(float(x)) else None
-
-
-def _log(verbose, msg):
-    if verbose:
-        print(msg, file=sys.stderr, flush=True)
 
 
 def check_noise_determined(problem: ResidualModel, noise_um: float | None, *, hint: str

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, StepArray, StepNodeArray
 
 sg = lax.stop_gradient
@@ -63,15 +64,6 @@ def stiffness_per_area(h: NodeArray, p, double_layer: bool) -> NodeArray:
 def node_angles(nodes: int) -> NodeArray:
     """θ_j = 2πj/N [rad]."""
     return 2 * jnp.pi * jnp.arange(nodes) / nodes
-
-
-def interp_periodic(h: NodeArray, angle):
-    """Periodic linear interpolation of node values at `angle` [rad]."""
-    n = h.shape[-1]
-    x = jnp.mod(angle / (2 * jnp.pi) * n, n)
-    i0 = jnp.floor(x).astype(jnp.int32) % n
-    w = x - jnp.floor(x)
-    return (1 - w) * h[i0] + w * h[(i0 + 1) % n]
 
 
 def _newton_1d(load, cosj, g, kA, iters):

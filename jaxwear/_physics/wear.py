@@ -18,9 +18,10 @@ import numpy as np
 from jax import lax
 
 from jaxwear._core.errors import InputError, WornThroughError
+from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, Scalar
 from jaxwear._physics.config import ModelConfig, timed
-from jaxwear._physics.contact import interp_periodic, solve_contact, stiffness_per_area
+from jaxwear._physics.contact import solve_contact, stiffness_per_area
 from jaxwear._physics.effects import RateContext, get_effect
 from jaxwear._physics.effects.shape import pack as pack_shape
 from jaxwear._physics.effects.shape import precompute, shape_terms

@@ -4,12 +4,12 @@ least-squares core (`jaxwear._inference.lsq`)."""
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 
 import numpy as np
 
 from jaxwear._analyses.diagnose._model import Eval, Model
+from jaxwear._core.log import log as _log
 from jaxwear._inference import lsq
 from jaxwear._inference.calibrate import value_errors
 
@@ -85,11 +85,6 @@ def whitened_system(ev: Eval, mask, noise_um: float):
     """(rw, Jw) of the free columns: data rows / σ, prior rows in SD units (as the core
     sees them)."""
     return lsq.whitened(ev.point(), noise_um, np.asarray(mask, bool))
-
-
-def _log(verbose, msg):
-    if verbose:
-        print(msg, file=sys.stderr, flush=True)
 
 
 def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = math.inf,

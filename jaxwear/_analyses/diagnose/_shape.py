@@ -55,6 +55,7 @@ from jaxwear._analyses.diagnose._shape_linear import DRAWS, trend
 from jaxwear._analyses.diagnose._shape_map import compile_maps, when_where
 from jaxwear._analyses.diagnose._shape_text import describe, threshold
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_differences
+from jaxwear._core.jsonfmt import json_float as _num
 from jaxwear._inference import lsq
 from jaxwear._physics.effects.shape import (
     DEPOSIT_VARIABLES,
@@ -297,13 +298,6 @@ class Background:
 
 def _other(form: str) -> str:
     return "deposit" if form == "factor" else "factor"
-
-
-def _num(x):
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 # -- the range of each variable met in the data ---------------------------------------------

@@ -14,19 +14,14 @@ executes, so two draws run at once on two cores).
 from __future__ import annotations
 
 import math
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
+from jaxwear._core.log import log as _log
 from jaxwear._inference.residual import forward_run
-
-
-def _log(verbose, msg):
-    if verbose:
-        print(msg, file=sys.stderr, flush=True)
 
 
 def run_forward(fp, u, what: str = "a posterior draw's forecast"):

@@ -38,7 +38,6 @@ to a finer level, the forecast's depths come from a forward run there.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import replace
 
 import jax.numpy as jnp
@@ -50,6 +49,7 @@ from jaxwear._analyses.predict.nuts import run_nuts
 from jaxwear._analyses.predict.result import Curve, Life, Prediction, PredictResult, _jf
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
 from jaxwear._core.errors import InputError
+from jaxwear._core.log import log as _log
 from jaxwear._inference.calibrate import (
     FitResult,
     build_problem,
@@ -95,11 +95,6 @@ LIFE_REFINE_POINTS = 24
 LIFE_REFINE_ROUNDS = 3
 LIFE_ROOM_ROUNDS = 2  # refinement rounds the fit's compiled layout holds (a third recompiles)
 MAX_REGIME_POINTS = 1000  # duty-block boundaries added to the grid at most
-
-
-def _log(verbose, msg):
-    if verbose:
-        print(msg, file=sys.stderr, flush=True)
 
 
 # ---------------------------------------------------------------- training subset, forecast

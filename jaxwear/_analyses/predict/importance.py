@@ -40,7 +40,6 @@ the noise level estimated from three rows).
 from __future__ import annotations
 
 import math
-import sys
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -59,6 +58,7 @@ from jaxwear._analyses.predict.nuts import (
     with_tolerance,
 )
 from jaxwear._core.errors import InputError
+from jaxwear._core.log import log as _log
 from jaxwear._inference.residual import forward_run
 
 NU = 7.0  # the proposal's Student-t degrees of freedom
@@ -66,11 +66,6 @@ K_GOOD, K_USABLE = 0.5, 0.7  # PSIS k̂ thresholds (Vehtari et al. 2024)
 ESS_SHARE_GOOD = 0.25  # below this share of the draws, the weights' ESS moves the proposal
 ESS_TARGET = 400  # the answer's round stops growing once every parameter's ESS reaches this
 R_HAT_OK = 1.01  # ... and R-hat between the batches is at most this
-
-
-def _log(verbose, msg):
-    if verbose:
-        print(msg, file=sys.stderr, flush=True)
 
 
 def t_sample(rng, mean, chol, n: int, nu: float = NU) -> np.ndarray:

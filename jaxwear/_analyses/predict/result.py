@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from jaxwear._core.jsonfmt import json_float as _jf
 
 
 @dataclass(frozen=True)
@@ -123,8 +124,3 @@ class PredictResult:
         return doc
 
 
-def _jf(x):
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None

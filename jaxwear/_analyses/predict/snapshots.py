@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxwear._core.periodic import interp_periodic
+
 
 def fill_past_stop(snaps, J=None):
     """Snapshots (E, S, N) (and their Jacobian (E, S, N, p)) with the rows after an early
@@ -27,10 +29,6 @@ def on_nodes(a, nodes: int):
     """`a` (E, S, N, ...) periodic-linearly interpolated along its node axis to `nodes`
     equally spaced nodes (a Jacobian at the fit's nodes read at a finer level's)."""
     a = np.asarray(a)
-    n = a.shape[2]
-    if n == nodes:
+    if a.shape[2] == nodes:
         return a
-    x = np.arange(nodes) * n / nodes
-    i0 = np.floor(x).astype(int) % n
-    w = (x - np.floor(x)).reshape((1, 1, nodes) + (1,) * (a.ndim - 3))
-    return a[:, :, i0] * (1 - w) + a[:, :, (i0 + 1) % n] * w
+    return interp_periodic(a, 2 * np.pi * np.arange(nodes) / nodes, axis=2)
