@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._analyses.diagnose import Candidate, Diagnosis, Eval, Fit, Model, Screen, _stats
+from jaxwear._analyses.diagnose import Candidate, Diagnosis, Fit, Model, Screen, _stats
 from jaxwear._analyses.synth import paper_conditions
 from jaxwear._inference.calibrate import build_problem, parse_fit
+from jaxwear._inference.residual import Evaluation
 from jaxwear._study.study import Profile
 
 
@@ -27,7 +28,7 @@ def _study():
 
 
 def test_result_types_are_frozen():
-    for cls in (Fit, _stats.Tests, Screen, Candidate, Diagnosis, Eval):
+    for cls in (Fit, _stats.Tests, Screen, Candidate, Diagnosis, Evaluation):
         assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen, cls
     t = _stats.Tests(rmse_um=0.3, noise_um=0.3, ratio=1.0, p_chi2=0.5, rho=0.0, z_autocorr=0.0,
               p_autocorr=0.5)

@@ -49,11 +49,10 @@ from jaxwear._study import resolution as res
 from jaxwear._study.resolution import amplification_warnings
 from jaxwear._study.study import Study
 
-__all__ = ["FitError", "FitResult", "Problem", "build_problem", "calibrate", "fit",
+__all__ = ["FitError", "FitResult", "build_problem", "calibrate", "fit",
            "fit_study", "parse_fit", "registered", "study_fit_keys", "unit_of",
            "with_registration"]
 
-Problem = ResidualModel  # calibrate's name for the study's residual model
 
 
 class FitError(RuntimeError):

@@ -62,7 +62,7 @@ from jaxwear._analyses.diagnose._evidence import (
 )
 from jaxwear._analyses.diagnose._extended import candidate_names
 from jaxwear._analyses.diagnose._fit import Fit, fit_masked
-from jaxwear._analyses.diagnose._model import Eval, Model, objective
+from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._analyses.diagnose._result import METHOD_NOTE, Candidate, Diagnosis
 from jaxwear._analyses.diagnose._screen import SHAPE_GRID, Screen, screen
 from jaxwear._analyses.diagnose._shape import ShapeResult, VariableShape, shape_analysis
@@ -83,10 +83,11 @@ from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._analyses.diagnose._verdict import diagnose
 from jaxwear._core.noise import line_residuals, noise_level
 from jaxwear._inference.packing import Column
+from jaxwear._inference.residual import Evaluation
 
 __all__ = [
     "ALPHA", "AMBIGUOUS_LOG_BF", "METHOD_NOTE", "SHAPE_GRID", "STRONG_LOG_BF", "Candidate",
-    "Column", "Diagnosis", "Eval", "Fit", "Model", "Screen", "Tests",
+    "Column", "Diagnosis", "Evaluation", "Fit", "Model", "Screen", "Tests",
     "candidate_names", "chi2_sf", "derived", "diagnose", "evidence", "evidence_from", "f_sf",
     "fit_masked", "lag1_autocorrelation", "line_residuals", "loo",
     "measurement_series", "neighbour_differences", "neighbour_pairs", "noise_level", "norm_sf",

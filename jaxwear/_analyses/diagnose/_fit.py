@@ -8,10 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from jaxwear._analyses.diagnose._model import Eval, Model
+from jaxwear._analyses.diagnose._model import Model
 from jaxwear._core.log import log as _log
 from jaxwear._inference import lsq
 from jaxwear._inference.calibrate import value_errors
+from jaxwear._inference.residual import Evaluation
 
 
 @dataclass(frozen=True)
@@ -27,7 +28,7 @@ class Fit:
     label: str  # "base", a candidate name, or "a+b"
     groups: tuple  # candidates switched on
     mask: np.ndarray
-    ev: Eval
+    ev: Evaluation
     evaluations: int
     message: str
     cov: lsq.Covariance | None = None
@@ -81,14 +82,14 @@ class Fit:
 REFIT_SE_TOL = 0.1
 
 
-def whitened_system(ev: Eval, mask, noise_um: float):
+def whitened_system(ev: Evaluation, mask, noise_um: float):
     """(rw, Jw) of the free columns: data rows / σ, prior rows in SD units (as the core
     sees them)."""
     return lsq.whitened(ev.point(), noise_um, np.asarray(mask, bool))
 
 
 def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = math.inf,
-               label="base", groups=(), ev0: Eval | None = None, max_evaluations: int = 20,
+               label="base", groups=(), ev0: Evaluation | None = None, max_evaluations: int = 20,
                verbose=False) -> Fit:
     """The free columns `mask` fitted by `lsq.solve` (bounds by projection), from u0, with
     the data's noise level `noise_um` [µm] and its degrees of freedom (held fixed: the

@@ -27,8 +27,6 @@ from jaxwear._inference.residual import (
 )
 from jaxwear._study.study import Study
 
-Eval = Evaluation  # diagnose's name for an evaluation of the model
-
 
 class Model:
     """A study's data with the extended model: evaluation, fits and statistics on the host.
@@ -202,4 +200,4 @@ def objective(ev: Evaluation, noise_um: float) -> float:
     return float(ev.r @ ev.r + noise_um ** 2 * (ev.r_prior @ ev.r_prior))
 
 
-__all__ = ["Eval", "Model", "objective"]
+__all__ = ["Model", "objective"]

@@ -10,12 +10,13 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._evidence import STRONG_LOG_BF, evidence
 from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
-from jaxwear._analyses.diagnose._model import Eval, Model, objective
+from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._analyses.diagnose._result import Candidate
 from jaxwear._analyses.diagnose._screen import Screen, screen
 from jaxwear._analyses.diagnose._stats import Tests, neighbour_differences, run_tests
 from jaxwear._core.errors import InputError
 from jaxwear._core.noise import stated_noise
+from jaxwear._inference.residual import Evaluation
 
 # A refit's budget of evaluations (each a full run of every experiment with its Jacobian:
 # seconds at the default numerics); it stops earlier when done (`jaxwear._inference.lsq.solve`), and
@@ -74,7 +75,7 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) 
     return f
 
 
-def _derivative_ratio(model: Model, ev: Eval) -> float:
+def _derivative_ratio(model: Model, ev: Evaluation) -> float:
     """(d·∂d/∂ln K_d)/(d·d): about 1, since depth is nearly proportional to K_d."""
     k = model.index.get("K_d_per_Pa")
     if k is None or model.columns[k].group != "" or not model.columns[k].log:
@@ -85,7 +86,7 @@ def _derivative_ratio(model: Model, ev: Eval) -> float:
     return float(d @ j) / max(float(d @ d), 1e-300)
 
 
-def _derivatives_ok(model: Model, ev: Eval) -> bool:
+def _derivatives_ok(model: Model, ev: Evaluation) -> bool:
     return 0.2 < _derivative_ratio(model, ev) < 5.0
 
 
