@@ -11,7 +11,8 @@ import time
 
 import numpy as np
 
-from jaxwear._analyses.simulate import common_length, last_cycle_pressure, progress, run_experiment
+from jaxwear._analyses.simulate import common_length, last_cycle_pressure, run_experiment
+from jaxwear._core.log import progress
 from jaxwear._physics.config import timed
 from jaxwear._physics.wear import WearResult, integration_report
 from jaxwear._report import figures as rep
