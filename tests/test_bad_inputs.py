@@ -358,7 +358,8 @@ def test_files_written_by_name_are_atomic(tmp_path):
     assert (tmp_path / "o" / "posterior.nc").read_text() == "old"
     out.write_with("posterior.nc", lambda path: Path(path).write_text("new"))
     assert (tmp_path / "o" / "posterior.nc").read_text() == "new"
-    src = (Path(__file__).resolve().parents[1] / "jaxwear" / "_predict_nuts.py").read_text()
+    nuts = Path(__file__).resolve().parents[1] / "jaxwear" / "_analyses" / "predict" / "nuts.py"
+    src = nuts.read_text()
     assert 'write_with("posterior.nc"' in src
 
 

@@ -149,7 +149,7 @@ BAD = [
                  "    parameters = {'friction_coefficient': jw.EffectParameter(1.0, 0.0, 0.0, "
                  "0.0, 1.0, 'mu')}\n",
      r"clash\.py: line 4: parameter 'friction_coefficient' of effect 'mu2' already belongs to "
-     r"effect 'friction' from .*jaxwear/effects/friction\.py"),
+     r"effect 'friction' from .*jaxwear/_physics/effects/friction\.py"),
     ("taken.py", "import jaxwear as jw\n\n\nclass Creep2(jw.Effect):\n    name = 'creep'\n"
                  "    parameters = {'creep2_gain': jw.EffectParameter(1.0, 0.0, 0.0, 0.0, 1.0, "
                  "'g')}\n",

@@ -127,7 +127,7 @@ def plot_history(path, name, hours, depth_mm, measured=None):
     pl.close(fig)
 
 
-def _heatmap(path, title, label, res, z):
+def sweep_heatmap(path, title, label, res, z):
 
     pl = plt()
     z = np.where(res.valid, z, np.nan)
@@ -168,7 +168,7 @@ def _heatmap(path, title, label, res, z):
     pl.close(fig)
 
 
-def _bar_chart(path, results: dict):
+def sensitivity_chart(path, results: dict):
 
     pl = plt()
     names = list(results)

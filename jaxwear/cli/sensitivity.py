@@ -8,6 +8,7 @@ import numpy as np
 
 from jaxwear._analyses import sensitivity as sen
 from jaxwear._physics.params import PARAMETER_KEYS
+from jaxwear._report.figures import sensitivity_chart
 from jaxwear.cli._pipeline import Verb
 
 SENSITIVITY_OUTPUTS = ("sensitivity.csv", "sensitivity.json", "sensitivity.png")
@@ -44,7 +45,7 @@ class Sensitivity(Verb):
                             "tolerance_um": study.wear_tolerance_um
                             if study.integrator != "paper" else None}}
             for name, r in results.items()})
-        sen._bar_chart(out.path("sensitivity.png"), results)
+        sensitivity_chart(out.path("sensitivity.png"), results)
         print("normalised sensitivities d ln y / d ln θ (a 1 % change of θ changes y by S %)")
         for name, r in results.items():
             print(f"\n{name}: peak depth {r.peak_depth_um:.4g} µm, worn volume "

@@ -16,6 +16,7 @@ from jaxwear._core.errors import InputError
 from jaxwear._core.numbers import MAX_POINTS, parse_range
 from jaxwear._physics.config import timed
 from jaxwear._physics.params import key_to_si, preset
+from jaxwear._report.figures import sweep_heatmap
 from jaxwear._study.plausible import check_params, check_value
 from jaxwear._study.study import _check_geometry
 from jaxwear.cli._pipeline import Verb
@@ -159,9 +160,9 @@ class Sweep(Verb):
                                            "integration_error_um", "integration_steps",
                                            "status"], rows)
         at = exp.name if ("hours" in grid or "revolutions" in grid) else f"{exp.name}, {what}"
-        _sweep._heatmap(out.path("sweep_peak_depth.png"), f"{at}: peak wear depth",
+        sweep_heatmap(out.path("sweep_peak_depth.png"), f"{at}: peak wear depth",
                         "peak depth [µm]", res, res.peak_depth_um)
-        _sweep._heatmap(out.path("sweep_worn_volume.png"), f"{at}: worn volume",
+        sweep_heatmap(out.path("sweep_worn_volume.png"), f"{at}: worn volume",
                         "worn volume [mm³]", res, res.worn_volume_mm3)
         v = res.valid
         print(f"sweep of {total} points in {dt:.1f} s: peak depth "
