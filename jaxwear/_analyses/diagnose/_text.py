@@ -69,17 +69,44 @@ def _describe(effect: str) -> str:
 
 
 def summarize_verdict(diag: Diagnosis) -> str:
-    """The verdict paragraph, ending with the fits that did not converge (a refit out of its
-    budget or stalled still counts with what it reached: its evidence is a lower bound)."""
-    text = _verdict_text(diag)
+    """The verdict paragraph: first what the diagnosis changed in the numerics (its
+    `flags`), ending with the fits that did not converge (a refit out of its budget or
+    stalled still counts with what it reached: its evidence is a lower bound) and those
+    not usable at all (not compared)."""
+    text = " ".join([f"{f}." for f in diag.flags] + [_verdict_text(diag)])
     fits = [("the base fit", diag.base)] + [(f"the refit with {c.effect}", c.fit)
                                               for c in diag.candidates if c.fit is not None]
     late = [f"{name} ({f.status}, {f.evaluations} evaluations)" for name, f in fits
-            if not f.converged]
+            if not f.converged and f.usable]
     if late:
         text += (f" Not converged: {'; '.join(late)}; each is used with the misfit it "
                  f"reached, so its evidence is a lower bound.")
+    if diag.failed and (diag.status != "unexplained" or diag.partial):
+        # (an unexplained verdict with no usable refit says it in its own words)
+        text += f" {_failed_text(diag)}; not compared, so the verdict is not certain."
     return text
+
+
+def _why_unusable(diag: Diagnosis, effect: str) -> str:
+    f = next(c.fit for c in diag.candidates if c.effect == effect)
+    if f.unstable:
+        return f"{effect}: the wear loop's derivatives were unstable at the refit"
+    return f"{effect}: the model did not run from the refit's start ({f.message})"
+
+
+def _failed_text(diag: Diagnosis) -> str:
+    """'The refit(s) with ... failed (why)'."""
+    s = "s" if len(diag.failed) > 1 else ""
+    return (f"The refit{s} with {', '.join(diag.failed)} failed ("
+            + "; ".join(_why_unusable(diag, e) for e in diag.failed) + ")")
+
+
+def _remedy(diag: Diagnosis) -> str:
+    st = diag.study
+    if st.integrator == "paper":
+        return (f"lower numerics.revolutions_per_update ({st.revolutions_per_update:g}) "
+                f"and rerun")
+    return f"lower numerics.wear_tolerance_um ({st.wear_tolerance_um:g} µm) and rerun"
 
 
 def _verdict_text(diag: Diagnosis) -> str:
@@ -121,6 +148,20 @@ def _verdict_text(diag: Diagnosis) -> str:
                      f"which fits nearly as well (evidence gap < ln 20): treat the name as "
                      f"one of these, not as certain.")
         return text
+    if diag.failed and not diag.partial:
+        # nothing usable was refitted: the verdict cannot say more than that
+        lead = next((c for c in diag.candidates if c.effect in diag.failed
+                     and c.screen is not None), None)
+        why = ("the misfit is systematic" if t.systematic else
+               "these tests do not reject noise on so few points, but the candidates' "
+               "linearised evidence is very strong")
+        if lead is not None:
+            why += (f" (linearised, {lead.effect} would remove "
+                    f"{100 * lead.screen.explained:.0f} % of the misfit)")
+        return (f"{head} The base model is not shown to be adequate: {why} ({sig}). "
+                f"{_failed_text(diag)}, and no other candidate could be refitted in their "
+                f"place, so no candidate was compared and the missing effect, if any, is "
+                f"not determined: {_remedy(diag)}.")
     text = f"{head} The misfit is systematic ({sig})."
     if diag.partial:
         c = next(c for c in diag.candidates if c.effect == diag.partial[0])
