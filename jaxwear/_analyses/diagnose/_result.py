@@ -70,15 +70,18 @@ class Diagnosis:
     # candidates whose refit was not usable (`Fit.usable`: unstable derivatives, a model
     # that did not run): they could not be compared
     failed: list = field(default_factory=list)
+    # the screen found candidates promising and none was refitted to an answer (`settle`)
+    unresolved: bool = False
     # what the verdict rests on that a reader must know (the numerics it changed)
     flags: list = field(default_factory=list)
 
     @property
     def confident(self) -> bool:
-        """False where the verdict names an effect the data cannot tell from another, or
+        """False where the verdict names an effect the data cannot tell from another,
         where a candidate's refit failed (it could not be compared: the verdict might have
-        been another with it)."""
-        return not self.failed and (self.status != "effect_found" or not self.alternatives)
+        been another with it), or where the screen's promise was not resolved."""
+        return (not self.failed and not self.unresolved
+                and (self.status != "effect_found" or not self.alternatives))
 
     @property
     def missing_effect(self):

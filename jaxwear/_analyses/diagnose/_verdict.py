@@ -200,6 +200,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             s_.effect, s_, None, evidence_from(model.n, q_base, q_lin, len(s_.start)),
             math.sqrt(max(base.rss - s_.delta_rss, 0.0) / model.n))
     status, effects, partial, alternatives, failed = "adequate", [], [], [], []
+    unresolved = False
     final, final_tests = base, base_tests
     promising = [c for c in cands.values() if c.evidence > STRONG_LOG_BF]
     if base_tests.systematic or promising:
@@ -225,9 +226,15 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                           key=lambda c: -c.evidence)
         failed = [c.effect for c in cands.values() if c.refit and not c.fit.usable]
         best = refitted[0] if refitted else None
-        # a promising candidate whose refit failed: its strength could not be compared
-        failed_promising = any(c.effect in failed for c in promising)
-        decision = settle(base_tests.systematic, best, failed_promising)
+        # the screen's promise tested: a promising candidate refitted to an answer (usable,
+        # and not stopped by its budget, where its evidence is only a lower bound)
+        settled_fits = {c.effect for c in cands.values() if c.refit and c.fit.usable
+                        and c.fit.status != "budget"}
+        unresolved = bool(promising) and not any(c.effect in settled_fits for c in promising)
+        decision = settle(base_tests.systematic, best, unresolved)
+        # (a refit with very strong evidence is judged by its own tests: the promise of
+        # the screen is then the alternatives' question, not the verdict's)
+        unresolved = unresolved and decision != "examine"
         systematic = decision != "adequate"
         if decision == "examine":
             mdl = by_contact(best.fit.contact)
@@ -273,7 +280,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                      effects=effects, partial=partial, alternatives=alternatives, final=final,
                      final_tests=final_tests, loo_before=loo(model, base, noise),
                      loo_after=loo(by_contact(final.contact), final, noise),
-                     resolution=resolution, failed=failed, flags=flags)
+                     resolution=resolution, failed=failed, unresolved=unresolved,
+                     flags=flags)
     summary = summarize_verdict(diag)
     if shape or (auto_shape and status == "unexplained"):
 
@@ -320,17 +328,18 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     return diag
 
 
-def settle(base_systematic: bool, best, failed_promising: bool) -> str:
+def settle(base_systematic: bool, best, unresolved: bool) -> str:
     """What the refits leave to decide (DESIGN §7): "examine" where the best usable refit
     `best` (a `Candidate`, or None) has very strong evidence (its own tests then decide
-    `effect_found` or not); "unexplained" where the base model's tests reject without one,
-    or where a candidate the screen found promising (very strong linearised evidence)
-    could not be refitted and no usable refit settled it: the misfit may be systematic and
-    nothing was shown to explain it or not; "adequate" only where the base model's own
-    tests accept and every promising candidate was refitted without strong evidence."""
+    `effect_found` or not); "unexplained" where the base model's own tests reject without
+    such a refit, or where the screen's promise is `unresolved` (candidates with very strong
+    linearised evidence, none of them refitted to an answer: unstable, not run, out of
+    budget, not refitted): the misfit may be systematic and nothing was shown to explain
+    it or not; "adequate" only where the base model's tests accept and every promise of the
+    screen that was tested came to nothing."""
     if best is not None and best.evidence > STRONG_LOG_BF:
         return "examine"
-    if base_systematic or failed_promising:
+    if base_systematic or unresolved:
         return "unexplained"
     return "adequate"
 
