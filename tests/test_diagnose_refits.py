@@ -118,7 +118,7 @@ def _small_boom(folder):
     return folder / "study.toml"
 
 
-def test_stable_step_rule_is_the_estimate_halved():
+def test_stable_step_rule_is_the_estimate_halved(monkeypatch):
     study = jw.load_study(ROOT / "calibration" / "boom" / "study.toml")
     # the stability estimate is 2/(K_d k S_cycle): inversely proportional to K_d
     same, none = at_stable_update(study, {"K_d_per_Pa": 1e-16}, done="x")
@@ -129,6 +129,11 @@ def test_stable_step_rule_is_the_estimate_halved():
     lim2 = float(re.search(r"~([0-9.]+)", f2).group(1))
     assert lim1 == pytest.approx(2 * lim2, rel=2e-3)
     assert s1.revolutions_per_update == max(1, math.floor(lim1 / 2)) < 10
+    assert f1.endswith(f"with {s1.revolutions_per_update:g} instead")
+    # a stable M whose run would exceed the work limit is not taken: kept, and said
+    monkeypatch.setenv("JAXWEAR_MAX_WORK", "1e6")
+    kept, f3 = at_stable_update(study, {"K_d_per_Pa": 3.0e-13}, done="x")
+    assert kept is study and "kept" in f3 and "JAXWEAR_MAX_WORK" in f3
 
 
 def test_boom_at_the_papers_step_is_diagnosed_at_a_stable_one(tmp_path, capsys):

@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 
 from jaxwear._physics.wear import stable_amplification
+from jaxwear._study.budget import estimate_work, max_work
 from jaxwear._study.study import Study
 
 LEVELS = ((90, 72), (180, 144), (360, 360))  # (nodes, steps_per_rev), coarse to fine
@@ -111,7 +112,9 @@ def at_stable_update(study: Study, values: dict, *, done: str, at: str = "the fi
     predict's bands, diagnose's refits), so M becomes half the estimate (rounded down, at
     least 1): a margin of 2, as the estimate is linear in K_d and a refit moves K_d.
     Returns (study, None) where nothing changes: the adaptive integrator, M within the
-    estimate, or K_d not among `values`.
+    estimate, or K_d not among `values`; (study, a flag that says so) where the stable M
+    would make one run exceed the work limit (`_budget.max_work`, JAXWEAR_MAX_WORK): M is
+    then kept, and the caller tells a switch from that by `returned is not study`.
     """
     if study.integrator != "paper" or "K_d_per_Pa" not in values:
         return study, None
@@ -122,7 +125,15 @@ def at_stable_update(study: Study, values: dict, *, done: str, at: str = "the fi
     if not M > limit:
         return study, None
     m_new = float(max(1, math.floor(limit / 2)))
-    return replace(study, revolutions_per_update=m_new), (
+    stable = replace(study, revolutions_per_update=m_new)
+    est = estimate_work(stable)
+    if est is not None and not est.node_steps <= max_work():
+        return study, (
+            f"[numerics] revolutions_per_update = {M:g} exceeds the stable amplification "
+            f"~{limit:.3g} at {at}; kept, as one run at the stable {m_new:g} would exceed "
+            f"the work limit ({est.node_steps:.3g} contact node-steps, JAXWEAR_MAX_WORK "
+            f"{max_work():.3g}): derivatives there may be unstable")
+    return stable, (
         f"[numerics] revolutions_per_update = {M:g} exceeds the stable amplification "
         f"~{limit:.3g} at {at}; {done} with {m_new:g} instead")
 

@@ -97,9 +97,10 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         stable, flag = at_stable_update(study, dict(zip(r.names, map(float, r.values))),
                                         done=STABLE_DONE, at="calibrate's fitted K_d")
         if flag is not None:
-            # the resolution and registration depend on M too: calibrate's path again
             flags.append(flag)
             _log(verbose, f"  {flag}")
+        if stable is not study:
+            # the resolution and registration depend on M too: calibrate's path again
             study = stable
             r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose,
                           start=dict(zip(r.names, map(float, r.values))))
@@ -166,6 +167,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         if flag is not None:
             flags.append(flag)
             _log(verbose, f"  {flag}")
+        if stable is not study:
             study = stable
             model = Model(study, start=start, defect_um=defect)
             models = {None: model}
@@ -174,8 +176,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     base = fit_masked(model, model.base_mask, u0, noise_um=noise, noise_dof=nu, label="base",
                       ev0=ev0, verbose=verbose)
     _check_derivatives(model, base)
-    if kd is not None and at_stable_update(study, {"K_d_per_Pa": float(base.values[kd])},
-                                           done=STABLE_DONE)[1] is not None:
+    if not flags and kd is not None and at_stable_update(
+            study, {"K_d_per_Pa": float(base.values[kd])}, done=STABLE_DONE)[1] is not None:
         flags.append(f"[numerics] revolutions_per_update = {study.revolutions_per_update:g} "
                      f"is beyond the stable amplification at the base fit's K_d: the fits' "
                      f"derivatives may be unstable; lower it and rerun")

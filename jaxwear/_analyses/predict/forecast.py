@@ -493,11 +493,13 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         train = training_study(study, train_until)
     # The explicit update beyond its stability limit at the fitted K_d: refit at a stable
     # M (`at_stable_update`: the depth may look smooth while the band blows up)
-    study, flag = at_stable_update(study, dict(zip(result.names, map(float, result.values))),
-                                   done="fitted and forecast")
+    stable, flag = at_stable_update(study, dict(zip(result.names, map(float, result.values))),
+                                    done="fitted and forecast")
     if flag is not None:
         flags.append(flag)
         _log(verbose, f"predict: {flags[-1]}")
+    if stable is not study:
+        study = stable
         train = training_study(study, train_until)
         layout = forecast_layout(study, train, points, refine=life)
         problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))),
