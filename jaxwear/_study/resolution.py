@@ -19,12 +19,14 @@ at a twentieth of the node-steps (issue 19's table). Given values are used as gi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 
 from jaxwear._physics.wear import stable_amplification
+from jaxwear._study.budget import estimate_work, max_work
 from jaxwear._study.study import Study
 
 LEVELS = ((90, 72), (180, 144), (360, 360))  # (nodes, steps_per_rev), coarse to fine
@@ -93,6 +95,47 @@ def for_forward(study: Study, peaks: Callable[[Study], np.ndarray],
     # the finest level: its error is at most the last difference seen
     return at_level(study, LEVELS[-1]), report(LEVELS[-1], None, kind="peak", value=err,
                                               ok=False)
+
+
+def at_stable_update(study: Study, values: dict, *, done: str, at: str = "the fitted K_d"
+                     ) -> tuple[Study, str | None]:
+    """`study` at a fixed step M its explicit wear update is stable at, and the flag that
+    says so; the one rule of every verb that refits a paper-integrator study (`predict`,
+    `diagnose`).
+
+    `values`: parameter values by study key (fitted ones; `K_d_per_Pa` is the one the
+    estimate depends on: `stable_amplification`, smallest over the experiments); `done`:
+    what was done at the new M, and `at`, which K_d that is, for the flag ("fitted and
+    forecast", "the fitted K_d"). Where the study's
+    `revolutions_per_update` exceeds the estimate there, the depth may look smooth while
+    its derivatives blow up at some points (measured on the boom at M = 10, estimate ~5:
+    predict's bands, diagnose's refits), so M becomes half the estimate (rounded down, at
+    least 1): a margin of 2, as the estimate is linear in K_d and a refit moves K_d.
+    Returns (study, None) where nothing changes: the adaptive integrator, M within the
+    estimate, or K_d not among `values`; (study, a flag that says so) where the stable M
+    would make one run exceed the work limit (`_budget.max_work`, JAXWEAR_MAX_WORK): M is
+    then kept, and the caller tells a switch from that by `returned is not study`.
+    """
+    if study.integrator != "paper" or "K_d_per_Pa" not in values:
+        return study, None
+    kd = float(values["K_d_per_Pa"])
+    limit = min(stable_amplification(study.params(e).with_values({"K_d_per_Pa": kd}),
+                                     study.config) for e in study.experiments)
+    M = study.revolutions_per_update
+    if not M > limit:
+        return study, None
+    m_new = float(max(1, math.floor(limit / 2)))
+    stable = replace(study, revolutions_per_update=m_new)
+    est = estimate_work(stable)
+    if est is not None and not est.node_steps <= max_work():
+        return study, (
+            f"[numerics] revolutions_per_update = {M:g} exceeds the stable amplification "
+            f"~{limit:.3g} at {at}; kept, as one run at the stable {m_new:g} would exceed "
+            f"the work limit ({est.node_steps:.3g} contact node-steps, JAXWEAR_MAX_WORK "
+            f"{max_work():.3g}): derivatives there may be unstable")
+    return stable, (
+        f"[numerics] revolutions_per_update = {M:g} exceeds the stable amplification "
+        f"~{limit:.3g} at {at}; {done} with {m_new:g} instead")
 
 
 def amplification_warnings(study: Study, params=None) -> list[str]:

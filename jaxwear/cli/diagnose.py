@@ -65,6 +65,8 @@ class Diagnose(Verb):
         print(f"verdict: {v['status']} (missing effect: {name}); base RMSE "
               f"{doc['baseline']['rmse_um']:.4g} µm, after {doc['after']['rmse_um']:.4g} µm, "
               f"noise {doc['baseline']['noise_um']:.4g} µm")
+        for flag in v.get("flags", []):
+            print(f"flag: {flag}")
         integ = doc["after"]["integration"]
         if integ["integrator"] == "adaptive":
             err, tol = float(integ["error_estimate_um"]), integ["tolerance_um"]

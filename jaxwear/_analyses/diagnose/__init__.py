@@ -18,8 +18,13 @@ The steps, each a function below:
    from the Jacobian column of its strength at the base fit: every candidate is switched
    on at its `off` value, where the model is the base model exactly (nesting), so one
    forward-mode Jacobian of the extended model gives every candidate's column at once.
-   The leading candidates are refitted and compared by the `evidence`, the BIC log Bayes
-   factor against the base model with the noise level unknown (`evidence_from`).
+   The leading candidates are refitted (where a refit is unusable, unstable derivatives
+   or a model that does not run, the next ones by score in its place: `refit_leaders`)
+   and compared by the `evidence`, the BIC log Bayes factor against the base model with
+   the noise level unknown (`evidence_from`). `adequate` needs the base model's tests to
+   accept and the screen's promise (very strong linearised evidence) to have been tested
+   by a refit that came to an answer (`_verdict.settle`); a fixed-M study beyond the
+   update's stability is diagnosed at a stable M (`diagnose`).
 4. **Refit with the winner**: RMSE per experiment before and after, and left-out-experiment
    prediction error before and after (`loo`: one Gauss-Newton step from the full fit).
    A candidate is named when its evidence is very strong (> ln 150) and its residuals pass

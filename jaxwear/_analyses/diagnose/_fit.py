@@ -47,6 +47,13 @@ class Fit:
         return self.status == "unstable"
 
     @property
+    def usable(self) -> bool:
+        """False where the fit cannot be compared at all: its derivatives were unstable,
+        or the model did not run at its start (a fit out of budget or stalled still is,
+        with the misfit it reached)."""
+        return self.status not in ("unstable", "unusable")
+
+    @property
     def cov_u(self) -> np.ndarray | None:
         return None if self.cov is None else self.cov.cov
 

@@ -75,6 +75,51 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) 
     return f
 
 
+# A candidate is refitted (beyond the leader) where its score is at least this fraction of
+# the leader's: a refit costs ~10 model evaluations.
+NEGLIGIBLE_SCORE = 0.1
+
+
+def refit_leaders(live, max_refits: int, refit, alpha: float, comparable: float,
+                  verbose=False) -> dict:
+    """Refit the leading candidates by score; returns {effect: Fit} of those refitted.
+
+    `live`: the feasible screens with a positive score, best first (`Screen`); `refit`:
+    (effect, screen) -> (Fit, gain), gain the χ² [in σ²] the refit removed where it fits
+    to noise level with very strong evidence, else None. The leader is always refitted;
+    another where its own score test is significant (p < `alpha`) and its score not
+    negligible next to the leader's (`NEGLIGIBLE_SCORE`), at most `max_refits` of them.
+    While no refit is usable (`Fit.usable`: unstable derivatives, a model that does not
+    run), the next candidates by score stand in for it, significant or not, but never
+    negligible (a leader that could not be refitted says nothing about its rivals). A
+    candidate is not refitted where one already fits to noise level and its score is
+    below `comparable` times what that one removed: its refit could not tie (issue 10).
+    """
+    done, settled, tried = {}, None, 0
+    for i, scr in enumerate(live):
+        if tried >= max_refits:
+            break
+        wanted = i == 0 or (scr.p < alpha
+                            and scr.score >= NEGLIGIBLE_SCORE * live[0].score)
+        stand_in = (not wanted and scr.score >= NEGLIGIBLE_SCORE * live[0].score
+                    and done and not any(f.usable for f in done.values()))
+        if not (wanted or stand_in):
+            continue
+        tried += 1
+        if settled is not None and scr.score < comparable * settled:
+            _log(verbose, f"  {scr.effect}: not refitted (score {scr.score:.1f} < "
+                          f"{comparable:g} x {settled:.1f} of a fit at noise level)")
+            continue
+        if stand_in:
+            _log(verbose, f"  {scr.effect}: refitted in place of "
+                          f"{', '.join(done)} (not usable)")
+        f, gain = refit(scr.effect, scr)
+        done[scr.effect] = f
+        if gain is not None:
+            settled = gain if settled is None else max(settled, gain)
+    return done
+
+
 def _derivative_ratio(model: Model, ev: Evaluation) -> float:
     """(d·∂d/∂ln K_d)/(d·d): about 1, since depth is nearly proportional to K_d."""
     k = model.index.get("K_d_per_Pa")
@@ -151,7 +196,7 @@ def _second_stage(model, by_contact, best: Candidate, rest, noise, nu, pairs, ma
         mdl = by_contact(f.contact)
         t = _tests_for(mdl, f, noise, nu, pairs, screen(mdl, f, noise, nu))
         results.append((evidence(model, f, best.fit, noise), f, t))
-    results = [x for x in results if not x[1].unstable]
+    results = [x for x in results if x[1].usable]
     results.sort(key=lambda x: -x[0])
     if results and results[0][0] > STRONG_LOG_BF and not results[0][2].systematic:
         return results[0][1], results[0][2]

@@ -67,6 +67,21 @@ class Diagnosis:
     # what the answer cost: model evaluations (calibrate's path, then diagnose's own) and
     # compilations by kind (`_residual.traces_since`)
     cost: dict = field(default_factory=dict)
+    # candidates whose refit was not usable (`Fit.usable`: unstable derivatives, a model
+    # that did not run): they could not be compared
+    failed: list = field(default_factory=list)
+    # the screen found candidates promising and none was refitted to an answer (`settle`)
+    unresolved: bool = False
+    # what the verdict rests on that a reader must know (the numerics it changed)
+    flags: list = field(default_factory=list)
+
+    @property
+    def confident(self) -> bool:
+        """False where the verdict names an effect the data cannot tell from another,
+        where a candidate's refit failed (it could not be compared: the verdict might have
+        been another with it), or where the screen's promise was not resolved."""
+        return (not self.failed and not self.unresolved
+                and (self.status != "effect_found" or not self.alternatives))
 
     @property
     def missing_effect(self):
@@ -129,7 +144,8 @@ class Diagnosis:
             "verdict": {"status": self.status, "missing_effect": self.missing_effect,
                         "summary": self.summary, "effects": list(self.effects),
                         "partial": list(self.partial), "alternatives": list(self.alternatives),
-                        "confident": self.status != "effect_found" or not self.alternatives},
+                        "confident": self.confident, "refits_failed": list(self.failed),
+                        "flags": list(self.flags)},
             "after": after,
             **({"shape": self.shape.to_json()} if self.shape is not None else {}),
             **({"shape_after_effect": self.shape_after_effect.to_json()}

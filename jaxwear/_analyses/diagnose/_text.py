@@ -69,17 +69,52 @@ def _describe(effect: str) -> str:
 
 
 def summarize_verdict(diag: Diagnosis) -> str:
-    """The verdict paragraph, ending with the fits that did not converge (a refit out of its
-    budget or stalled still counts with what it reached: its evidence is a lower bound)."""
-    text = _verdict_text(diag)
-    fits = [("the base fit", diag.base)] + [(f"the refit with {c.effect}", c.fit)
-                                              for c in diag.candidates if c.fit is not None]
+    """The verdict paragraph: first what the diagnosis changed in the numerics (its
+    `flags`), ending with the fits that did not converge (a refit out of its budget or
+    stalled still counts with what it reached: its evidence is a lower bound) and those
+    not usable at all (not compared)."""
+    text = " ".join([f"{f}." for f in diag.flags] + [_verdict_text(diag)])
+    # (where no refit came to an answer, the verdict's own words list the refits)
+    fits = [("the base fit", diag.base)] + ([] if _undetermined(diag) else [
+        (f"the refit with {c.effect}", c.fit) for c in diag.candidates if c.fit is not None])
     late = [f"{name} ({f.status}, {f.evaluations} evaluations)" for name, f in fits
-            if not f.converged]
+            if not f.converged and f.usable]
     if late:
         text += (f" Not converged: {'; '.join(late)}; each is used with the misfit it "
                  f"reached, so its evidence is a lower bound.")
+    if diag.failed and not _undetermined(diag):
+        text += f" {_failed_text(diag)}; not compared, so the verdict is not certain."
     return text
+
+
+def _undetermined(diag: Diagnosis) -> bool:
+    """True where no refit came to an answer (the screen's promise unresolved, or every
+    refit unusable where the base model's tests reject): the verdict says so and no more."""
+    usable = [c for c in diag.candidates if c.fit is not None and c.fit.usable]
+    return (diag.status == "unexplained" and not diag.partial
+            and (diag.unresolved or (bool(diag.failed) and not usable)))
+
+
+def _why_unusable(diag: Diagnosis, effect: str) -> str:
+    f = next(c.fit for c in diag.candidates if c.effect == effect)
+    if f.unstable:
+        return f"{effect}: the wear loop's derivatives were unstable at the refit"
+    return f"{effect}: the model did not run from the refit's start ({f.message})"
+
+
+def _failed_text(diag: Diagnosis) -> str:
+    """'The refit(s) with ... failed (why)'."""
+    s = "s" if len(diag.failed) > 1 else ""
+    return (f"The refit{s} with {', '.join(diag.failed)} failed ("
+            + "; ".join(_why_unusable(diag, e) for e in diag.failed) + ")")
+
+
+def _remedy(diag: Diagnosis) -> str:
+    st = diag.study
+    if st.integrator == "paper":
+        return (f"lower numerics.revolutions_per_update ({st.revolutions_per_update:g}) "
+                f"and rerun")
+    return f"lower numerics.wear_tolerance_um ({st.wear_tolerance_um:g} µm) and rerun"
 
 
 def _verdict_text(diag: Diagnosis) -> str:
@@ -121,6 +156,31 @@ def _verdict_text(diag: Diagnosis) -> str:
                      f"which fits nearly as well (evidence gap < ln 20): treat the name as "
                      f"one of these, not as certain.")
         return text
+    usable = [c for c in diag.candidates if c.fit is not None and c.fit.usable]
+    if _undetermined(diag):
+        # no refit came to an answer: the verdict cannot say more than that
+        lead = next((c for c in diag.candidates if c.screen is not None
+                     and (c.fit is None or c.effect in diag.failed)), None)
+        why = ("the misfit is systematic" if t.systematic else
+               "these tests do not reject noise on so few points, but the candidates' "
+               "linearised evidence is very strong")
+        if lead is not None and not t.systematic:
+            why += (f" (linearised, {lead.effect} would remove "
+                    f"{100 * lead.screen.explained:.0f} % of the misfit)")
+        short = [c for c in usable if c.fit.status == "budget"]
+        done = []
+        if diag.failed:
+            done.append(_failed_text(diag))
+        done += [f"the refit with {c.effect} ran out of its budget ({c.fit.evaluations} "
+                 f"evaluations) at RMSE {c.rmse_um:.3f} µm, short of very strong evidence "
+                 f"(ln Bayes factor {c.evidence:.1f}, a lower bound)" for c in short]
+        if not done:
+            done.append("no candidate was refitted")
+        text = "; ".join(done)
+        return (f"{head} The base model is not shown to be adequate: {why} ({sig}). "
+                f"{text[0].upper()}{text[1:]}, so no candidate was refitted to an answer and "
+                f"the missing effect, if any, is not determined"
+                + (f": {_remedy(diag)}." if diag.failed else "."))
     text = f"{head} The misfit is systematic ({sig})."
     if diag.partial:
         c = next(c for c in diag.candidates if c.effect == diag.partial[0])

@@ -24,6 +24,7 @@ from jaxwear._analyses.diagnose._refit import (
     _refit,
     _second_stage,
     _tests_for,
+    refit_leaders,
 )
 from jaxwear._analyses.diagnose._result import Candidate, Diagnosis
 from jaxwear._analyses.diagnose._screen import screen
@@ -33,8 +34,11 @@ from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._core.errors import InputError
 from jaxwear._inference.calibrate import fit_study, registered, study_fit_keys
 from jaxwear._inference.residual import traces, traces_since
-from jaxwear._study.resolution import at_level
+from jaxwear._study.resolution import at_level, at_stable_update
 from jaxwear._study.study import Study
+
+# what a study's unstable fixed step M is replaced for (`at_stable_update`'s flag)
+STABLE_DONE = "fitted and diagnosed"
 
 # A refit is skipped when a candidate already fits to noise level and the skipped one's
 # score (the χ² its linearised refit would remove) is below this fraction of the χ² that
@@ -56,6 +60,16 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     (the report's `shape_pngs`) run in a background thread while the shape's refit runs, for
     the caller to write (the CLI's `--out`); passed in because the analysis layer draws
     nothing itself.
+
+    A paper-integrator study (fixed M, `revolutions_per_update`) whose M is beyond the
+    explicit update's stability estimate at the K_d of the data (calibrate's answer, else
+    the study's K_d rescaled to the data, depth being nearly proportional to K_d) is
+    diagnosed at the stable M `predict` uses (`_resolution.at_stable_update`: half the
+    estimate), not at the study's: there the depth may look right while the derivatives
+    every refit needs are not (measured on the boom at M = 10, estimate 5.7: the
+    leading candidate's refit came out unstable and the verdict read `adequate`). M is
+    numerics, not physics, so the diagnosis is of the study's model, integrated more
+    finely; the verdict's `flags` and the first sentence of its summary say so.
     """
     if noise_um is None:
         noise_um = study.noise_um
@@ -66,6 +80,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     start = None
     defect = None
     finer_minus_rows = None  # calibrate's resolution check at its answer (µm per row)
+    flags = []  # what the verdict rests on that a reader must know (the numerics changed)
     if study.auto_resolution or study.angle_tolerance_deg > 0:
         # the base model's fit by calibrate's path: the resolution it needs, checked at its
         # answer (DESIGN §6), and the scans' registration where the study fits it; the
@@ -79,6 +94,17 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                       f"{', registration' if study.angle_tolerance_deg > 0 else ''})")
         r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose)
         calibrate_evals = r.iterations
+        stable, flag = at_stable_update(study, dict(zip(r.names, map(float, r.values))),
+                                        done=STABLE_DONE, at="calibrate's fitted K_d")
+        if flag is not None:
+            flags.append(flag)
+            _log(verbose, f"  {flag}")
+        if stable is not study:
+            # the resolution and registration depend on M too: calibrate's path again
+            study = stable
+            r = fit_study(study, study_fit_keys(study), noise_um=noise_um, verbose=verbose,
+                          start=dict(zip(r.names, map(float, r.values))))
+            calibrate_evals += r.iterations
         if study.auto_resolution:
             resolution = r.resolution
             jac = resolution["jacobian"]
@@ -132,10 +158,29 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
             u0[kd] += math.log(a)  # depth is nearly proportional to K_d
             ev0 = None
+    if kd is not None and start is None:
+        # K_d rescaled to the data (calibrate's path checked its own answer above)
+        kd_data = float(model.values(u0)[kd])
+        stable, flag = at_stable_update(study, {"K_d_per_Pa": kd_data}, done=STABLE_DONE,
+                                        at=f"K_d = {kd_data:.3g} /Pa (the study's, rescaled "
+                                           f"to the data)")
+        if flag is not None:
+            flags.append(flag)
+            _log(verbose, f"  {flag}")
+        if stable is not study:
+            study = stable
+            model = Model(study, start=start, defect_um=defect)
+            models = {None: model}
+            ev0 = None
     _log(verbose, f"  base fit ({int(model.base_mask.sum())} parameters)")
     base = fit_masked(model, model.base_mask, u0, noise_um=noise, noise_dof=nu, label="base",
                       ev0=ev0, verbose=verbose)
     _check_derivatives(model, base)
+    if not flags and kd is not None and at_stable_update(
+            study, {"K_d_per_Pa": float(base.values[kd])}, done=STABLE_DONE)[1] is not None:
+        flags.append(f"[numerics] revolutions_per_update = {study.revolutions_per_update:g} "
+                     f"is beyond the stable amplification at the base fit's K_d: the fits' "
+                     f"derivatives may be unstable; lower it and rerun")
     if shape and job is None:
         # the shape's design needs only the base fit: computed while the verdict runs
 
@@ -156,41 +201,44 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         cands[s_.effect] = Candidate(
             s_.effect, s_, None, evidence_from(model.n, q_base, q_lin, len(s_.start)),
             math.sqrt(max(base.rss - s_.delta_rss, 0.0) / model.n))
-    status, effects, partial, alternatives = "adequate", [], [], []
+    status, effects, partial, alternatives, failed = "adequate", [], [], [], []
+    unresolved = False
     final, final_tests = base, base_tests
     promising = [c for c in cands.values() if c.evidence > STRONG_LOG_BF]
     if base_tests.systematic or promising:
-        # refit the leading candidates (and the parameter-free structural ones)
-        # the leader always; others only where their own score test is significant and
-        # not negligible next to the leader's (a refit costs ~10 model evaluations)
+        # refit the leading candidates (`refit_leaders`: the leader, the significant ones
+        # near it, the next ones by score where those could not be refitted) and the
+        # parameter-free structural one
         live = [s_ for s_ in scores if s_.feasible and s_.score > 0]
-        todo = [(s_.effect, s_) for i, s_ in enumerate(live)
-                if i == 0 or (s_.p < ALPHA and s_.score >= 0.1 * live[0].score)][:max_refits]
-        if "unsymmetric" in model.candidates:
-            todo.append(("unsymmetric", None))
-        settled = None  # χ² improvement of a refit that reached noise level
-        for name, scr in todo:
-            if settled is not None and scr is not None and scr.score < COMPARABLE * settled:
-                # a candidate already fits to noise level and this one's score is not
-                # comparable to what it removed: its refit cannot tie with it (the evidence
-                # gap would exceed ln 20), so it is not spent (issue 10: minutes, not hours)
-                _log(verbose, f"  {name}: not refitted (score {scr.score:.1f} < "
-                              f"{COMPARABLE:g} x {settled:.1f} of a fit at noise level)")
-                continue
+
+        def refit_one(name, scr):
             f = _refit(by_contact, base, [name], scr, noise, verbose, nu)
             c = cands.get(name) or Candidate(name, None, None, 0.0, math.nan)
             c = replace(c, fit=f, rmse_um=f.rmse, evidence=evidence(model, f, base, noise))
             cands[name] = c
-            if (not f.unstable and c.evidence > STRONG_LOG_BF
+            if (f.usable and c.evidence > STRONG_LOG_BF
                     and not _tests_for(by_contact(f.contact), f, noise, nu, pairs).systematic):
-                gain = (q_base - objective(f.ev, noise)) / noise ** 2
-                settled = gain if settled is None else max(settled, gain)
-        refitted = sorted([c for c in cands.values() if c.refit and not c.fit.unstable],
+                return f, (q_base - objective(f.ev, noise)) / noise ** 2
+            return f, None
+
+        refit_leaders(live, max_refits, refit_one, ALPHA, COMPARABLE, verbose)
+        if "unsymmetric" in model.candidates:
+            refit_one("unsymmetric", None)
+        refitted = sorted([c for c in cands.values() if c.refit and c.fit.usable],
                           key=lambda c: -c.evidence)
+        failed = [c.effect for c in cands.values() if c.refit and not c.fit.usable]
         best = refitted[0] if refitted else None
-        systematic = base_tests.systematic or (best is not None
-                                               and best.evidence > STRONG_LOG_BF)
-        if systematic and best is not None and best.evidence > STRONG_LOG_BF:
+        # the screen's promise tested: a promising candidate refitted to an answer (usable,
+        # and not stopped by its budget, where its evidence is only a lower bound)
+        settled_fits = {c.effect for c in cands.values() if c.refit and c.fit.usable
+                        and c.fit.status != "budget"}
+        unresolved = bool(promising) and not any(c.effect in settled_fits for c in promising)
+        decision = settle(base_tests.systematic, best, unresolved)
+        # (a refit with very strong evidence is judged by its own tests: the promise of
+        # the screen is then the alternatives' question, not the verdict's)
+        unresolved = unresolved and decision != "examine"
+        systematic = decision != "adequate"
+        if decision == "examine":
             mdl = by_contact(best.fit.contact)
             rest = screen(mdl, best.fit, noise, nu)
             best = replace(best, tests=_tests_for(mdl, best.fit, noise, nu, pairs, rest))
@@ -234,7 +282,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                      effects=effects, partial=partial, alternatives=alternatives, final=final,
                      final_tests=final_tests, loo_before=loo(model, base, noise),
                      loo_after=loo(by_contact(final.contact), final, noise),
-                     resolution=resolution)
+                     resolution=resolution, failed=failed, unresolved=unresolved,
+                     flags=flags)
     summary = summarize_verdict(diag)
     if shape or (auto_shape and status == "unexplained"):
 
@@ -279,6 +328,22 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                     f"{comp['jacobian']} Jacobian and {comp['forward']} forward "
                     f"compilations)")
     return diag
+
+
+def settle(base_systematic: bool, best, unresolved: bool) -> str:
+    """What the refits leave to decide (DESIGN §7): "examine" where the best usable refit
+    `best` (a `Candidate`, or None) has very strong evidence (its own tests then decide
+    `effect_found` or not); "unexplained" where the base model's own tests reject without
+    such a refit, or where the screen's promise is `unresolved` (candidates with very strong
+    linearised evidence, none of them refitted to an answer: unstable, not run, out of
+    budget, not refitted): the misfit may be systematic and nothing was shown to explain
+    it or not; "adequate" only where the base model's tests accept and every promise of the
+    screen that was tested came to nothing."""
+    if best is not None and best.evidence > STRONG_LOG_BF:
+        return "examine"
+    if base_systematic or unresolved:
+        return "unexplained"
+    return "adequate"
 
 
 def _at_start(fit, se: float) -> bool:

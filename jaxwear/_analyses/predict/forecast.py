@@ -69,9 +69,8 @@ from jaxwear._inference.residual import (
 )
 from jaxwear._physics.config import timed
 from jaxwear._physics.schedule import bucket
-from jaxwear._physics.wear import stable_amplification
 from jaxwear._study import resolution as _resolution
-from jaxwear._study.resolution import at_level
+from jaxwear._study.resolution import at_level, at_stable_update
 from jaxwear._study.study import Experiment, History, Profile, Study
 
 # The forecast's fit stops when the next step would move every parameter by < 0.1 of its
@@ -487,17 +486,15 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     if study.integrator != "paper" and tol is not None and tol < study.wear_tolerance_um:
         study = replace(study, wear_tolerance_um=tol)
         train = training_study(study, train_until)
-    m_stable = stable_update(study, result) if study.integrator == "paper" else math.inf
-    if study.revolutions_per_update > m_stable:
-        # The explicit update is near its stability limit at the fitted K_d: the depth may
-        # look smooth while its Jacobian (and so the band) blows up at some points
-        # (measured on the boom at M = 10, stable estimate ~5). Refit at a stable M.
-        m_new = float(max(1, math.floor(m_stable / 2)))
-        flags.append(f"[numerics] revolutions_per_update = {study.revolutions_per_update:g} "
-                     f"exceeds the stable amplification ~{m_stable:.3g} at the fitted K_d; "
-                     f"fitted and forecast with {m_new:g} instead")
+    # The explicit update beyond its stability limit at the fitted K_d: refit at a stable
+    # M (`at_stable_update`: the depth may look smooth while the band blows up)
+    stable, flag = at_stable_update(study, dict(zip(result.names, map(float, result.values))),
+                                    done="fitted and forecast")
+    if flag is not None:
+        flags.append(flag)
         _log(verbose, f"predict: {flags[-1]}")
-        study = replace(study, revolutions_per_update=m_new)
+    if stable is not study:
+        study = stable
         train = training_study(study, train_until)
         layout = forecast_layout(study, train, points, refine=life)
         problem = build_problem(train, keys, dict(zip(result.names, map(float, result.values))),
@@ -684,17 +681,6 @@ def sampling_level(train: Study, keys, problem, result: FitResult, layout, noise
                       f"{SAMPLING_DEFECT_REACH:g}): sampled at the fit's level")
         return None
     return c_base.with_defect(defect), c_train, c_base
-
-
-def stable_update(study: Study, result: FitResult) -> float:
-    """Largest stable amplification M at the fitted K_d (`stable_amplification`, smallest
-    over the experiments); inf when K_d is not fitted."""
-
-    vals = dict(zip(result.names, (float(v) for v in result.values)))
-    if "K_d_per_Pa" not in vals:
-        return math.inf
-    return min(stable_amplification(study.params(e).with_values(
-        {"K_d_per_Pa": vals["K_d_per_Pa"]}), study.config) for e in study.experiments)
 
 
 def _param_table(result: FitResult, cov, q, null_dirs):
