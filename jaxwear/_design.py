@@ -64,6 +64,7 @@ from ._config import timed
 from ._errors import InputError
 from ._numbers import parse_range
 from ._packing import study_fit_keys
+from ._params import key_to_si
 from ._plausible import check_value
 from ._predict import training_study
 from ._residual import build_model, enough_attempts
@@ -166,7 +167,7 @@ def default_vary(study: Study, after: float | None = None) -> dict:
         last = max(float(last), 1e-3)
         return {"hours": np.linspace(last * 1.05, 2.0 * last, 20)}
     plist = [study.params(e) for e in study.experiments]
-    speeds = [float(p.speed_rpm) for p in plist]
+    speeds = [float(p.get("speed_rpm")) / key_to_si("speed_rpm") for p in plist]
     clear = [float(p.clearance) * 1e3 for p in plist]
     revs = max(float(e.revolutions or 1.0) for e in study.experiments)
     return {"speed_rpm": np.linspace(0.5 * min(speeds), 1.5 * max(speeds), 5),

@@ -1,4 +1,4 @@
-"""Command line: `jaxwear simulate|calibrate|diagnose|synth|sweep|sensitivity|predict`
+"""Command line: `jaxwear simulate|calibrate|diagnose|synth|sweep|sensitivity|predict|design`
 (DESIGN §7).
 
 Exit codes: 0 done, 2 bad input (one line naming the file, key, line or option), 1 anything
@@ -17,6 +17,7 @@ from ._parser import Parser, join_negative_values, value_options
 
 def _verbs():
     from .calibrate import Calibrate
+    from .design import Design
     from .diagnose import Diagnose
     from .predict import Predict
     from .sensitivity import Sensitivity
@@ -24,7 +25,8 @@ def _verbs():
     from .sweep import Sweep
     from .synth import Synth
 
-    return [Simulate(), Calibrate(), Diagnose(), Synth(), Sweep(), Sensitivity(), Predict()]
+    return [Simulate(), Calibrate(), Diagnose(), Synth(), Sweep(), Sensitivity(), Predict(),
+            Design()]
 
 
 def _enable_cache():
