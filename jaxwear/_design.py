@@ -80,6 +80,9 @@ NUISANCE = ("clearance_mm", "angle_offset_deg")  # per experiment, marginalised
 CRANK_KEYS = ("speed_rpm", "clearance_mm", "load_scale", "revolutions")
 TIMED_KEYS = ("hours",)
 DEFAULT_SCAN_STEP_DEG = 2.0
+# compilation of the candidates' batched Jacobian, added to the work estimate (measured on
+# 2 shared cores: 1-3 s for the rig at 64-90 nodes, one or two tangents)
+COMPILE_ALLOWANCE_S = 5.0
 
 
 # ------------------------------------------------------------------ the candidates
@@ -523,11 +526,11 @@ def design(study: Study, *, goal: str = "parameters", between=None, vary=None,
     tangents = len(shared_keys(keys)) + 1
     cand_study = study.with_experiments(
         [_placeholder(e, p, is_timed) for e, p in zip(plan.runs, plan.points)])
-    est = estimate_work(cand_study, tangents=tangents).seconds
+    est = estimate_work(cand_study, tangents=tangents).seconds + COMPILE_ALLOWANCE_S
     n_models = 2 if goal == "separate" else 1
     _log(verbose, f"design: {plan.size} candidates in {len(plan.runs)} batched run(s) "
                   f"(varying {', '.join(plan.keys)}); estimated {n_models * est:.0f} s for "
-                  f"the candidates (work estimate) after the fit(s)")
+                  f"the candidates after {n_models} fit(s) of the study")
     timing = {}
     if goal == "separate":
         res = _separate(study, plan, between, budget, verbose, timing)
