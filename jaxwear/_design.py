@@ -66,7 +66,7 @@ from ._numbers import parse_range
 from ._packing import study_fit_keys
 from ._params import key_to_si
 from ._plausible import check_value
-from ._predict import training_study
+from ._predict import stable_update, training_study
 from ._residual import build_model, enough_attempts
 from ._study import Experiment, History, Profile, Study
 from ._synth import INTERRUPTIONS
@@ -451,14 +451,29 @@ def _log(verbose, msg):
         print(msg, file=sys.stderr, flush=True)
 
 
-def _fit(study, keys, verbose, what):
+def _fit(study, keys, verbose, what, flags):
+    """The fit of `study` (the fit driver) and the study it was fitted as: with the paper
+    integrator (eq 23) above its stable amplification at the fitted K_d, refitted at a
+    stable M as `predict` does (the Jacobian, hence every candidate's information, blows up
+    there: measured on the boom at M = 10, derivatives of 1e9 µm per unit)."""
     _log(verbose, f"design: fitting {what} ({', '.join(keys)})")
     try:
-        return fit_study(study, keys, verbose=False)
+        result = fit_study(study, keys, verbose=False)
+        m_stable = stable_update(study, result) if study.integrator == "paper" else math.inf
+        if study.revolutions_per_update > m_stable:
+            m_new = float(max(1, math.floor(m_stable / 2)))
+            flags.append(f"[numerics] revolutions_per_update = "
+                         f"{study.revolutions_per_update:g} exceeds the stable amplification "
+                         f"~{m_stable:.3g} at the fitted K_d of {what}; fitted and designed "
+                         f"with {m_new:g} instead")
+            _log(verbose, f"design: {flags[-1]}")
+            study = dataclasses.replace(study, revolutions_per_update=m_new)
+            result = fit_study(study, keys, verbose=False)
     except InputError:
         raise
     except Exception as e:  # the fit itself failed: nothing to rank from
         raise RuntimeError(f"design: the fit of {what} failed: {e}") from e
+    return study, result
 
 
 def _forecast_runs(study: Study, result: FitResult, at: float, plan: Plan):
@@ -536,13 +551,15 @@ def design(study: Study, *, goal: str = "parameters", between=None, vary=None,
         res = _separate(study, plan, between, budget, verbose, timing)
     else:
         t0 = time.perf_counter()
-        result = _fit(study, keys, verbose, "the study")
+        flags: list = []
+        study, result = _fit(study, keys, verbose, "the study", flags)
         timing["fit_s"] = time.perf_counter() - t0
         target = None
         if goal == "forecast":
             plan, target = _forecast_runs(study, result, at, plan)
         res = _one_model(study, result, keys, plan, goal, budget, for_keys, target, level,
                          verbose, timing)
+        res.info["flags"] = flags
     timing["total_s"] = time.perf_counter() - t_start
     timing["estimate_s"] = n_models * est
     return dataclasses.replace(res, timing=timing)
@@ -747,21 +764,22 @@ def _chi2(dd, b, UtU, a):
 
 def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
     is_timed = plan.unit == "hours"
-    fits, runs, keys_of = [], [], []
+    fits, runs, keys_of, studies, flags = [], [], [], [], []
     t0 = time.perf_counter()
     for name in between:
         st = model_study(study, name)
         keys = study_fit_keys(st)
-        fits.append(_fit(st, keys, verbose, f"explanation {name}"))
+        st, f = _fit(st, keys, verbose, f"explanation {name}", flags)
+        fits.append(f)
+        studies.append(st)
         keys_of.append(keys)
     timing["fit_s"] = time.perf_counter() - t0
     _log(verbose, f"design: fits done ({timing['fit_s']:.1f} s; RMSE "
                   + ", ".join(f"{n} {f.rmse_um:.3g} µm" for n, f in zip(between, fits))
                   + f"); running {len(plan.runs)} candidate run(s) per explanation")
     timing["candidates_s"] = 0.0
-    for name, f, keys in zip(between, fits, keys_of):
-        r = run_candidates(model_study(study, name), f, keys, plan.runs, plan.points,
-                           is_timed=is_timed)
+    for st, f, keys in zip(studies, fits, keys_of):
+        r = run_candidates(st, f, keys, plan.runs, plan.points, is_timed=is_timed)
         timing["candidates_s"] += r.seconds
         runs.append(r)
     sigma = min(float(f.noise_um) for f in fits)
@@ -838,7 +856,7 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
             "criterion": "expected chi-square of the difference of the two explanations' "
                          "predicted rows, against the noise and both models' parameter "
                          "uncertainty (one scan set)",
-            "separate_chi2": SEPARATE_CHI2,
+            "separate_chi2": SEPARATE_CHI2, "flags": flags,
             "resolution": {"nodes": fits[0].problem.cfg.nodes,
                            "steps_per_rev": fits[0].problem.cfg.steps_per_rev}}
     return DesignResult(goal="separate", between=list(between), plan=plan,
