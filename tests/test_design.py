@@ -223,3 +223,18 @@ def load_study_like():
     from jaxwear._synth import paper_conditions
 
     return paper_conditions(NUM)
+
+
+def test_diagnose_points_at_design_when_effects_are_tied():
+    """The verdict's sentence names the command where alternatives are tied (effects
+    only: `--between` takes effects, not the structural candidates)."""
+    from types import SimpleNamespace
+
+    from jaxwear.diagnose._text import design_pointer
+
+    diag = SimpleNamespace(alternatives=["unsymmetric", "speed_dependence"],
+                           study=SimpleNamespace(path="s.toml"))
+    s = design_pointer(diag, "pressure_exponent")
+    assert "jaxwear design s.toml --between pressure_exponent,speed_dependence" in s
+    assert design_pointer(SimpleNamespace(alternatives=["unsymmetric"],
+                                          study=diag.study), "creep") == ""
