@@ -238,3 +238,33 @@ def test_diagnose_points_at_design_when_effects_are_tied():
     assert "jaxwear design s.toml --between pressure_exponent,speed_dependence" in s
     assert design_pointer(SimpleNamespace(alternatives=["unsymmetric"],
                                           study=diag.study), "creep") == ""
+
+
+def test_separate_chi2_by_woodbury_equals_the_direct_solve():
+    """d^T (a I + U U^T)^-1 d from d·d, U^T d and U^T U (Woodbury), against the direct
+    solve; and repeated scans (a → a/n) only raise it."""
+    from jaxwear._design import _chi2
+
+    rng = np.random.default_rng(0)
+    U = rng.standard_normal((40, 3))
+    d = rng.standard_normal(40)
+    a = 0.7
+    direct = d @ np.linalg.solve(a * np.eye(40) + U @ U.T, d)
+    got = _chi2(np.array([d @ d]), (U.T @ d)[None], (U.T @ U)[None], np.array([a]))[0]
+    assert got == pytest.approx(direct, rel=1e-10)
+    more = _chi2(np.array([d @ d]), (U.T @ d)[None], (U.T @ U)[None], np.array([a / 4]))[0]
+    assert more > got
+
+
+def test_timed_candidates_are_next_measurements_of_the_experiment():
+    """The boom: a candidate is the next maximum-depth measurement of its experiment, all
+    in one run (no model evaluation here)."""
+    from jaxwear._design import plan_candidates
+    from jaxwear._predict import training_study
+
+    st = training_study(load_study("calibration/boom/study.toml"), 15)
+    plan = plan_candidates(st, parse_vary("hours=16:25:10", st))
+    assert plan.size == 10 and len(plan.runs) == 1 and plan.continuation == "boom"
+    assert [m[0] for m in plan.measure_at] == list(np.linspace(16, 25, 10))
+    with pytest.raises(InputError, match="unknown key 'speed_rpm'"):
+        parse_vary("speed_rpm=100:200", st)
