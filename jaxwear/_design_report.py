@@ -257,12 +257,15 @@ def plot(res: DesignResult, path) -> None:
                     label="recommended" if k == 0 else None)
     if res.baseline is not None:
         ax.axhline(res.baseline, color="0.5", ls="--", lw=1, label="the study as it is")
+    if res.goal == "separate":
+        ax.axhline(res.info["separate_chi2"], color="tab:red", ls=":", lw=1,
+                   label="2 ln 20 (told apart)")
     ax.set_xlabel(x_key)
     ax.set_ylabel(f"{res.goal} value ({res.better} is better)")
     at = ", ".join(f"{k} {best[k]:g}" for k in others)
     ax.set_title(f"design --goal {res.goal}" + (f" ({at})" if at else ""), fontsize=10)
     ax.grid(alpha=0.3)
-    if len(groups) > 1 or res.recommended or res.baseline is not None:
+    if len(groups) > 1 or res.recommended or res.baseline is not None or res.between:
         ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path)
