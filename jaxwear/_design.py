@@ -343,37 +343,16 @@ def scan_step_deg(study: Study) -> float:
     return DEFAULT_SCAN_STEP_DEG
 
 
-def row_blocks(runs: Runs, extra: np.ndarray | None, metric: np.ndarray | None):
-    """Per (run, snapshot), the rows' sufficient statistics: for profile scans (`metric`
-    W^T W), Z^T M Z; for depth histories, the row at the node of the maximum. `Z` =
-    [J, J_clear] (and `extra` (R, S, N, q) columns appended). Returns A (R, S, q, q) and
-    the stacked columns Z for later products."""
+def row_blocks(runs: Runs, metric: np.ndarray | None) -> np.ndarray:
+    """Per (run, snapshot), the rows' information blocks Z^T M Z (R, S, q, q), Z = [J,
+    J_clear]: profile scans with `metric` M = W^T W; depth histories (None) the row of
+    the node at the maximum."""
     Z = np.concatenate([runs.J, runs.J_clear[..., None]], axis=-1)
-    if extra is not None:
-        Z = np.concatenate([Z, extra], axis=-1)
     if metric is None:  # a history row: the maximum over the nodes
         k = np.argmax(runs.snaps, axis=-1)  # (R, S)
         z = np.take_along_axis(Z, k[..., None, None], axis=2)[:, :, 0]  # (R, S, q)
-        return np.einsum("rsp,rsq->rspq", z, z), z
-    return np.einsum("rsnp,nm,rsmq->rspq", Z, metric, Z), Z
-
-
-def study_information(result: FitResult, names: tuple) -> np.ndarray:
-    """The study's Fisher information of the parameters `names` (the fit's packed u),
-    its other parameters (clearances, registrations) marginalised: I = J^T J/s² + J_p^T J_p
-    at the answer, s the fit's error scale, then the Schur complement."""
-    ev = result.evaluation
-    s = float(result.error_scale_um) if math.isfinite(result.error_scale_um) else float(
-        result.noise_um)
-    I_full = ev.J.T @ ev.J / s ** 2 + ev.J_prior.T @ ev.J_prior
-    keep = [result.names.index(n) for n in names]
-    rest = [i for i in range(len(result.names)) if i not in keep]
-    A = I_full[np.ix_(keep, keep)]
-    if not rest:
-        return A
-    B = I_full[np.ix_(keep, rest)]
-    C = I_full[np.ix_(rest, rest)]
-    return A - B @ np.linalg.pinv(C, rcond=1e-13) @ B.T
+        return np.einsum("rsp,rsq->rspq", z, z)
+    return np.einsum("rsnp,nm,rsmq->rspq", Z, metric, Z)
 
 
 def _marginal(Iq: np.ndarray, P: int, clear_prec: float | None) -> np.ndarray:
@@ -394,23 +373,9 @@ def _clear_prec(study: Study) -> float | None:
     return 0.0 if math.isinf(tol) else 1.0 / (tol * 1e-3) ** 2
 
 
-def candidate_information(plan: Plan, A: np.ndarray, P: int, sigma: float,
-                          clear_prec) -> np.ndarray:
-    """(C, P, P): each candidate's information about θ (its snapshots' sum, noise σ)."""
-    out = np.zeros((plan.size, P, P))
-    for i in range(plan.size):
-        Iq = A[plan.run[i], plan.snaps[i]].sum(axis=0) / sigma ** 2
-        out[i] = _marginal(Iq, P, clear_prec)
-    return out
-
-
 def _logdet(M) -> np.ndarray:
     sign, ld = np.linalg.slogdet(M)
     return np.where(sign > 0, ld, -np.inf)
-
-
-def _inv(M):
-    return np.linalg.pinv(M, rcond=1e-13, hermitian=True)
 
 
 # ------------------------------------------------------------------ results
@@ -667,7 +632,7 @@ def _one_model(study, result, keys, plan, goal, budget, for_keys, target, level,
     runs = run_candidates(study, result, keys, plan.runs, plan.points, is_timed=is_timed)
     timing["candidates_s"] = runs.seconds
     metric = None if is_timed else scan_metric(result.problem.cfg.nodes, scan_step_deg(study))
-    A, _ = row_blocks(runs, None, metric)
+    A = row_blocks(runs, metric)
     I_full, sigma = _full_information(result)
     Ic = _embed(result, runs, plan, A, sigma, None if is_timed else _clear_prec(study))
     names = list(result.names)
@@ -803,7 +768,7 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
     # each model's own information of a candidate (for the greedy update): its J and δ
     infos = []
     for m, (f, r) in enumerate(zip(fits, runs)):
-        A, _ = row_blocks(r, None, metric)
+        A = row_blocks(r, metric)
         infos.append(_embed(f, r, plan, A, sigma, None if is_timed else _clear_prec(study)))
     I_cur = [_full_information(f)[0] for f in fits]
 
