@@ -52,6 +52,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import equinox as eqx
 import jax
@@ -624,8 +625,6 @@ def _greedy(value_of, I0, Ic, better, budget):
 
 def _one_model(study, result, keys, plan, goal, budget, for_keys, target, level, verbose,
                timing) -> DesignResult:
-    from statistics import NormalDist
-
     is_timed = plan.unit == "hours"
     _log(verbose, f"design: fit done ({timing['fit_s']:.1f} s, RMSE {result.rmse_um:.3g} µm); "
                   f"running {len(plan.runs)} candidate run(s) with their Jacobian")

@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from ._design import DesignResult
+from ._io import save_figure
 from ._params import key_to_si
+from ._report import plt
 from ._study import Study
 
 DESIGN_OUTPUTS = ("design.json", "design.png", "next_experiment.toml",
@@ -231,9 +233,6 @@ def summary_lines(res: DesignResult, study: Study, top: int = 5) -> list[str]:
 def plot(res: DesignResult, path) -> None:
     """The goal's value over the varied ranges: one line per value of the second varied key
     against the first (the duration last), at the best values of the others."""
-    from ._io import save_figure
-    from ._report import plt
-
     pl = plt()
     keys = list(res.plan.keys)
     conds = res.plan.conditions
