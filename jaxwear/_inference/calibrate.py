@@ -308,6 +308,15 @@ def value_errors(packing, u, cov: lsq.Covariance, free=None):
     return se, corr, und
 
 
+def _design_hint(a: str, b: str) -> str:
+    """Where two shared parameters are tied: the command that names the experiment that
+    pins them down (issue 44); none for an experiment's own clearance or registration."""
+    if "/" in a or "/" in b:
+        return ""
+    return (f"; `jaxwear design STUDY --for {a},{b}` names the next experiment that pins "
+            f"them down")
+
+
 def _product_flag(names, vals, se, corr, und) -> list[str]:
     """With K_d and load_scale both fitted: only their product is identifiable from depths
     (the wear rate is K_d p dS and the pressure scales with the load; the load's size moves
@@ -357,7 +366,8 @@ def summarize(problem: ResidualModel, out: lsq.Outcome, evaluations: int,
             for j in range(i + 1, P):
                 if abs(corr[i, j]) > 0.99:
                     flags.append(f"{names[i]} and {names[j]}: correlation "
-                                 f"{corr[i, j]:+.3f} (|r| > 0.99, not separately identifiable)")
+                                 f"{corr[i, j]:+.3f} (|r| > 0.99, not separately identifiable)"
+                                 + _design_hint(names[i], names[j]))
         flags += _product_flag(names, vals, se, corr, und)
     else:
         vals, se, corr = np.zeros(0), np.zeros(0), np.zeros((0, 0))

@@ -1,4 +1,4 @@
-"""Command line: `jaxwear simulate|calibrate|diagnose|synth|sweep|sensitivity|predict`
+"""Command line: `jaxwear simulate|calibrate|diagnose|synth|sweep|sensitivity|predict|design`
 (DESIGN §7).
 
 Exit codes: 0 done, 2 bad input (one line naming the file, key, line or option), 1 anything
@@ -19,6 +19,7 @@ from jaxwear._core.interrupt import EXIT_CODE, MESSAGE, release
 from jaxwear._core.xla_flags import apply as configure_xla
 from jaxwear.cli._parser import Parser, join_negative_values, value_options
 from jaxwear.cli.calibrate import Calibrate
+from jaxwear.cli.design import Design
 from jaxwear.cli.diagnose import Diagnose
 from jaxwear.cli.predict import Predict
 from jaxwear.cli.sensitivity import Sensitivity
@@ -28,8 +29,8 @@ from jaxwear.cli.synth import Synth
 
 
 def _verbs():
-
-    return [Simulate(), Calibrate(), Diagnose(), Synth(), Sweep(), Sensitivity(), Predict()]
+    return [Simulate(), Calibrate(), Diagnose(), Synth(), Sweep(), Sensitivity(), Predict(),
+            Design()]
 
 
 def _enable_cache():

@@ -155,6 +155,7 @@ def _verdict_text(diag: Diagnosis) -> str:
             text += (f" The data cannot tell it apart from {', '.join(diag.alternatives)}, "
                      f"which fits nearly as well (evidence gap < ln 20): treat the name as "
                      f"one of these, not as certain.")
+            text += design_pointer(diag, eff[0])
         return text
     usable = [c for c in diag.candidates if c.fit is not None and c.fit.usable]
     if _undetermined(diag):
@@ -192,3 +193,14 @@ def _verdict_text(diag: Diagnosis) -> str:
         text += " No candidate explains it."
     return text + (" The missing physics is not among the library's candidates: look at the "
                    "residual figures for where the model fails.")
+
+
+def design_pointer(diag: Diagnosis, winner: str) -> str:
+    """The sentence that names the command telling tied explanations apart (issue 44):
+    `jaxwear design --between` takes effects, not structural candidates."""
+    rivals = [a for a in diag.alternatives if a not in STRUCTURAL_CANDIDATES]
+    if winner in STRUCTURAL_CANDIDATES or not rivals:
+        return ""
+    return (f" To tell them apart, `jaxwear design {diag.study.path} --between "
+            f"{winner},{rivals[0]}` ranks the next experiments by how well they would "
+            f"separate the two and writes the best as an [[experiment]] stanza.")
