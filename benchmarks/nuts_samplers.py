@@ -47,7 +47,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jaxwear as jw  # noqa: E402
-from jaxwear._analyses.predict.forecast import parameter_covariance, training_study  # noqa: E402
+from jaxwear._analyses.predict.forecast import parameter_covariance  # noqa: E402
+from jaxwear._analyses.predict.grid import training_study  # noqa: E402
 from jaxwear._analyses.predict.nuts import _arviz, sampling_setup, u_of_samples  # noqa: E402
 from jaxwear._inference.calibrate import build_problem, fit, parse_fit  # noqa: E402
 from jaxwear._study.study import load_study  # noqa: E402

@@ -260,7 +260,7 @@ def test_timed_candidates_are_next_measurements_of_the_experiment():
     """The boom: a candidate is the next maximum-depth measurement of its experiment, all
     in one run (no model evaluation here)."""
     from jaxwear._analyses.design import plan_candidates
-    from jaxwear._analyses.predict.forecast import training_study
+    from jaxwear._analyses.predict.grid import training_study
 
     st = training_study(load_study("calibration/boom/study.toml"), 15)
     plan = plan_candidates(st, parse_vary("hours=16:25:10", st))

@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._analyses.predict.forecast import forecast_snapshots, t_quantile
+from jaxwear._analyses.predict.bands import t_quantile
+from jaxwear._analyses.predict.grid import forecast_snapshots
 from jaxwear._inference.residual import forward
 from jaxwear._study.study import load_study
 from jaxwear.cli import main
@@ -132,7 +133,7 @@ def test_intervals_contain_the_truth(forecast, truth):
 def test_propagated_variance_matches_finite_differences(study_path):
     """g C gᵀ with g from jacfwd equals the same with g by central differences of the
     forecast maximum depth (each FD evaluation is the forecast model itself)."""
-    from jaxwear._analyses.predict.forecast import forecast_points, forecast_problem, training_study
+    from jaxwear._analyses.predict.grid import forecast_points, forecast_problem, training_study
     from jaxwear._inference.calibrate import build_problem, fit, parse_fit
 
     study = load_study(study_path)
@@ -357,7 +358,7 @@ def test_nuts_log_density_is_the_gaussian_posterior(study_path):
     matches central finite differences; outside the σ prior's support it is -inf."""
     import jax
 
-    from jaxwear._analyses.predict.forecast import training_study
+    from jaxwear._analyses.predict.grid import training_study
     from jaxwear._analyses.predict.nuts import initial_position, log_density, whitening
     from jaxwear._inference.calibrate import build_problem, fit, parse_fit
 
@@ -403,7 +404,7 @@ def test_density_outside_the_prior_runs_no_model(study_path):
     share of the proposal inside the support: a t centred on the bound is half inside."""
     import jax
 
-    from jaxwear._analyses.predict.forecast import training_study
+    from jaxwear._analyses.predict.grid import training_study
     from jaxwear._analyses.predict.importance import _share_in_support
     from jaxwear._analyses.predict.nuts import log_density, prior_density
     from jaxwear._inference.calibrate import build_problem, parse_fit
@@ -467,7 +468,7 @@ def test_adaptive_study_reports_the_forecast_integration(study_path, forecast, t
 
     import jax
 
-    from jaxwear._analyses.predict.forecast import training_study
+    from jaxwear._analyses.predict.grid import training_study
     from jaxwear._analyses.predict.nuts import log_density
     from jaxwear._inference.calibrate import build_problem, parse_fit
 

@@ -173,12 +173,8 @@ def test_life_crossings_hold_their_bound_and_refine_to_it():
     more than the tolerance. Block boundaries on the grid make it exact (linear within)."""
     from types import SimpleNamespace
 
-    from jaxwear._analyses.predict.forecast import (
-        LIFE_RTOL,
-        life_of,
-        refined_points,
-        regime_boundaries,
-    )
+    from jaxwear._analyses.predict.grid import regime_boundaries
+    from jaxwear._analyses.predict.life import LIFE_RTOL, life_of, refined_points
 
     exact = 35.2
     assert _staircase(exact) == pytest.approx(500.0, abs=1e-9)
@@ -233,7 +229,7 @@ def test_draws_forecast_on_the_laplace_life_span_need_no_refinement():
     (each a forecast of every draw)."""
     from types import SimpleNamespace
 
-    from jaxwear._analyses.predict.forecast import LIFE_RTOL, guided_points, life_of, refined_points
+    from jaxwear._analyses.predict.life import LIFE_RTOL, guided_points, life_of, refined_points
 
     study = SimpleNamespace(config=SimpleNamespace(driver="oscillating"))
     grid = [np.linspace(0, 250.0, 49)[1:]]
@@ -265,8 +261,9 @@ def test_worn_through_draws_take_the_prediction_band_past_the_limit():
     filled with the stopped depth plus noise instead, the band's lower edge hovered ~8 µm
     under the limit for good and the life had no upper end. By hand: the lower edge is
     past the limit once over 95 % of the draws have stopped."""
+    from jaxwear._analyses.predict.bands import draw_quantile
     from jaxwear._analyses.predict.draws import new_measurements
-    from jaxwear._analyses.predict.forecast import draw_quantile, life_of
+    from jaxwear._analyses.predict.life import life_of
 
     rng = np.random.default_rng(0)
     t = np.arange(1.0, 101.0)  # hours

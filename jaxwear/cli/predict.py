@@ -20,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 
 from jaxwear._analyses.predict import forecast as _predict
-from jaxwear._analyses.predict.forecast import LIFE_HORIZON
+from jaxwear._analyses.predict.life import LIFE_HORIZON
 from jaxwear._core.errors import InputError
 from jaxwear._core.jsonfmt import json_float
 from jaxwear._core.numbers import number, number_list

@@ -80,7 +80,7 @@ from jaxwear._analyses.design.runs import (
     scan_step_deg,
     shared_keys,
 )
-from jaxwear._analyses.predict.forecast import training_study
+from jaxwear._analyses.predict.grid import training_study
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
 from jaxwear._inference.calibrate import FitResult, fit_study

@@ -40,13 +40,28 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-import jax.numpy as jnp
 import numpy as np
-from scipy import stats
 
+from jaxwear._analyses.predict.bands import _assemble, t_quantile
+from jaxwear._analyses.predict.grid import (
+    LAPLACE_STOP_LAYERS,
+    forecast_layout,
+    forecast_points,
+    forecast_problem,
+    forecast_snapshots,
+    stop_past_layer,
+    training_study,
+    unit_of_study,
+)
 from jaxwear._analyses.predict.importance import run_importance
+from jaxwear._analyses.predict.life import (
+    LIFE_REFINE_ROUNDS,
+    LIFE_RTOL,
+    guided_points,
+    refined_points,
+)
 from jaxwear._analyses.predict.nuts import run_nuts
-from jaxwear._analyses.predict.result import Curve, Life, Prediction, PredictResult, _jf
+from jaxwear._analyses.predict.result import PredictResult
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
@@ -58,345 +73,23 @@ from jaxwear._inference.calibrate import (
     fit_study,
     study_fit_keys,
 )
-from jaxwear._inference.residual import (
-    Layout,
-    evaluate,
-    experiment_schedules,
-    forward_run,
-    integration_report,
-    traces,
-    traces_since,
-)
-from jaxwear._physics.config import timed
-from jaxwear._physics.schedule import bucket
+from jaxwear._inference.residual import forward_run, traces, traces_since
 from jaxwear._study import resolution as _resolution
 from jaxwear._study.resolution import at_level, at_stable_update
-from jaxwear._study.study import Experiment, History, Profile, Study
+from jaxwear._study.study import Study
 
 # The forecast's fit stops when the next step would move every parameter by < 0.1 of its
 # standard error (calibrate's reported values: 0.01): a forecast then moves by < 0.1 of
 # its model band, which is what a band can show; on the boom with running-in, 3 training
 # rows, the last 0.1 -> 0.01 took 6 more evaluations along the amplitude/distance valley.
 FORECAST_SE_TOL = 0.1
-LIFE_HORIZON = 10.0  # life is searched up to this multiple of the last measured count
-LAPLACE_STOP_LAYERS = 2.0  # Laplace forecasts stop past this multiple of the layer (life tail)
 METHODS = ("laplace", "nuts", "importance")
-# Life crossings are searched on the forecast grid. Maximum depth never decreases in time, so
-# each crossing lies inside its grid bracket: the bracket's width bounds the life's numerical
-# error (reported). The forecast is refined (as many new points inside each bracket as
-# bring it within LIFE_RTOL of its crossing in one round, at most LIFE_REFINE_POINTS, up to
-# LIFE_REFINE_ROUNDS times; the sampling methods re-forecast every draw each round) until
-# every bracket is within LIFE_RTOL of its crossing. Measured on the boom with the 48-point
-# grid alone (5.2 h steps across its 1 h fast / 4 h slow duty blocks): life 39.55 h
-# [37.81, 41.42] against 40.54 h [40.13, 40.98] on a 0.1 h grid.
-LIFE_RTOL = 0.005
-LIFE_REFINE_POINTS = 24
-LIFE_REFINE_ROUNDS = 3
-LIFE_ROOM_ROUNDS = 2  # refinement rounds the fit's compiled layout holds (a third recompiles)
-MAX_REGIME_POINTS = 1000  # duty-block boundaries added to the grid at most
 
 
 # ---------------------------------------------------------------- training subset, forecast
 
 
-def unit_of_study(study: Study) -> str:
-    return "hours" if timed(study.config) else "revolutions"
-
-
-def training_study(study: Study, train_until: float | None) -> Study:
-    """The study with only the measurements at or before `train_until` (revolutions for a
-    crank-slider study, hours for an oscillating one). Experiments keep their place even when
-    none of their rows remain: their clearance is then known from the prior only."""
-    if train_until is None:
-        return study
-    lim = float(train_until) * (1 + 1e-12)
-    exps = []
-    for e in study.experiments:
-        prof, hist = e.profile, e.history
-        if prof is not None:
-            keep = np.asarray(prof.revolutions) <= lim
-            prof = replace(prof, angle=prof.angle[keep], depth=prof.depth[keep],
-                           revolutions=prof.revolutions[keep]) if keep.any() else None
-        if hist is not None:
-            keep = np.asarray(hist.hours) <= lim
-            hist = replace(hist, hours=hist.hours[keep],
-                           depth=hist.depth[keep]) if keep.any() else None
-        exps.append(replace(e, profile=prof, history=hist))
-    if all(e.profile is None and e.history is None for e in exps):
-        raise InputError(f"--train-until {train_until:g}: no measurement of {study.path} is "
-                         f"at or before it (unit: {unit_of_study(study)})")
-    return study.with_experiments(exps)
-
-
-def measured_max(e: Experiment) -> tuple[np.ndarray, np.ndarray]:
-    """Measured maximum depth per measured point [µm] (history rows, or a scan's deepest row)."""
-    if e.history is not None:
-        return np.asarray(e.history.hours, float), np.asarray(e.history.depth) * 1e6
-    if e.profile is not None:
-        pts = np.array(e.snapshot_points)
-        r = np.asarray(e.profile.revolutions)
-        return pts, np.array([np.max(e.profile.depth[r == s]) * 1e6 for s in pts])
-    return np.zeros(0), np.zeros(0)
-
-
-def _last_count(e: Experiment) -> float:
-    pts = e.snapshot_points
-    return float(max(pts)) if pts else float(e.hours or e.revolutions)
-
-
-def forecast_points(study: Study, e: Experiment, at: list[float], n_dense: int = 48,
-                    life: bool = True) -> np.ndarray:
-    """Snapshot points of one experiment: the `at` points, the measured points, a fan-chart
-    grid to max(at) and (with `life`) a life grid to 10x the last measured count (sorted,
-    unique)."""
-    crank = not timed(study.config)
-    top = max(at)
-    horizon = max(LIFE_HORIZON * _last_count(e), top) if life else top
-    grid = np.concatenate([np.linspace(0, top, n_dense // 2 + 1)[1:],
-                           np.linspace(0, horizon, n_dense + 1)[1:]])
-    if not crank:
-        grid = np.concatenate([grid, regime_boundaries(study, horizon)])
-    grid = np.round(grid) if crank else np.round(grid, 6)  # whole revolutions
-    pts = np.concatenate([np.asarray(at, float), np.asarray(e.snapshot_points, float), grid])
-    return np.unique(pts[pts > 0])
-
-
-def regime_boundaries(study: Study, horizon: float) -> np.ndarray:
-    """Hours at which the duty cycle changes block, up to `horizon` (none past
-    MAX_REGIME_POINTS). Within a block the depth grows smoothly; at a change its rate jumps
-    (the boom: 1 h at 20°, then 4 h at 1°), so a grid that straddles a change misplaces a
-    crossing by up to the grid step. The adaptive wear loop already ends a piece at each
-    change, so snapshots there cost no integration steps."""
-    blocks = study.config.duty_cycle
-    if len(blocks) < 2:
-        return np.zeros(0)
-    ends = np.cumsum([b.duration_h for b in blocks])
-    period = float(ends[-1])
-    n = int(math.ceil(horizon / period))
-    if n * len(blocks) > MAX_REGIME_POINTS:
-        return np.zeros(0)
-    t = (np.arange(n)[:, None] * period + ends[None, :]).ravel()
-    return t[t <= horizon * (1 + 1e-12)]
-
-
-def forecast_study(study: Study, points: list[np.ndarray]) -> Study:
-    """The study with placeholder rows at `points` per experiment (so that `build_problem`
-    makes one snapshot per point); the rows' values are never used."""
-    exps = []
-    for e, pts in zip(study.experiments, points):
-        pts = np.asarray(pts, float)
-        z = np.zeros(len(pts))
-        if timed(study.config):
-            exps.append(replace(e, hours=float(pts.max()), profile=None,
-                                history=History(hours=pts, depth=z, path="<forecast>")))
-        else:
-            exps.append(replace(e, revolutions=float(pts.max()), history=None,
-                                profile=Profile(angle=z, depth=z, revolutions=pts,
-                                                path="<forecast>")))
-    return study.with_experiments(exps)
-
-
-def forecast_snapshots(problem, u):
-    """Snapshots (E, S, N) [µm], their exact Jacobian (E, S, N, p) w.r.t. u and the
-    integration report of the forecast: one evaluation of the residual model over the
-    forecast points (`_residual.evaluate`, whose attempt count is doubled where a history
-    was truncated rather than returned)."""
-    ev, used = evaluate(problem, u, doublings=4)
-    return ev.snaps, ev.J_snaps, integration_report(used, ev)
-
-
-def forecast_layout(study: Study, train: Study, points, refine: bool = True) -> Layout:
-    """Capacities (`_residual.Layout`) that hold the training problem and the forecast over
-    `points` with room for the life's refinement rounds (`LIFE_ROOM_ROUNDS` x 3
-    brackets x `LIFE_REFINE_POINTS` more points per experiment), rounded up to buckets:
-    the fit and every forecast then share one compiled function. Attempts: the forecast's
-    at the study's values (a fit raises them where its values need more)."""
-
-    plist = [study.params(e) for e in study.experiments]
-    fs = experiment_schedules(forecast_study(study, points), plist)
-    ts = experiment_schedules(train, plist)
-    room = LIFE_ROOM_ROUNDS * 3 * LIFE_REFINE_POINTS if refine else 0
-    return Layout(updates=bucket(max(fs.cycles.shape[-1], ts.cycles.shape[-1]) + room),
-                  snapshots=bucket(max(fs.n_snapshots, ts.n_snapshots) + room),
-                  attempts=max(fs.attempts, ts.attempts))
-
-
-def forecast_problem(train: Study, base, points, layout: Layout | None = None):
-    """The problem `base` (a training problem, or a `FitResult` whose problem it is) over
-    the forecast `points` (one array per experiment): the same packing, parameters, rows
-    and row correction, its rows read from the forecast's snapshots (`train`: the training
-    study whose snapshot points the rows index), the schedule to max(points) padded to
-    `layout` (when it holds it; else bucketed capacities, so that refinement rounds share
-    a compilation). Its u is the training problem's: u = `result.u` is the fit."""
-
-    base = getattr(base, "problem", base)
-    plist = [train.params(e) for e in train.experiments]
-    fstudy = forecast_study(train, points)
-    sched = experiment_schedules(fstudy, plist)
-    if layout is None or not layout.holds(sched):
-        layout = Layout(bucket(sched.cycles.shape[-1]), bucket(sched.n_snapshots),
-                        sched.attempts)
-    attempts = max(layout.attempts, base.schedule.attempts)
-    sched = experiment_schedules(fstudy, plist, replace(layout, attempts=attempts))
-    d = base.data
-    exp, snap = np.asarray(d.exp), np.asarray(d.snap)
-    new = np.empty_like(snap)
-    for i, (e, s) in enumerate(zip(exp, snap)):
-        t = train.experiments[e].snapshot_points[s]
-        j = int(np.argmin(np.abs(np.asarray(points[e]) - t)))
-        if not math.isclose(float(points[e][j]), float(t), rel_tol=1e-9, abs_tol=1e-9):
-            raise RuntimeError(f"forecast points of experiment {e} miss the training point "
-                               f"{t:g}")
-        new[i] = j
-    data = replace(d, snap=jnp.asarray(new, jnp.int32))
-    return replace(base, schedule=sched, data=data)
-
-
-def stop_past_layer(study: Study, fprob, points, at, factor: float = 1.0):
-    """`fprob` whose (adaptive) runs stop once, past the last `at` point, the maximum depth
-    has reached `factor` x the layer (≥ every allowed limit): the points after serve only
-    the life estimate, which needs to know that the forecast is past the limit, not by how
-    much; their snapshots come back +inf (`fill_past_stop`). Integrating on through the
-    substrate to 10x the last measurement cost the boom's forecasts over 30x the steps (and
-    ran out of attempts). Eq-23 schedules are returned unchanged."""
-    sched = fprob.schedule
-    if not sched.adaptive:
-        return fprob
-    depth, after = [], []
-    snap = np.asarray(sched.snapshot)
-    ends = np.asarray(sched.cycle_end)
-    for i, (e, pts) in enumerate(zip(study.experiments, points)):
-        k = int(np.argmin(np.abs(np.asarray(pts) - max(at))))
-        j = np.nonzero(snap[i] == k)[0]
-        after.append(float(ends[i, j[0]]) if len(j) else float(ends[i].max()))
-        depth.append(factor * float(study.params(e).layer_thickness))
-    return replace(fprob, schedule=sched.stopping_at(np.array(depth), np.array(after)))
-
-
 # ---------------------------------------------------------------- covariance, quantiles
-
-
-def draw_quantile(y, q: float):
-    """Quantile `q` over the draws (axis 0) by NumPy's default linear interpolation, where
-    +inf (a draw past the limit) is allowed: between two +inf order statistics it is +inf
-    (np.quantile gives NaN from inf - inf), at an exact order statistic it is that one."""
-    s = np.sort(np.asarray(y, float), axis=0)
-    pos = q * (s.shape[0] - 1)
-    k = int(math.floor(pos))
-    g = pos - k
-    lo, hi = s[k], s[min(k + 1, s.shape[0] - 1)]
-    with np.errstate(invalid="ignore"):
-        return np.where((g == 0) | (lo == hi), lo, lo + g * (hi - lo))
-
-
-def t_quantile(level: float, dof: float) -> float:
-    """Two-sided central quantile: Student-t with `dof` (normal when dof is inf)."""
-    p = 0.5 + level / 2
-    return float(stats.norm.ppf(p) if not math.isfinite(dof) else stats.t.ppf(p, dof))
-
-
-def _band(g, cov, null_dirs, noise, q):
-    """(sd_model, sd_prediction) for gradient rows g (..., p)."""
-    var = np.einsum("...i,ij,...j->...", g, cov, g)
-    sd = np.sqrt(np.clip(var, 0, None))
-    if null_dirs.shape[1]:
-        # A forecast that moves along an undetermined direction has no finite band. "Moves":
-        # by more than 1 % of the noise level per unit step along it (u's units are a
-        # typical change: a factor e of a log parameter, `scale` of a linear one). A
-        # relative test alone flagged forecasts whose derivative along it is the
-        # integrator's round-off: the boom's running-in distance S_r, once running-in ends
-        # before the first measurement, fixes nothing the forecast at 20 h depends on.
-        along = np.linalg.norm(g @ null_dirs, axis=-1)
-        leak = along > np.maximum(1e-6 * np.linalg.norm(g, axis=-1), 0.01 * noise)
-        sd = np.where(leak, np.inf, sd)
-    return sd, np.sqrt(sd ** 2 + noise ** 2)
-
-
-def crossing(t, y, limit):
-    """(t_x, t_before, t_after): the first t at which y reaches `limit` (linear
-    interpolation from (0, 0)) and the grid step it lies in; None if never. Non-finite y
-    counts as reached at its point (the layer is worn through there)."""
-    tt = np.concatenate([[0.0], t])
-    yy = np.concatenate([[0.0], y])
-    for k in range(1, len(tt)):
-        if not np.isfinite(yy[k]):
-            return float(tt[k]), float(tt[k - 1]), float(tt[k])
-        if yy[k] >= limit:
-            y0 = yy[k - 1]
-            x = tt[k - 1] + (limit - y0) / (yy[k] - y0) * (tt[k] - tt[k - 1])
-            return float(x), float(tt[k - 1]), float(tt[k])
-    return None
-
-
-def life_of(name, t, depth, lower, upper, limit, unit, horizon) -> Life:
-    found = [crossing(t, y, limit) for y in (depth, upper, lower)]
-    at, lo, hi = (None if c is None else c[0] for c in found)
-    brackets = tuple((a, b, x) for x, a, b in filter(None, found))
-    reason = None
-    if at is None:
-        reason = (f"the forecast does not reach {limit:g} µm within {LIFE_HORIZON:g}x the last "
-                  f"measured count ({horizon:g} {unit})")
-    elif hi is None:
-        reason = (f"the lower band does not reach {limit:g} µm within {horizon:g} {unit}: "
-                  f"no upper bound")
-    return Life(name, float(limit), at, lo, hi, unit, reason,
-                max((b - a for a, b, _ in brackets), default=None), brackets)
-
-
-def _parts(a: float, b: float) -> int:
-    """Equal parts of [a, b] each within LIFE_RTOL of any crossing in it (≥ a)."""
-    return math.ceil((b - a) / (LIFE_RTOL * max(abs(a), 1e-300)) * (1 - 1e-12))
-
-
-def _merged(pts: np.ndarray, new: np.ndarray, crank: bool) -> np.ndarray:
-    """`pts` with the points `new` (whole revolutions for a crank-slider study), sorted and
-    unique."""
-    new = np.round(new) if crank else np.round(new, 6)
-    return np.unique(np.concatenate([pts, new[new > 0]]))
-
-
-def refine_count(a: float, b: float) -> int:
-    """Points to add inside the bracket [a, b] so that each part is within LIFE_RTOL of any
-    crossing in it (≥ a), at most LIFE_REFINE_POINTS: one round where that suffices (each
-    round of a sampled forecast runs every draw again: ~185 s on the boom's importance
-    posterior, which took three rounds of 8 points)."""
-    return int(min(max(_parts(a, b) - 1, 1), LIFE_REFINE_POINTS))
-
-
-def refined_points(study: Study, res: PredictResult, points: list[np.ndarray]):
-    """`points` with `refine_count` more inside every life bracket wider than LIFE_RTOL of
-    its crossing (whole revolutions for a crank-slider study); None when none is."""
-    crank = not timed(study.config)
-    out, more = [], False
-    for pts, life in zip(points, res.life):
-        new = [np.linspace(a, b, refine_count(a, b) + 2)[1:-1]
-               for a, b, x in life.brackets if b - a > LIFE_RTOL * abs(x)]
-        merged = _merged(pts, np.concatenate(new) if new else np.zeros(0), crank)
-        more |= len(merged) > len(pts)
-        out.append(merged)
-    return out if more else None
-
-
-def guided_points(study: Study, res: PredictResult, points: list[np.ndarray]):
-    """`points` with a grid every LIFE_RTOL of the crossing over the span of each
-    experiment's life brackets in `res` (a Laplace forecast's: the sampled band's crossings
-    lie near its), where that takes at most LIFE_ROOM_ROUNDS x 3 x LIFE_REFINE_POINTS points
-    (the room the layout keeps for refinements); None where no experiment gets any."""
-    crank = not timed(study.config)
-    out, more = [], False
-    for pts, life in zip(points, res.life):
-        if not life.brackets:
-            out.append(pts)
-            continue
-        a, b = min(x[0] for x in life.brackets), max(x[1] for x in life.brackets)
-        n = _parts(a, b)
-        if not (a > 0 and 1 < n <= LIFE_ROOM_ROUNDS * 3 * LIFE_REFINE_POINTS):
-            out.append(pts)
-            continue
-        merged = _merged(pts, np.linspace(a, b, n + 1)[1:-1], crank)
-        more |= len(merged) > len(pts)
-        out.append(merged)
-    return out if more else None
 
 
 # ---------------------------------------------------------------- the API
@@ -683,111 +376,3 @@ def sampling_level(train: Study, keys, problem, result: FitResult, layout, noise
     return c_base.with_defect(defect), c_train, c_base
 
 
-def _param_table(result: FitResult, cov, q, null_dirs):
-    prob = result.problem
-    vals = np.asarray(result.values)
-    # a parameter with a component along an undetermined direction has no standard error
-    unknown = np.sum(null_dirs ** 2, axis=1) > 1e-6
-    G = prob.packing.value_jacobian(result.u)  # diagonal but for product pairs
-    out = {}
-    for i, (name, f) in enumerate(zip(result.names, prob.columns)):
-        touches = np.any((np.abs(G[i]) > 0) & unknown)
-        se_u = math.inf if unknown[i] else math.sqrt(max(cov[i, i], 0.0))
-        if f.log:
-            se, lo, hi = vals[i] * se_u, vals[i] * math.exp(-q * se_u), vals[i] * math.exp(q * se_u)
-        else:
-            se = math.inf if touches else math.sqrt(max(float(G[i] @ cov @ G[i]), 0.0))
-            lo, hi = vals[i] - q * se, vals[i] + q * se
-        out[name] = {"value": float(vals[i]), "stderr": _jf(se), "lower": _jf(lo),
-                     "upper": _jf(hi)}
-    return out
-
-
-def _assemble(study, train, at, points, limit_um, level, method, unit, train_until, result,
-              cov, null_dirs, noise, noise_given, dof, q, flags, snaps, J, draws, extra,
-              life=True):
-    preds, lives, curves, profiles, measured = [], [], {}, {}, {}
-    trained_on = []
-    alpha = (1 - level) / 2
-    for ei, e in enumerate(study.experiments):
-        pts = points[ei]
-        S = len(pts)
-        if draws is None:
-            s = snaps[ei, :S]  # (S, N)
-            k = np.argmax(s, axis=1)
-            depth = s[np.arange(S), k]
-            g = J[ei, np.arange(S), k]  # (S, p)
-            sd_m, sd_p = _band(g, cov, null_dirs, noise, q)
-            c_lo, c_hi = depth - q * sd_m, depth + q * sd_m
-            p_lo, p_hi = depth - q * sd_p, depth + q * sd_p
-        else:
-            d = draws["max_um"][:, ei, :S]  # (draws, S)
-            y = draws["new_um"][:, ei, :S]
-            depth = np.median(d, axis=0)
-            c_lo, c_hi = np.quantile(d, alpha, axis=0), np.quantile(d, 1 - alpha, axis=0)
-            p_lo, p_hi = draw_quantile(y, alpha), draw_quantile(y, 1 - alpha)
-            with np.errstate(invalid="ignore"):  # NaN past worn-through draws (unused)
-                sd_m, sd_p = np.std(d, axis=0), np.std(y, axis=0)
-        layer = float(study.params(e).layer_thickness) * 1e6
-        valid = np.isfinite(depth) & (np.maximum.accumulate(np.nan_to_num(depth, nan=np.inf))
-                                      < layer)
-        curves[e.name] = Curve(pts, depth, p_lo, p_hi, c_lo, c_hi, valid)
-        mpts, mmax = measured_max(e)
-        te = train.experiments[ei]
-        tpts = set(te.snapshot_points)
-        measured[e.name] = (mpts, mmax, np.array([m in tpts for m in mpts], bool))
-        if tpts:
-            trained_on.append({"experiment": e.name, "unit": unit, "points": sorted(tpts),
-                               "rows": int(np.sum(np.asarray(result.problem.data.exp) == ei))})
-        for a in at:
-            j = int(np.argmin(np.abs(pts - a)))
-            hit = np.isclose(mpts, a, rtol=1e-9, atol=1e-9)
-            meas = float(mmax[hit][0]) if hit.any() else None
-            bad = not valid[j]
-            preds.append(Prediction(
-                e.name, float(a), unit, np.inf if bad else float(depth[j]),
-                *(np.nan if bad else float(v) for v in (p_lo[j], p_hi[j])), meas,
-                *(np.nan if bad else float(v) for v in (c_lo[j], c_hi[j], sd_m[j], sd_p[j]))))
-            if bad:
-                flags.append(f"{e.name} at {a:g} {unit}: the layer is worn through (no forecast)")
-        horizon = LIFE_HORIZON * _last_count(te if te.snapshot_points else e)
-        life_mask = pts <= horizon * (1 + 1e-12)
-        # Past the central forecast's wear-through the model is extrapolated (first point
-        # beyond the layer): its values still place the crossing between two grid points.
-        def fin(v):
-            # NaN (worn through) counts as reached; a band of ±inf (no band: an
-            # undetermined direction) stays as it is: the upper reaches at once, the lower
-            # never
-            return np.where(np.isnan(v), np.inf, v)[life_mask]
-
-        if life:
-            lives.append(life_of(e.name, pts[life_mask], fin(depth), fin(p_lo), fin(p_hi),
-                                 limit_um, unit, horizon))
-        j = int(np.argmin(np.abs(pts - max(at))))
-        if draws is None:
-            prof = snaps[ei, j]
-            sdm, sdp = _band(J[ei, j], cov, null_dirs, noise, q)
-            plo, phi, clo, chi = prof - q * sdp, prof + q * sdp, prof - q * sdm, prof + q * sdm
-        else:
-            pr = draws["snapshots_um"][:, ei, j]  # (draws, N)
-            prof = np.median(pr, axis=0)
-            clo, chi = np.quantile(pr, alpha, axis=0), np.quantile(pr, 1 - alpha, axis=0)
-            yy = pr + draws["noise"][:, None] * np.random.default_rng(ei).standard_normal(
-                pr.shape)
-            plo, phi = np.quantile(yy, alpha, axis=0), np.quantile(yy, 1 - alpha, axis=0)
-        if prof is not None:
-            n = len(prof)
-            profiles[e.name] = {"at": float(pts[j]), "angle_deg": np.arange(n) * 360.0 / n,
-                                "depth_um": prof, "lower_um": plo, "upper_um": phi,
-                                "conf_lower_um": clo, "conf_upper_um": chi}
-    return PredictResult(level=float(level), method=method, unit=unit,
-                         train_until=None if train_until is None else float(train_until),
-                         trained_on=trained_on, predictions=preds, life=lives,
-                         parameters=_param_table(result, cov, q, null_dirs), noise_um=float(noise),
-                         noise_given=noise_given, dof=float(dof), quantile=float(q),
-                         fit_converged=bool(result.converged), fit_message=result.message,
-                         fit_resolution=result.resolution,
-                         fit_evaluations=int(result.iterations),
-                         noise_source=(result.noise.describe() if result.noise else ""),
-                         flags=flags, curves=curves, profiles=profiles, measured=measured,
-                         extra=extra)
