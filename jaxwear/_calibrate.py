@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import lsq
-from ._errors import InputError
+from ._errors import FitError, InputError
 from ._noise import Noise, stated_noise
 from ._packing import parse_fit, study_fit_keys, unit_of, with_registration
 from ._residual import (
@@ -33,6 +33,7 @@ from ._residual import (
     Forward,
     Layout,
     ResidualModel,
+    attempts_needed,
     build_model,
     evaluate,
     forward_run,
@@ -41,6 +42,7 @@ from ._residual import (
     traces,
     traces_since,
     unusable_point,
+    work_failure,
 )
 from ._study import Study
 
@@ -49,10 +51,6 @@ __all__ = ["FitError", "FitResult", "Problem", "build_problem", "calibrate", "fi
            "with_registration"]
 
 Problem = ResidualModel  # calibrate's name for the study's residual model
-
-
-class FitError(RuntimeError):
-    """The fit could not start: the model cannot be evaluated at any usable start."""
 
 
 def build_problem(study: Study, keys: list[str], start: dict | None = None,
@@ -263,12 +261,18 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         # counts as a rejected step: the trust region then shrinks towards where the model
         # is affordable, and a fit that truly goes there gets there in steps (at most 4x
         # the cost each). A trial doubles the attempt count once at most.
+        # A trial whose work estimate is not finite is not run at all (the core's progress
+        # line names the cause).
+        if not math.isfinite(attempts_needed(held[0], v)):
+            return unusable_point(held[0], v, work_failure(held[0], v))
         if needs_more_attempts(held[0], v):
-            _log(verbose, f"    {label}: trial cut off unevaluated: it needs over 4x the "
-                          f"integration steps of the current point (a stiff corner); "
-                          f"counted as a rejected step")
-            return unusable_point(held[0], v)
+            return unusable_point(held[0], v, "cut off unevaluated: it needs over 4x the "
+                                  "integration steps of the current point (a stiff corner)")
         return run(v, 1)
+
+    def describe(v):
+        return ", ".join(f"{n} = {x:.6g}" for n, x in
+                         zip(problem.names, problem.packing.values_np(v)))
 
     k = next((i for i, c in enumerate(problem.columns) if c.key == "K_d_per_Pa"), None)
     if ev0 is not None:
@@ -287,7 +291,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
                      else "estimated from the residuals"))
     out = lsq.solve(model, u, point0=pt, lower=lo, upper=hi, noise_um=noise.sigma_um,
                     noise_dof=noise.dof, max_evaluations=max_evaluations, label=label,
-                    log=log, project=problem.packing.project, se_tol=se_tol)
+                    log=log, project=problem.packing.project, se_tol=se_tol,
+                    describe=describe)
     return summarize(held[0], out, evals0 + out.evaluations, noise)
 
 

@@ -107,6 +107,10 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
     def evaluate(v):
         return model.evaluate(v).point()
 
+    def describe(v):  # the fitted values, for a failed trial's progress line
+        return ", ".join(f"{n} = {x:.6g}" for n, x, f in
+                         zip(model.names, model.values(v), mask) if f)
+
     log = (lambda m: _log(True, m)) if verbose else None
     if ev0 is not None and ev0.usable:
         pt0, evals = ev0.point(), 0
@@ -115,12 +119,14 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
         u, pt0, evals, why = lsq.robust_start(evaluate, u, kd if kd is not None and mask[kd]
                                               else None, measured=model.measured,
                                               log=log, rescales=0)
+        if why and pt0 is None:  # every start raised: nothing to report a fit at
+            raise lsq.FitError(f"{label}: cannot start the fit at {describe(u)}: {why}")
         if why:
             return Fit(label, tuple(groups), mask, pt0.extra, evals, why, status="unusable")
     out = lsq.solve(evaluate, u, point0=pt0, free=mask, lower=lo, upper=hi,
                     noise_um=sigma, noise_dof=noise_dof, max_evaluations=max_evaluations,
                     se_tol=REFIT_SE_TOL, project=model.packing.project, label=f"  {label}",
-                    log=log)
+                    log=log, describe=describe)
     return fit_of(model, mask, out, label, groups, evals + out.evaluations)
 
 

@@ -57,6 +57,9 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) 
             u0[kd] += math.log(a)
             ev0 = mdl.evaluate(u0)
     same = contact == from_fit.contact
+    if not ev0.usable:  # a failed start is a value: the refit starts from the fit instead
+        _log(verbose, f"    {label}: the screen's start is not usable ({ev0.why}); "
+                      f"starting from the {from_fit.label} fit")
     if not ev0.usable or (same and objective(ev0, noise) > objective(from_fit.ev, noise)):
         u0 = from_fit.ev.u.copy()
         ev0 = from_fit.ev if same else mdl.evaluate(u0)

@@ -12,6 +12,8 @@ whitened Jacobian for the step, the stop and the errors) with undetermined direc
 flagged, and the noise rule of the errors the data support (`error_scale`).
 """
 
+from .._errors import FitError as FitError
+from .._errors import TrialFailed as TrialFailed
 from ._covariance import Covariance as Covariance
 from ._covariance import covariance as covariance
 from ._covariance import gauss_newton as gauss_newton
@@ -20,6 +22,7 @@ from ._solve import SE_TOL as SE_TOL
 from ._solve import NoiseUndetermined as NoiseUndetermined
 from ._solve import Outcome as Outcome
 from ._solve import error_scale as error_scale
+from ._solve import failure as failure
 from ._solve import solve as solve
 from ._solve import step_in_standard_errors as step_in_standard_errors
 from ._solve import whitened as whitened
