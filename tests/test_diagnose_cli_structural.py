@@ -1,0 +1,90 @@
+"""The structural candidates named from the command line on held-out data (issue 41,
+item 2): `python -m jaxwear diagnose STUDY --json FILE` in a subprocess, as a user runs it.
+
+The data are not jaxwear's: `benchmarks/hidden_physics.py` (an independent NumPy
+implementation of DESIGN §1-4, sharing no code with the package) made them at 360 nodes x
+360 steps with eq 23's M = 25, five times the study's 64 x 72 (adaptive) in each
+direction, with 0.3 µm noise on every point of whole-bore scans every 2° (negative depths
+kept), true clearances nominal + N(0, 3 µm) and K_d drawn around the study's start. The
+commands that made them are in `tests/data/heldout41/README.md`; the truth (truth.json)
+is beside each study and not referenced by it.
+
+- `unsymmetric/`: the paper's rig matrix (DESIGN §6), one scan per specimen at its end
+  (900 rows: the study of issue 41, whose diagnosis crashed with "ValueError: cannot
+  convert float NaN to integer"); the data have the unsymmetric contact, the study states
+  `contact = "symmetric"`.
+- `double_layer/`: the same matrix measured at 2000, 5000 and 10000 revolutions (2880
+  rows: with end scans only this backing, C_b = 1 µm/MPa, is at the edge of detection at
+  the family-wise level 1e-3: p 3.6e-3 measured on one seed); the data have a backing
+  layer in series with the PTFE layer (DESIGN §3), the study states a single layer.
+
+Measured (2 shared cores, other jobs running): unsymmetric 32 s wall (diagnosis 22 s, 37
+model evaluations), double_layer 55 s wall (diagnosis 43 s, 15 evaluations, each ~2 s: the
+unsymmetric contact's 2-D Newton solve at every step).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = Path(__file__).resolve().parent / "data" / "heldout41"
+# The issue's target: a verdict in under 2 minutes on 2 cores. Checked on the CPU time of
+# the whole command (start-up, compilations, the diagnosis; user + system): what it takes
+# on an idle machine whatever else shares this one (the wall time of a test on 2 cores
+# shared with other jobs measured 1.3-2.5x its CPU time). Under 120 s of CPU is under 2
+# minutes even on one core.
+LIMIT_S = 120.0
+
+
+def _cpu_children() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def _diagnose(study: Path, tmp_path: Path):
+    out, js = tmp_path / "out", tmp_path / "diagnosis.json"
+    env = dict(os.environ, PYTHONPATH=str(ROOT), JAXWEAR_NO_CACHE="1")
+    t0, c0 = time.perf_counter(), _cpu_children()
+    r = subprocess.run([sys.executable, "-m", "jaxwear", "diagnose", str(study), "--out",
+                        str(out), "--json", str(js)], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=5 * LIMIT_S)
+    wall, cpu = time.perf_counter() - t0, _cpu_children() - c0
+    assert r.returncode == 0, r.stderr[-3000:]
+    print(f"{study.parent.name}: wall {wall:.1f} s, CPU {cpu:.1f} s")
+    return json.loads(js.read_text()), cpu, r.stderr
+
+
+@pytest.mark.parametrize("name, strength", [("unsymmetric", None),
+                                            ("double_layer", "backing_compliance_um_per_MPa")])
+def test_held_out_structural_effect_is_named_from_the_command_line(tmp_path, name, strength):
+    study = DATA / name / "study.toml"
+    truth = json.loads((DATA / name / "truth.json").read_text())
+    before = sorted(p.name for p in study.parent.iterdir())
+    doc, cpu, log = _diagnose(study, tmp_path)
+    v = doc["verdict"]
+    assert v["status"] == "effect_found" and v["missing_effect"] == name, v["summary"]
+    assert doc["candidates"][0]["effect"] == name
+    assert cpu < LIMIT_S, f"{cpu:.0f} s of CPU"
+    # with it the misfit is at the noise level the data were made with (0.3 µm)
+    assert doc["after"]["rmse_um"] <= 1.1 * truth["noise_um"], doc["after"]["rmse_um"]
+    fitted = doc["candidates"][0]["parameters"]
+    kd = fitted["K_d_per_Pa"]
+    assert abs(kd["value"] - truth["K_d_per_Pa"]) < 3 * kd["stderr"], (kd, truth["K_d_per_Pa"])
+    if strength is not None:
+        c = fitted[strength]
+        true = truth["backing_compliance_um_per_MPa"]
+        assert c["stderr"] > 0 and abs(c["value"] - true) < 3 * c["stderr"], (c, true)
+    # the inputs are untouched, the outputs under --out
+    assert sorted(p.name for p in study.parent.iterdir()) == before
+    assert (tmp_path / "out" / "diagnosis.json").is_file()
+    assert math.isfinite(doc["wall_time_s"])
