@@ -523,14 +523,15 @@ def _experiment_rates(model: ResidualModel, u):
     return jax.lax.map(lambda p: _regime_rates(p, model.cfg), model.batched_params(u))
 
 
-def enough_attempts(model: ResidualModel, u, headroom: float = RAISE_HEADROOM
-                    ) -> ResidualModel:
+def enough_attempts(model: ResidualModel, u, headroom: float = RAISE_HEADROOM,
+                    need: int | float | None = None) -> ResidualModel:
     """`model` with the adaptive loop's static attempt count raised (to a power of 2 at
     `headroom` x the need, so that few compilations arise) where the parameters at u need
     more than it has (the stiffness-limited step count grows with K_d, which a fit moves by
-    orders)."""
+    orders). `need`: `attempts_needed(model, u)` where the caller has it. Raises
+    `TrialFailed` where the need is not finite."""
     sched = model.schedule
-    need = attempts_needed(model, u)
+    need = attempts_needed(model, u) if need is None else need
     if need <= sched.attempts:
         return model
     if not math.isfinite(need):
@@ -582,9 +583,10 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3
     where u needed more: a fit keeps it, so later trials neither repeat a short run nor
     recompile). Where the work estimate at u is not finite the model is not run: an
     unusable `Evaluation` saying why (a fit rejects it as a trial)."""
-    if not math.isfinite(attempts_needed(model, u)):
+    need = attempts_needed(model, u)
+    if not math.isfinite(need):
         return unusable_evaluation(model, u, work_failure(model, u)), model
-    model = enough_attempts(model, u)
+    model = enough_attempts(model, u, need=need)
     uj = jnp.asarray(u, jnp.float64)
     out = _evaluate_jit(_dynamic(model), uj)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
@@ -631,9 +633,11 @@ def forward_run(model: ResidualModel, u, *, doublings: int = 3, worn_ok: bool = 
     """The model at u without the Jacobian (`Forward`); `worn_ok`: keep the rows and
     snapshots of a run that wore through (a forecast past the layer). Where the work
     estimate at u is not finite the model is not run: NaN rows and snapshots, error inf."""
-    if not math.isfinite(attempts_needed(model, u)):
+    need = attempts_needed(model, u)
+    if not math.isfinite(need):
         ev = unusable_evaluation(model, u, work_failure(model, u))
         return Forward(ev.pred, ev.snaps, math.inf, 0, model)
+    model = enough_attempts(model, u, need=need)
     uj = jnp.asarray(u, jnp.float64)
     out = _forward_jit(_dynamic(model), uj)
     for _ in range(doublings):

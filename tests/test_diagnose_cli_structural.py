@@ -88,3 +88,34 @@ def test_held_out_structural_effect_is_named_from_the_command_line(tmp_path, nam
     assert sorted(p.name for p in study.parent.iterdir()) == before
     assert (tmp_path / "out" / "diagnosis.json").is_file()
     assert math.isfinite(doc["wall_time_s"])
+
+
+def test_the_generators_backing_layer_is_jaxwears_double_layer_at_matched_numerics():
+    """The generator's double layer (`--backing-compliance-um-per-MPa`, added for this
+    study) against jaxwear's (`double_layer = true`, DESIGN §3: 1/k = (L - h)/E_w +
+    L_b/E_w,b) at the same discrete equations (64 x 72, eq 23 with M = 100): a backing
+    of compliance C is a steel backing of thickness C E_w,b, E_w,b from eq 15."""
+    import numpy as np
+
+    import jaxwear as jw
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import hidden_physics as hp
+
+    c_um_per_mpa, e_gpa, nu = 1.0, 208.0, 0.28
+    e_w = (1 - nu) * e_gpa / ((1 + nu) * (1 - 2 * nu))  # eq 15 [GPa]
+    thickness_mm = c_um_per_mpa * 1e-12 * e_w * 1e9 * 1e3  # L_b = C E_w,b
+    num = hp.Numerics(nodes=64, steps=72, M=100.0)
+    cond = hp.Condition("p276", 276.0, 2000.0, 0.05, interruptions=(2000.0,))
+    theirs = {b: hp.wear_history(cond, 0.05e-3, 1e-13, hp.Law("null"), num,
+                                 backing=b * 1e-12)["depth"][-1] * 1e6
+              for b in (0.0, c_um_per_mpa)}
+    cfg = jw.ModelConfig(nodes=num.nodes, steps_per_rev=num.steps, double_layer=True)
+    res = jw.simulate(jw.preset("rig", K_d_per_Pa=1e-13, clearance_mm=0.05,
+                                backing_thickness_mm=thickness_mm, backing_E_GPa=e_gpa,
+                                backing_poisson_ratio=nu),
+                      cfg, revolutions=2000, snapshots=[2000.0], M=num.M)
+    mine = np.asarray(res.snapshots[-1]) * 1e6
+    # the backing changes the profile far beyond the agreement asked for
+    assert np.max(np.abs(theirs[c_um_per_mpa] - theirs[0.0])) > 0.05 * theirs[0.0].max()
+    assert np.max(np.abs(mine - theirs[c_um_per_mpa])) < 1e-6 * mine.max()

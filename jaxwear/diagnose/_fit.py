@@ -11,6 +11,7 @@ import numpy as np
 
 from .. import lsq
 from .._calibrate import value_errors
+from .._residual import needs_more_attempts, unusable_point
 from ._model import Eval, Model
 
 
@@ -107,6 +108,15 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
     def evaluate(v):
         return model.evaluate(v).point()
 
+    def trial(v):
+        # as calibrate's fits: a trial that needs far more integration steps than the model
+        # has run (a stiff corner) is cut off unevaluated, a rejected step: the trust
+        # region shrinks towards where the model is affordable
+        if needs_more_attempts(model.ext, v):
+            return unusable_point(model.ext, v, "cut off unevaluated: it needs over 4x the "
+                                  "integration steps of the current point (a stiff corner)")
+        return evaluate(v)
+
     def describe(v):  # the fitted values, for a failed trial's progress line
         return ", ".join(f"{n} = {x:.6g}" for n, x, f in
                          zip(model.names, model.values(v), mask) if f)
@@ -123,7 +133,7 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
             raise lsq.FitError(f"{label}: cannot start the fit at {describe(u)}: {why}")
         if why:
             return Fit(label, tuple(groups), mask, pt0.extra, evals, why, status="unusable")
-    out = lsq.solve(evaluate, u, point0=pt0, free=mask, lower=lo, upper=hi,
+    out = lsq.solve(trial, u, point0=pt0, free=mask, lower=lo, upper=hi,
                     noise_um=sigma, noise_dof=noise_dof, max_evaluations=max_evaluations,
                     se_tol=REFIT_SE_TOL, project=model.packing.project, label=f"  {label}",
                     log=log, describe=describe)
