@@ -232,3 +232,23 @@ def test_a_trial_whose_work_estimate_is_nan_is_rejected_in_the_real_model(small_
     # the truth (hidden_physics: K_d 1.3e-13) within 3 standard errors of the answer
     kd, se = out.u[0], out.cov.se[0]
     assert abs(kd - math.log(1.3)) < 3 * se + 0.02, (math.exp(kd), se)
+
+
+def test_the_samplers_density_at_a_failing_point_is_minus_infinity(small_study):
+    """NUTS and importance sampling share one density (`_predict_nuts.log_density`): at a
+    position whose model is not finite it is -inf (the draw is rejected), not a crash."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxwear import _calibrate as cal
+    from jaxwear._predict_nuts import log_density
+    from jaxwear._study import load_study
+
+    study = load_study(small_study)
+    prob = cal.build_problem(study, cal.study_fit_keys(study))
+    logp = jax.jit(log_density(prob, noise_um=0.3))
+    good = np.zeros(prob.packing.size)
+    bad = good.copy()
+    bad[1] = 10.0  # the clearance at which the work estimate is NaN (test above)
+    assert math.isfinite(float(logp({"u": jnp.asarray(good)})))
+    assert float(logp({"u": jnp.asarray(bad)})) == -math.inf
