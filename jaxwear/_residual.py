@@ -426,11 +426,12 @@ class Evaluation:
             return self.failure
         if self.worn >= 0:
             return f"the layer wore through at cycle {self.worn:.0f}"
+        if not np.isfinite(self.error_um) and self.steps == 0:
+            return ("no wear step could be taken: the model is not finite at these values "
+                    f"(its contact residual is {self.max_residual:.3g})")
         if not np.isfinite(self.error_um):
             return ("the integration did not reach its end (the adaptive loop ran out of "
                     "attempts)")
-        if not np.isfinite(self.max_residual):
-            return "the contact solve did not converge (residual not finite)"
         for what, a in (("rows", self.r), ("Jacobian", self.J)):
             bad = ~np.isfinite(a)
             if bad.any():
@@ -591,9 +592,12 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3
     out = _evaluate_jit(_dynamic(model), uj)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
     # layer's rejections), double it (a traced bound: no recompilation) rather than use a
-    # truncated history.
+    # truncated history. Not where no experiment took a single step: a model that is not
+    # finite at u (a parameter, an effect's hook) rejects every step whatever the count
+    # (measured: three doublings to 512 attempts 3.4 s, where one run takes 0.03 s).
     for _ in range(doublings):
-        if not (model.schedule.adaptive and not np.isfinite(float(out[2][5]))):
+        if not (model.schedule.adaptive and not np.isfinite(float(out[2][5]))
+                and int(out[2][6]) > 0):
             break
         model = model.with_schedule(model.schedule.more_attempts())
         out = _evaluate_jit(_dynamic(model), uj)
