@@ -87,6 +87,12 @@ def test_held_out_structural_effect_is_named_from_the_command_line(tmp_path, nam
         c = fitted[strength]
         true = truth["backing_compliance_um_per_MPa"]
         assert c["stderr"] > 0 and abs(c["value"] - true) < 3 * c["stderr"], (c, true)
+    if name == "unsymmetric":
+        # the crash: trials where the work estimate is NaN, now rejected steps,
+        # each on one progress line naming the values and the cause
+        failed = [ln for ln in log.splitlines() if "rejected, the trial failed at" in ln]
+        assert any("work estimate is not finite" in ln and "clearance_mm/" in ln
+                   for ln in failed), failed
     # the inputs are untouched, the outputs under --out
     assert sorted(p.name for p in study.parent.iterdir()) == before
     assert (tmp_path / "out" / "diagnosis.json").is_file()

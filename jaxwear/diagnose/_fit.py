@@ -11,7 +11,7 @@ import numpy as np
 
 from .. import lsq
 from .._calibrate import value_errors
-from .._residual import needs_more_attempts, unusable_point
+from .._residual import attempts_needed, needs_more_attempts, unusable_point, work_failure
 from ._model import Eval, Model
 
 
@@ -111,7 +111,10 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
     def trial(v):
         # as calibrate's fits: a trial that needs far more integration steps than the model
         # has run (a stiff corner) is cut off unevaluated, a rejected step: the trust
-        # region shrinks towards where the model is affordable
+        # region shrinks towards where the model is affordable; one whose work estimate is
+        # not finite cannot run at all
+        if not math.isfinite(attempts_needed(model.ext, v)):
+            return unusable_point(model.ext, v, work_failure(model.ext, v))
         if needs_more_attempts(model.ext, v):
             return unusable_point(model.ext, v, "cut off unevaluated: it needs over 4x the "
                                   "integration steps of the current point (a stiff corner)")
