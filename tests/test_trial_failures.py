@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from jaxwear import lsq
-from jaxwear._errors import FitError, TrialFailed
+from jaxwear.lsq import FitError, TrialFailed
 
 T = np.linspace(0.0, 5.0, 200)
 SIGMA = 0.05
@@ -199,10 +199,10 @@ def small_study(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def problem(small_study):
+    import jaxwear as jw
     from jaxwear import _calibrate as cal
-    from jaxwear._study import load_study
 
-    study = load_study(small_study)
+    study = jw.load_study(small_study)
     prob = cal.build_problem(study, cal.study_fit_keys(study))
     assert prob.names == ("K_d_per_Pa", "clearance_mm/a276", "clearance_mm/b148",
                           "pressure_exponent")
