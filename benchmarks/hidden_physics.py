@@ -10,6 +10,7 @@ jaxwear: the two meet only in the files.
         [--strength S] [--set KEY=VALUE ...] [--conditions paper|other|FILE.toml]
         [--noise-um 0.3] [--nodes 180 --steps 360 --M 25] [--study-numerics auto|NxS]
         [--clearance-sd-um 3] [--kd-sd 0.15]
+        [--backing-compliance-um-per-MPa 0] [--study-contact symmetric]
 
 Laws (`LAWS`; each with a strength, 0 = the base model): `impact` (wear deposited at the
 load direction where it turns fast, resolved along the swept arc), `threshold` (the wear
@@ -23,6 +24,12 @@ Archard wear with eq 23's M revolutions per update and a partial block where a s
 or the end asks for it); the contact is solved for all steps of a revolution at once by a
 batched semi-smooth Newton method with backtracking on the convex potential (relative force
 residual < 1e-10), warm-started from the previous update.
+
+Structural choices (DESIGN §3, §5), for the diagnosis of a study that leaves them out:
+`--backing-compliance-um-per-MPa C` puts a backing layer of compliance C = L_b/E_w,b
+under the wearing one (the double elastic layer, springs in series: 1/k_j = (L - h_j)/E_w
++ C; 0 = a single layer), and `--study-contact symmetric` writes a study that states the
+traditional symmetric contact (the data keep the unsymmetric one).
 
 Exit codes: 0 done, 2 bad input (one line), 1 anything else.
 """
@@ -425,9 +432,11 @@ class Numerics:
 
 
 def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
-                 num: Numerics = Numerics()) -> dict:
+                 num: Numerics = Numerics(), backing: float = 0.0) -> dict:
     """Wear of one specimen: Archard (DESIGN §4) with eq 23's updates of M revolutions
     (profile frozen within one), ending exactly at every measurement point, plus the law.
+    `backing` [m/Pa]: compliance L_b/E_w,b of a backing layer in series (DESIGN §3's double
+    layer; 0: the single layer).
 
     **Returns:** `depth` (points, nodes) [m] at `points` (revolutions), `theta` (nodes,)
     [rad], `hidden_volume` and `volume` [m³] at the end (the law's share of the worn
@@ -445,7 +454,8 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
     for target in points:
         while done < target - 1e-9:
             block = min(num.M, target - done)
-            k = ref.E_W / (ref.LAYER - h)  # eq 14, the worn (thinner) layer
+            # eq 14, the worn (thinner) layer, in series with a backing (DESIGN §3)
+            k = 1.0 / ((ref.LAYER - h) / ref.E_W + backing)
             p, e = contact_batch(normals, clearance + h, k, area, cyc.load, e)
             rate = K_d * p * cyc.slide[:, None]  # eq 21 per step and node
             factor = law.rate_factor(p, cyc.speed)
@@ -478,21 +488,28 @@ class Generated:
 def generate(law: Law, conditions, *, seed: int = 0, noise_um: float = 0.3,
              num: Numerics = Numerics(), kd_start: float = 1e-13, kd_sd: float = 0.15,
              K_d: float | None = None, clearance_sd_um: float = 3.0,
-             scan_step_deg: float = 2.0, verbose: bool = False) -> Generated:
+             scan_step_deg: float = 2.0, backing_um_per_MPa: float = 0.0,
+             verbose: bool = False) -> Generated:
     """Data of `conditions` (Conditions) with `law` hidden: true K_d = `K_d` or the start
     value times a log-normal factor (σ = `kd_sd`), each true clearance nominal + N(0,
     `clearance_sd_um`), whole-bore scans every `scan_step_deg` with N(0, `noise_um`) on
-    every point (negative depths included), at every measurement point."""
+    every point (negative depths included), at every measurement point. A backing layer of
+    compliance `backing_um_per_MPa` [µm/MPa] (0: none) under the wearing one."""
     if not (noise_um >= 0 and clearance_sd_um >= 0 and kd_sd >= 0 and scan_step_deg > 0):
         raise BadInput("noise, clearance spread and K_d spread must be >= 0, the scan step "
                        "> 0")
+    if not (math.isfinite(backing_um_per_MPa) and backing_um_per_MPa >= 0):
+        raise BadInput(f"--backing-compliance-um-per-MPa must be a finite number >= 0, got "
+                       f"{backing_um_per_MPa!r}")
     rng = np.random.default_rng(seed)
     kd = float(K_d) if K_d is not None else kd_start * math.exp(kd_sd * rng.standard_normal())
     truth = {"generator": "benchmarks/hidden_physics.py", "law": asdict(law),
              "K_d_per_Pa": kd, "K_d_start_per_Pa": kd_start, "clearance_mm": {},
              "clearance_nominal_mm": {}, "clearance_sd_um": clearance_sd_um,
              "noise_um": noise_um, "seed": seed, "numerics": asdict(num),
-             "scan_step_deg": scan_step_deg, "hidden_volume_fraction": {},
+             "scan_step_deg": scan_step_deg,
+             "backing_compliance_um_per_MPa": backing_um_per_MPa,
+             "hidden_volume_fraction": {},
              "peak_depth_um": {}, "updates": {}, "seconds": {}}
     gen = Generated(truth)
     clearances = {c.name: c.clearance_mm + 1e-3 * clearance_sd_um * rng.standard_normal()
@@ -502,7 +519,8 @@ def generate(law: Law, conditions, *, seed: int = 0, noise_um: float = 0.3,
         if not 0 < cl < ref.R_B * 1e3:
             raise BadInput(f"{cond.name}: true clearance {cl:g} mm outside (0, bore radius)")
         t0 = time.perf_counter()
-        res = wear_history(cond, cl * 1e-3, kd, law, num)
+        res = wear_history(cond, cl * 1e-3, kd, law, num,
+                           backing=backing_um_per_MPa * 1e-12)  # µm/MPa = 1e-12 m/Pa
         sec = time.perf_counter() - t0
         if verbose:
             print(f"hidden_physics: {cond.name}: {res['updates']} updates, peak "
@@ -542,14 +560,16 @@ def _toml(v) -> str:
 
 
 def study_text(conditions, kd_start: float, study_numerics, clearance_sd_um: float,
-               spring: float = 1009.4) -> str:
+               spring: float = 1009.4, contact: str | None = None) -> str:
     """study.toml (DESIGN §6): nominal clearances, the K_d start, the numerics a user would
     choose (`study_numerics` None: none, so jaxwear chooses them by the error), the
-    clearance tolerance."""
+    clearance tolerance; `contact` the contact the study states (None: the default)."""
     lines = ["# Written by benchmarks/hidden_physics.py: data with physics outside jaxwear's",
              "# library, at finer numerics than any fit uses. The truth is in truth.json",
-             "# (not referenced by this study).", "[model]", 'preset = "rig"',
-             "[model.parameters]", f"K_d_per_Pa = {kd_start:g}",
+             "# (not referenced by this study).", "[model]", 'preset = "rig"']
+    if contact is not None:
+        lines.append(f"contact = {_toml(contact)}")
+    lines += ["[model.parameters]", f"K_d_per_Pa = {kd_start:g}",
              f"spring_N_per_m = {_toml(spring)}"]
     if study_numerics is not None:
         nodes, steps = study_numerics
@@ -583,7 +603,7 @@ def check_outputs(out, conditions, inputs=()) -> Path:
 
 
 def write(out, gen: Generated, conditions, *, kd_start=1e-13, study_numerics=None,
-          inputs=()) -> Path:
+          inputs=(), contact: str | None = None) -> Path:
     """study.toml, one profile CSV per experiment (`angle_deg,depth_um,revolutions`),
     truth.json and truth_profiles.csv (noise-free node values) in `out`. Refuses (BadInput)
     a file that would replace one of `inputs`; each file is written to a temporary name
@@ -602,7 +622,7 @@ def write(out, gen: Generated, conditions, *, kd_start=1e-13, study_numerics=Non
     _atomic(out / "truth.json", json.dumps(gen.truth, indent=2) + "\n")
     spring = conditions[0].spring_N_per_m if conditions else 1009.4
     _atomic(out / "study.toml", study_text(conditions, kd_start, study_numerics,
-                                           gen.truth["clearance_sd_um"], spring))
+                                           gen.truth["clearance_sd_um"], spring, contact))
     return out / "study.toml"
 
 
@@ -672,6 +692,10 @@ def main(argv=None) -> int:
     ap.add_argument("--kd-sd", type=float, default=0.15)
     ap.add_argument("--kd", type=float, default=None, help="true K_d [1/Pa] (default drawn)")
     ap.add_argument("--scan-step-deg", type=float, default=2.0)
+    ap.add_argument("--backing-compliance-um-per-MPa", type=float, default=0.0,
+                    help="compliance L_b/E_w,b of a backing layer in the data (0: none)")
+    ap.add_argument("--study-contact", choices=("symmetric", "unsymmetric"), default=None,
+                    help="the contact the written study states (default: none stated)")
     args = ap.parse_args(argv)
     try:
         law = _law_from(args)
@@ -692,11 +716,12 @@ def main(argv=None) -> int:
         gen = generate(law, conds, seed=args.seed, noise_um=args.noise_um, num=num,
                        kd_start=kd_start, kd_sd=args.kd_sd, K_d=args.kd,
                        clearance_sd_um=args.clearance_sd_um,
-                       scan_step_deg=args.scan_step_deg, verbose=True)
+                       scan_step_deg=args.scan_step_deg,
+                       backing_um_per_MPa=args.backing_compliance_um_per_MPa, verbose=True)
         gen.truth["study_numerics"] = "auto" if study_num is None else list(study_num)
         gen.truth["seconds_total"] = time.perf_counter() - t0
         path = write(args.out, gen, conds, kd_start=kd_start, study_numerics=study_num,
-                     inputs=inputs)
+                     inputs=inputs, contact=args.study_contact)
     except BadInput as e:
         print(f"hidden_physics: error: {e}", file=sys.stderr)
         return 2

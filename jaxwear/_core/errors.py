@@ -10,3 +10,18 @@ class InputError(ValueError):
 
 class WornThroughError(RuntimeError):
     """The bushing layer was worn through (h_j ≥ L) during a simulation."""
+
+
+class TrialFailed(RuntimeError):
+    """A model evaluation at a trial point gave no usable value: rows or a work estimate not
+    finite, a contact solve or an integration that did not converge, work beyond the budget.
+
+    Model evaluations may raise it; the least-squares core (`_inference.lsq.solve`) catches it
+    around its trials only and counts the trial as a rejected step (the trust region shrinks,
+    one progress line names the cause). The message says what failed; the core adds where.
+    """
+
+
+class FitError(RuntimeError):
+    """A fit could not start: the model gives no usable value at the start, where there is
+    nothing to fall back to. The message names the parameter values and the cause."""

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import FitError, InputError
 from jaxwear._core.jsonfmt import json_float as _jf
 from jaxwear._core.log import log as _log
 from jaxwear._core.noise import Noise, stated_noise
@@ -36,6 +36,7 @@ from jaxwear._inference.residual import (
     Forward,
     Layout,
     ResidualModel,
+    attempts_needed,
     build_model,
     evaluate,
     forward_run,
@@ -44,6 +45,7 @@ from jaxwear._inference.residual import (
     traces,
     traces_since,
     unusable_point,
+    work_failure,
 )
 from jaxwear._study import resolution as res
 from jaxwear._study.resolution import amplification_warnings
@@ -53,10 +55,6 @@ __all__ = ["FitError", "FitResult", "build_problem", "calibrate", "fit",
            "fit_study", "parse_fit", "registered", "study_fit_keys", "unit_of",
            "with_registration"]
 
-
-
-class FitError(RuntimeError):
-    """The fit could not start: the model cannot be evaluated at any usable start."""
 
 
 def build_problem(study: Study, keys: list[str], start: dict | None = None,
@@ -257,12 +255,18 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         # counts as a rejected step: the trust region then shrinks towards where the model
         # is affordable, and a fit that truly goes there gets there in steps (at most 4x
         # the cost each). A trial doubles the attempt count once at most.
+        # A trial whose work estimate is not finite is not run at all (the core's progress
+        # line names the cause).
+        if not math.isfinite(attempts_needed(held[0], v)):
+            return unusable_point(held[0], v, work_failure(held[0], v))
         if needs_more_attempts(held[0], v):
-            _log(verbose, f"    {label}: trial cut off unevaluated: it needs over 4x the "
-                          f"integration steps of the current point (a stiff corner); "
-                          f"counted as a rejected step")
-            return unusable_point(held[0], v)
+            return unusable_point(held[0], v, "cut off unevaluated: it needs over 4x the "
+                                  "integration steps of the current point (a stiff corner)")
         return run(v, 1)
+
+    def describe(v):
+        return ", ".join(f"{n} = {x:.6g}" for n, x in
+                         zip(problem.names, problem.packing.values_np(v)))
 
     k = next((i for i, c in enumerate(problem.columns) if c.key == "K_d_per_Pa"), None)
     if ev0 is not None:
@@ -281,7 +285,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
                      else "estimated from the residuals"))
     out = lsq.solve(model, u, point0=pt, lower=lo, upper=hi, noise_um=noise.sigma_um,
                     noise_dof=noise.dof, max_evaluations=max_evaluations, label=label,
-                    log=log, project=problem.packing.project, se_tol=se_tol)
+                    log=log, project=problem.packing.project, se_tol=se_tol,
+                    describe=describe)
     return summarize(held[0], out, evals0 + out.evaluations, noise)
 
 

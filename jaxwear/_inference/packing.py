@@ -133,9 +133,10 @@ class Packing(eqx.Module):
         s = np.asarray(self.start, np.float64)
         sc = np.array([c.scale for c in self.columns])
         lg = np.array([c.log for c in self.columns], bool)
-        v = np.where(lg, s * np.exp(np.where(lg, u, 0.0)), s + sc * u)
-        for i, j in self._pairs():
-            v[i] = v[i] * math.exp(-u[j])
+        with np.errstate(over="ignore", invalid="ignore"):  # inf far out, not an error
+            v = np.where(lg, s * np.exp(np.where(lg, u, 0.0)), s + sc * u)
+            for i, j in self._pairs():
+                v[i] = v[i] * np.exp(-u[j])
         return v
 
     def value_jacobian(self, u) -> np.ndarray:
@@ -143,12 +144,15 @@ class Packing(eqx.Module):
         u = np.asarray(u, np.float64)
         s = np.asarray(self.start, np.float64)
         G = np.zeros((self.size, self.size))
-        for i, c in enumerate(self.columns):
-            G[i, i] = s[i] * math.exp(u[i]) if c.log else c.scale
-        v = self.values_np(u)
-        for i, j in self._pairs():
-            G[i, i] *= math.exp(-u[j])
-            G[i, j] = -v[i]
+        # a trial far out (a log coordinate past ~709) gives inf, never an exception: the
+        # fit rejects it as not finite (`lsq.solve`)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for i, c in enumerate(self.columns):
+                G[i, i] = s[i] * np.exp(u[i]) if c.log else c.scale
+            v = self.values_np(u)
+            for i, j in self._pairs():
+                G[i, i] *= np.exp(-u[j])
+                G[i, j] = -v[i]
         return G
 
     def u_of(self, values) -> np.ndarray:
@@ -193,10 +197,11 @@ class Packing(eqx.Module):
         idx = [i for i, c in enumerate(self.columns) if c.has_prior]
         if not idx:
             return np.zeros(0), np.zeros((0, self.size))
-        v, G = self.values_np(u), self.value_jacobian(u)
-        sd = np.array([self.columns[i].prior_sd for i in idx])
-        centre = np.array([self.columns[i].prior_centre for i in idx])
-        return (v[idx] - centre) / sd, G[idx] / sd[:, None]
+        with np.errstate(over="ignore", invalid="ignore"):  # inf far out, not an error
+            v, G = self.values_np(u), self.value_jacobian(u)
+            sd = np.array([self.columns[i].prior_sd for i in idx])
+            centre = np.array([self.columns[i].prior_centre for i in idx])
+            return (v[idx] - centre) / sd, G[idx] / sd[:, None]
 
     def log_prior(self, u):
         """Log prior density of u (traceable, up to a constant), for the posterior (NUTS):

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import InputError, TrialFailed
 from jaxwear._inference import lsq
 from jaxwear._inference.packing import (
     Packing,
@@ -394,7 +394,8 @@ class Evaluation:
     `J_snaps` (E, S, N, P); `max_residual`: largest relative contact residual; `worn`:
     largest worn-through cycle (−1: none); `sliding_m` (E,); `error_um`: integration
     error estimate of the worst experiment (inf: the adaptive loop ran out of attempts);
-    `steps`: accepted integration steps of the longest experiment.
+    `steps`: accepted integration steps of the longest experiment; `failure`: why the model
+    was not run at u (`unusable_evaluation`), "" where it ran.
     """
 
     u: np.ndarray
@@ -411,11 +412,31 @@ class Evaluation:
     error_um: float
     steps: int
     adaptive: bool = True
+    failure: str = ""
 
     @property
     def usable(self) -> bool:
         return bool(np.all(np.isfinite(self.r)) and np.all(np.isfinite(self.J))
-                    and self.worn < 0 and np.isfinite(self.error_um))
+                    and self.worn < 0 and np.isfinite(self.error_um) and not self.failure)
+
+    @property
+    def why(self) -> str:
+        """The cause where not usable ("" where usable), for progress lines and messages."""
+        if self.failure:
+            return self.failure
+        if self.worn >= 0:
+            return f"the layer wore through at cycle {self.worn:.0f}"
+        if not np.isfinite(self.error_um) and self.steps == 0:
+            return ("no wear step could be taken: the model is not finite at these values "
+                    f"(its contact residual is {self.max_residual:.3g})")
+        if not np.isfinite(self.error_um):
+            return ("the integration did not reach its end (the adaptive loop ran out of "
+                    "attempts)")
+        for what, a in (("rows", self.r), ("Jacobian", self.J)):
+            bad = ~np.isfinite(a)
+            if bad.any():
+                return f"{int(bad.sum())} of {bad.size} model {what} not finite"
+        return ""
 
     @property
     def rms_um(self) -> float:
@@ -434,7 +455,7 @@ class Evaluation:
         err = float(self.error_um) if self.adaptive and math.isfinite(self.error_um) else 0.0
         return lsq.Point(u=self.u, r=self.r, predicted=self.pred, J=self.J,
                          r_prior=self.r_prior, J_prior=self.J_prior, usable=self.usable,
-                         error_um=err, extra=self)
+                         error_um=err, extra=self, why=self.why)
 
 
 @eqx.filter_jit
@@ -475,14 +496,18 @@ def _dynamic(model: ResidualModel) -> ResidualModel:
     return model.with_schedule(model.schedule.with_dynamic_attempts())
 
 
-def attempts_needed(model: ResidualModel, u) -> int:
+def attempts_needed(model: ResidualModel, u) -> int | float:
     """The adaptive loop's estimated attempt count at u (`adaptive_attempts`, the largest
-    over the experiments); 0 for eq-23 schedules."""
+    over the experiments); 0 for eq-23 schedules; inf where the work estimate is not
+    finite (a wear-rate bound K_d k S_cycle that is NaN or inf at these parameters: the
+    model cannot be run there, `work_failure`)."""
     sched = model.schedule
     if not sched.adaptive:
         return 0
     rates = np.asarray(_experiment_rates(model.with_schedule(None),
                                          jnp.asarray(u, jnp.float64)))
+    if not np.all(np.isfinite(rates)):
+        return math.inf
     host = jax.tree.map(np.asarray, sched)
     need = 0
     for i in range(sched.cycles.shape[0]):
@@ -499,16 +524,19 @@ def _experiment_rates(model: ResidualModel, u):
     return jax.lax.map(lambda p: _regime_rates(p, model.cfg), model.batched_params(u))
 
 
-def enough_attempts(model: ResidualModel, u, headroom: float = RAISE_HEADROOM
-                    ) -> ResidualModel:
+def enough_attempts(model: ResidualModel, u, headroom: float = RAISE_HEADROOM,
+                    need: int | float | None = None) -> ResidualModel:
     """`model` with the adaptive loop's static attempt count raised (to a power of 2 at
     `headroom` x the need, so that few compilations arise) where the parameters at u need
     more than it has (the stiffness-limited step count grows with K_d, which a fit moves by
-    orders)."""
+    orders). `need`: `attempts_needed(model, u)` where the caller has it. Raises
+    `TrialFailed` where the need is not finite."""
     sched = model.schedule
-    need = attempts_needed(model, u)
+    need = attempts_needed(model, u) if need is None else need
     if need <= sched.attempts:
         return model
+    if not math.isfinite(need):
+        raise TrialFailed(work_failure(model, u))
     more = 2 ** math.ceil(math.log2(headroom * need))
     return model.with_schedule(dataclasses.replace(sched, attempts=more))
 
@@ -521,19 +549,55 @@ def needs_more_attempts(model: ResidualModel, u, factor: float = 4.0) -> bool:
         model.schedule.attempts
 
 
+def work_failure(model: ResidualModel, u) -> str:
+    """Why the model cannot be run at u where its work estimate is not finite: the
+    experiments whose wear-rate bound K_d k S_cycle [1/cycle] is NaN or inf there."""
+    rates = np.asarray(_experiment_rates(model.with_schedule(None),
+                                         jnp.asarray(u, jnp.float64))).reshape(
+        model.schedule.cycles.shape[0], -1)
+    bad = [i for i in range(rates.shape[0]) if not np.all(np.isfinite(rates[i]))]
+    which = ", ".join(model.exp_names[i] if i < len(model.exp_names) else str(i)
+                      for i in bad)
+    return (f"the work estimate is not finite: the wear-rate bound K_d k S_cycle is "
+            f"{rates[bad[0]].max() if bad else math.nan:g} per cycle in experiment(s) "
+            f"{which} (not run)")
+
+
+def unusable_evaluation(model: ResidualModel, u, why: str) -> Evaluation:
+    """An `Evaluation` of a model that was not run at u (`why`): rows, Jacobian and
+    snapshots NaN (shapes from a trace, no compilation), not usable."""
+    uj = jnp.asarray(u, jnp.float64)
+    shape = eqx.filter_eval_shape(lambda m, v: m.snapshots(v)[0], _dynamic(model), uj).shape
+    n, P = model.n_data, model.packing.size
+    r_prior, J_prior = model.prior_rows(np.asarray(u, np.float64))
+    return Evaluation(u=np.asarray(u, np.float64), pred=np.full(n, np.nan),
+                      r=np.full(n, np.nan), J=np.full((n, P), np.nan), r_prior=r_prior,
+                      J_prior=J_prior, snaps=np.full(shape, np.nan),
+                      J_snaps=np.full(shape + (P,), np.nan), max_residual=math.nan,
+                      worn=-1.0, sliding_m=np.full(shape[0], np.nan), error_um=math.inf,
+                      steps=0, adaptive=model.schedule.adaptive, failure=why)
+
+
 def evaluate(model: ResidualModel, u, *, doublings: int = 3
              ) -> tuple[Evaluation, ResidualModel]:
     """The model at u with its Jacobian, and the model it ran (its attempt count raised
     where u needed more: a fit keeps it, so later trials neither repeat a short run nor
-    recompile)."""
-    model = enough_attempts(model, u)
+    recompile). Where the work estimate at u is not finite the model is not run: an
+    unusable `Evaluation` saying why (a fit rejects it as a trial)."""
+    need = attempts_needed(model, u)
+    if not math.isfinite(need):
+        return unusable_evaluation(model, u, work_failure(model, u)), model
+    model = enough_attempts(model, u, need=need)
     uj = jnp.asarray(u, jnp.float64)
     out = _evaluate_jit(_dynamic(model), uj)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
     # layer's rejections), double it (a traced bound: no recompilation) rather than use a
-    # truncated history.
+    # truncated history. Not where no experiment took a single step: a model that is not
+    # finite at u (a parameter, an effect's hook) rejects every step whatever the count
+    # (measured: three doublings to 512 attempts 3.4 s, where one run takes 0.03 s).
     for _ in range(doublings):
-        if not (model.schedule.adaptive and not np.isfinite(float(out[2][5]))):
+        if not (model.schedule.adaptive and not np.isfinite(float(out[2][5]))
+                and int(out[2][6]) > 0):
             break
         model = model.with_schedule(model.schedule.more_attempts())
         out = _evaluate_jit(_dynamic(model), uj)
@@ -571,8 +635,13 @@ class Forward:
 def forward_run(model: ResidualModel, u, *, doublings: int = 3, worn_ok: bool = False
                 ) -> Forward:
     """The model at u without the Jacobian (`Forward`); `worn_ok`: keep the rows and
-    snapshots of a run that wore through (a forecast past the layer)."""
-    model = enough_attempts(model, u)
+    snapshots of a run that wore through (a forecast past the layer). Where the work
+    estimate at u is not finite the model is not run: NaN rows and snapshots, error inf."""
+    need = attempts_needed(model, u)
+    if not math.isfinite(need):
+        ev = unusable_evaluation(model, u, work_failure(model, u))
+        return Forward(ev.pred, ev.snaps, math.inf, 0, model)
+    model = enough_attempts(model, u, need=need)
     uj = jnp.asarray(u, jnp.float64)
     out = _forward_jit(_dynamic(model), uj)
     for _ in range(doublings):
@@ -593,13 +662,13 @@ def forward(model: ResidualModel, u, *, doublings: int = 3):
     return f.rows, f.snaps, f.error_um, f.model
 
 
-def unusable_point(model: ResidualModel, u) -> lsq.Point:
-    """A trial a fit declines to evaluate: rejected as unusable."""
+def unusable_point(model: ResidualModel, u, why: str = "") -> lsq.Point:
+    """A trial a fit declines to evaluate (`why`): rejected as unusable."""
     n, P = model.n_data, model.packing.size
     r_prior, J_prior = model.prior_rows(u)
     return lsq.Point(u=np.asarray(u, np.float64), r=np.full(n, np.inf),
                      predicted=np.full(n, np.nan), J=np.zeros((n, P)), r_prior=r_prior,
-                     J_prior=J_prior, usable=False)
+                     J_prior=J_prior, usable=False, why=why)
 
 
 def integration_report(model: ResidualModel, ev: Evaluation) -> dict:

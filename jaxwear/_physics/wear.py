@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from jaxwear._core.errors import InputError, WornThroughError
+from jaxwear._core.errors import InputError, TrialFailed, WornThroughError
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, Scalar
 from jaxwear._physics.config import ModelConfig, timed
@@ -508,7 +508,9 @@ def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) 
     limit of the 3(2) pair (|λ ΔN| ≲ 2.5, λ bounded by `_regime_rates`) over every piece,
     a few steps per piece for accuracy and regime starts, rounded up to a bucket so that
     similar runs share a compilation. Unused attempts cost nothing (no vmap). `rates`:
-    `_regime_rates` where the caller has them (one call for every experiment)."""
+    `_regime_rates` where the caller has them (one call for every experiment). Raises
+    `TrialFailed` where the estimate is not finite (a rate bound NaN or inf at these
+    parameters): no attempt count can run them."""
     rates = np.asarray(_regime_rates_jit(p, cfg) if rates is None else rates).reshape(-1)
     cyc = np.asarray(sched.cycles)
     reg = np.asarray(sched.regime)
@@ -521,6 +523,9 @@ def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) 
     tol_um = DEFAULT_WEAR_TOLERANCE_UM if sched.tolerance is None else \
         float(np.max(np.asarray(sched.tolerance))) * 1e6
     acc = 40 * max(1.0, (DEFAULT_WEAR_TOLERANCE_UM / tol_um) ** (1 / 3))
+    if not math.isfinite(stiff + acc):
+        raise TrialFailed(f"the work estimate is not finite: the wear-rate bound K_d k "
+                          f"S_cycle is {np.max(rates):g} per cycle")
     return bucket(int(math.ceil(stiff + acc)) + 4 * int(np.sum(live)))
 
 

@@ -12,7 +12,13 @@ from jaxwear._analyses.diagnose._model import Model
 from jaxwear._core.log import log as _log
 from jaxwear._inference import lsq
 from jaxwear._inference.calibrate import value_errors
-from jaxwear._inference.residual import Evaluation
+from jaxwear._inference.residual import (
+    Evaluation,
+    attempts_needed,
+    needs_more_attempts,
+    unusable_point,
+    work_failure,
+)
 
 
 @dataclass(frozen=True)
@@ -110,6 +116,22 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
     def evaluate(v):
         return model.evaluate(v).point()
 
+    def trial(v):
+        # as calibrate's fits: a trial that needs far more integration steps than the model
+        # has run (a stiff corner) is cut off unevaluated, a rejected step: the trust
+        # region shrinks towards where the model is affordable; one whose work estimate is
+        # not finite cannot run at all
+        if not math.isfinite(attempts_needed(model.ext, v)):
+            return unusable_point(model.ext, v, work_failure(model.ext, v))
+        if needs_more_attempts(model.ext, v):
+            return unusable_point(model.ext, v, "cut off unevaluated: it needs over 4x the "
+                                  "integration steps of the current point (a stiff corner)")
+        return evaluate(v)
+
+    def describe(v):  # the fitted values, for a failed trial's progress line
+        return ", ".join(f"{n} = {x:.6g}" for n, x, f in
+                         zip(model.names, model.values(v), mask) if f)
+
     log = (lambda m: _log(True, m)) if verbose else None
     if ev0 is not None and ev0.usable:
         pt0, evals = ev0.point(), 0
@@ -118,12 +140,14 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
         u, pt0, evals, why = lsq.robust_start(evaluate, u, kd if kd is not None and mask[kd]
                                               else None, measured=model.measured,
                                               log=log, rescales=0)
+        if why and pt0 is None:  # every start raised: nothing to report a fit at
+            raise lsq.FitError(f"{label}: cannot start the fit at {describe(u)}: {why}")
         if why:
             return Fit(label, tuple(groups), mask, pt0.extra, evals, why, status="unusable")
-    out = lsq.solve(evaluate, u, point0=pt0, free=mask, lower=lo, upper=hi,
+    out = lsq.solve(trial, u, point0=pt0, free=mask, lower=lo, upper=hi,
                     noise_um=sigma, noise_dof=noise_dof, max_evaluations=max_evaluations,
                     se_tol=REFIT_SE_TOL, project=model.packing.project, label=f"  {label}",
-                    log=log)
+                    log=log, describe=describe)
     return fit_of(model, mask, out, label, groups, evals + out.evaluations)
 
 

@@ -59,9 +59,34 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) 
             u0[kd] += math.log(a)
             ev0 = mdl.evaluate(u0)
     same = contact == from_fit.contact
+    back = np.asarray(from_fit.ev.u, np.float64)
     if not ev0.usable or (same and objective(ev0, noise) > objective(from_fit.ev, noise)):
-        u0 = from_fit.ev.u.copy()
-        ev0 = from_fit.ev if same else mdl.evaluate(u0)
+        if not ev0.usable and not np.array_equal(u0, back):  # a failed start is a value
+            _log(verbose, f"    {label}: the screen's start is not usable ({ev0.why}); "
+                          f"starting from the {from_fit.label} fit")
+        if same:
+            u0, ev0 = back.copy(), from_fit.ev
+        elif not np.array_equal(u0, back):  # (the same point is not run twice)
+            u0 = back.copy()
+            ev0 = mdl.evaluate(u0)
+    if not ev0.usable and not same:
+        # The fit we come from can sit where the other contact cannot run: a symmetric
+        # contact fitted to a worn bore drives clearances towards zero (measured: 1.9e-6 mm
+        # against 0.05 nominal), where the unsymmetric contact's history did not finish in
+        # minutes. Start from the study's values (u = 0: nominal clearances, strengths
+        # off) with that fit's K_d, rescaled to the data.
+        _log(verbose, f"    {label}: not usable at the {from_fit.label} fit's values "
+                      f"({ev0.why}); starting from the study's values")
+        u0 = np.zeros_like(back)
+        if kd is not None:
+            u0[kd] = back[kd]
+        ev0 = mdl.evaluate(u0)
+        if kd is not None and mask[kd] and ev0.usable:
+            d = ev0.pred
+            a = float(d @ mdl.measured) / max(float(d @ d), 1e-300)
+            if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
+                u0[kd] += math.log(a)
+                ev0 = mdl.evaluate(u0)
     f = fit_masked(mdl, mask, u0, noise_um=noise, noise_dof=nu, label=label,
                    groups=tuple(groups), ev0=ev0, max_evaluations=REFIT_MAX_EVALUATIONS,
                    verbose=verbose)

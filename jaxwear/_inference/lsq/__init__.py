@@ -12,6 +12,7 @@ whitened Jacobian for the step, the stop and the errors) with undetermined direc
 flagged, and the noise rule of the errors the data support (`error_scale`).
 """
 
+from jaxwear._core.errors import FitError, TrialFailed
 from jaxwear._inference.lsq._covariance import Covariance, covariance, gauss_newton
 from jaxwear._inference.lsq._point import Point
 from jaxwear._inference.lsq._solve import (
@@ -19,6 +20,7 @@ from jaxwear._inference.lsq._solve import (
     NoiseUndetermined,
     Outcome,
     error_scale,
+    failure,
     solve,
     step_in_standard_errors,
     whitened,
@@ -27,6 +29,9 @@ from jaxwear._inference.lsq._start import robust_start
 from jaxwear._inference.lsq._status import Status
 
 __all__ = [
+    "FitError",
+    "TrialFailed",
+    "failure",
     "Covariance",
     "NoiseUndetermined",
     "Outcome",

@@ -24,6 +24,9 @@ class Point:
       0 where none is known. It sets the floor below which a decrease of the misfit is
       not evidence of progress.
     - `extra`: the caller's full evaluation (snapshots, contact residual, ...).
+    - `why`: where not usable, the cause in words (worn through at cycle ..., work
+      estimate not finite, ...): the progress line of a rejected trial and the message of
+      a start that fails name it.
     """
 
     u: np.ndarray
@@ -35,6 +38,7 @@ class Point:
     usable: bool
     error_um: float = 0.0
     extra: Any = None
+    why: str = ""
 
     @property
     def rms_um(self) -> float:

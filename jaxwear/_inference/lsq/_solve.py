@@ -18,6 +18,13 @@ compared with what the model's numerical error can cause (`floor`: every residua
 by the integrator's error estimate); a step that predicts less than that is not evidence
 and, up to 0.1 standard error, counts as converged (the resolution check's threshold). A
 run of rejected trials is reported as a stall, with the numbers, not as convergence.
+
+A trial is a value: a trial point whose evaluation is not usable (rows or Jacobian not
+finite, the caller's `usable` False with its cause in `Point.why`, or `TrialFailed` raised
+by the evaluation: a work estimate not finite, a solve that did not converge, work beyond
+a budget) is a rejected step like any other: the trust region shrinks, one progress line
+names the cause and the trial, and the fit goes on. Only the start has nothing to fall back
+to: a start that raises ends the fit with `FitError`, naming the values and the cause.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ import numpy as np
 import optimistix as optx
 from scipy.stats import chi2
 
+from jaxwear._core.errors import FitError, TrialFailed
 from jaxwear._inference.lsq._covariance import Covariance, covariance, gauss_newton
 from jaxwear._inference.lsq._point import Point
 from jaxwear._inference.lsq._status import Status
@@ -52,6 +60,25 @@ _BAD = 1e20  # residual of an unusable trial: the trust region rejects it and sh
 
 class NoiseUndetermined(ValueError):
     """Fewer data rows than free parameters and no noise level given."""
+
+
+def failure(pt: Point, jacobian: bool = True) -> str | None:
+    """Why a trial `pt` cannot be used (None: it can): the caller's verdict (`usable` False,
+    the cause in `why`), or rows (and with `jacobian`, their Jacobian) that are not finite."""
+    if not pt.usable:
+        return pt.why or "not usable (worn through, not finite or cut off)"
+    arrays = [("data rows", pt.r), ("prior rows", pt.r_prior)]
+    if jacobian:
+        arrays += [("Jacobian", pt.J), ("prior rows' Jacobian", pt.J_prior)]
+    for what, a in arrays:
+        bad = ~np.isfinite(np.asarray(a, np.float64))
+        if bad.any():
+            return f"{int(bad.sum())} of {bad.size} {what} not finite"
+    return None
+
+
+def _values(u) -> str:
+    return "u = " + np.array2string(np.asarray(u, np.float64), precision=6, separator=", ")
 
 
 def _info(r, J):
@@ -218,7 +245,8 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
           noise_dof: float = math.inf, max_evaluations: int = 30, se_tol: float = SE_TOL,
           max_rejections: int = 6, label: str = "fit",
           log: Callable[[str], None] | None = None,
-          project: Callable[[np.ndarray], np.ndarray] | None = None) -> Outcome:
+          project: Callable[[np.ndarray], np.ndarray] | None = None,
+          describe: Callable[[np.ndarray], str] | None = None) -> Outcome:
     """Least squares of the data rows (weighted by 1/σ) and the prior rows.
 
     **Arguments:**
@@ -235,9 +263,16 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     - `label`, `log`: progress, one line per evaluation.
     - `project`: u ↦ u inside constraints the box cannot state (a bound on a value that
       depends on two coordinates), applied to every trial after the box.
+    - `describe`: u ↦ the parameter values in words (names and units), for the messages
+      of a failed start and of rejected trials; default the vector u.
 
-    **Returns:** an `Outcome`. Raises `NoiseUndetermined` before any evaluation when σ is
-    not given and the data rows do not outnumber the free parameters.
+    `evaluate` may raise `TrialFailed` (`jaxwear._core.errors`): at a trial it is a rejected
+    step; at the start (`point0` not given), `FitError` naming the values and the cause.
+
+    **Returns:** an `Outcome` (status "unusable" where `point0`, or the start's evaluation,
+    is not usable: its message names the values and the cause). Raises `NoiseUndetermined`
+    before any evaluation when σ is not given and the data rows do not outnumber the free
+    parameters.
     """
     u = np.array(u0, np.float64)
     P = len(u)
@@ -251,13 +286,21 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     u = np.clip(u, lo, hi)
     t0 = time.perf_counter()
     history: list[str] = []
+    describe = _values if describe is None else describe
 
     def say(msg):
         history.append(msg)
         if log:
             log(msg)
 
-    pt = evaluate(u) if point0 is None else point0
+    if point0 is None:
+        try:
+            pt = evaluate(u)
+        except TrialFailed as e:
+            raise FitError(f"{label.strip()}: cannot start the fit at {describe(u)}: {e}"
+                           ) from e
+    else:
+        pt = point0
     evals = 0 if point0 is not None else 1
     n = pt.r.size
     if noise_um is None and n <= k:
@@ -280,9 +323,10 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
                        noise_dof=noise_dof if not estimated else max(n - cov.k_eff, 1.0),
                        history=history)
 
-    if not pt.usable:
-        return outcome("unusable", "the model is not usable at the start (worn through or "
-                                   "not finite)")
+    why0 = failure(pt, jacobian=False)
+    if why0 is not None:
+        return outcome("unusable", f"the model is not usable at the start, {describe(u)}: "
+                                   f"{why0}")
     if k == 0:
         return outcome("converged", "nothing to fit", ratio=0.0, pred=0.0, floor=0.0)
     rw, Jw = whitened(pt, sigma, free)
@@ -363,16 +407,20 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             trial[free] = np.clip((y + diff) / D, lo[free], hi[free])
         if project is not None:
             trial = np.where(free, project(trial), u)
-        pt_t = evaluate(trial)
+        try:
+            pt_t = evaluate(trial)
+            why = failure(pt_t)
+        except TrialFailed as e:  # a failed trial is a value: rejected, the fit goes on
+            pt_t, why = None, str(e) or type(e).__name__
         evals += 1
-        if pt_t.usable and np.all(np.isfinite(pt_t.r)):
+        if why is None:
             rw_t, Jw_t = whitened(pt_t, sigma, free)
         else:
             rw_t, Jw_t = np.full_like(rw, _BAD), np.zeros_like(Jw)
         step_size, accept = _judge(jnp.asarray(y), jnp.asarray(D * trial[free]),
                                    jnp.asarray(rw), jnp.asarray(Jw / D), jnp.asarray(rw_t),
                                    jnp.asarray(Jw_t / D), step_size)
-        accept = bool(accept) and pt_t.usable
+        accept = bool(accept) and why is None
         if accept:
             gain = 0.5 * (float(rw @ rw) - float(rw_t @ rw_t))
             u, pt = trial, pt_t
@@ -386,9 +434,13 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             rejections += 1
             if near:
                 gauss_newton_failed, ratio_at_failure = True, ratio
-        why = "" if pt_t.usable else " (not usable: worn through, not finite or cut off)"
+        if why is not None:
+            say(f"    {label} {evals:2d}: rejected, the trial failed at {describe(trial)}: "
+                f"{why}; trust region shrunk, λ {1 / float(step_size):.1e} "
+                f"({time.perf_counter() - t0:.1f} s)")
+            continue
         say(f"    {label} {evals:2d}: rms {pt_t.rms_um:.4f} µm, "
-            f"{'accepted' if accept else 'rejected'}{why}, step was {ratio:.2g} SE by "
+            f"{'accepted' if accept else 'rejected'}, step was {ratio:.2g} SE by "
             f"Gauss-Newton, λ {1 / float(step_size):.1e} ({time.perf_counter() - t0:.1f} s)")
 
 

@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from jaxwear._core.errors import TrialFailed
 from jaxwear._inference.lsq._point import Point
 
 
@@ -22,23 +23,34 @@ def robust_start(evaluate: Callable[[np.ndarray], Point], u, scale_index: int | 
 
     `scale_index`: the index of ln K_d in u (None: step 1 and 2 are skipped).
     Returns (u, point, evaluations, why) with `why` None on success, else the reason the
-    model cannot be evaluated at any reduced start.
+    model cannot be evaluated at any reduced start (its cause included). An evaluation that
+    raises `TrialFailed` counts as not usable (its point is then None where the last one
+    raised); the rescale's trials, as a fit's, are rejected when they fail.
     """
     u = np.array(u, np.float64)
-    pt = evaluate(u)
+
+    def attempt(v):
+        try:
+            p = evaluate(v)
+            return p, (None if p.usable else p.why or "worn through or not finite")
+        except TrialFailed as e:
+            return None, str(e) or type(e).__name__
+
+    pt, cause = attempt(u)
     evals = 1
     tries = 0
-    while not pt.usable:
+    while cause is not None:
         if scale_index is None or tries >= max_reductions:
-            why = "the model is not usable (worn through or not finite) at the start values"
+            why = "the model is not usable at the start values"
             if scale_index is not None:
                 why += f" even with K_d reduced {10 ** max_reductions:.0e}-fold"
-            return u, pt, evals, why
+            return u, pt, evals, f"{why} ({cause})"
         u[scale_index] -= math.log(10.0)
         tries += 1
         if log:
-            log("  start: layer worn through or model not finite; K_d / 10")
-        pt, evals = evaluate(u), evals + 1
+            log(f"  start: not usable ({cause}); K_d / 10")
+        pt, cause = attempt(u)
+        evals += 1
     if scale_index is None:
         return u, pt, evals, None
     meas = np.asarray(measured, np.float64)
@@ -52,9 +64,11 @@ def robust_start(evaluate: Callable[[np.ndarray], Point], u, scale_index: int | 
             break
         trial = u.copy()
         trial[scale_index] += math.log(a)
-        pt_t = evaluate(trial)
+        pt_t, cause = attempt(trial)
         evals += 1
-        if not pt_t.usable:
+        if cause is not None:
+            if log:
+                log(f"  start: K_d x{a:.3g} not usable ({cause}); kept")
             break
         u, pt = trial, pt_t
         if log:
