@@ -29,7 +29,8 @@ import pytest
 
 from jaxwear._analyses.synth import synthesize
 from jaxwear._inference.calibrate import build_problem, fit_study, study_fit_keys
-from jaxwear._inference.residual import forward_run, traces, traces_since
+from jaxwear._inference.evaluation import forward_run
+from jaxwear._inference.residual import traces, traces_since
 from jaxwear._study import resolution as _resolution
 from jaxwear._study.study import load_study
 

@@ -12,7 +12,7 @@ import jaxwear as jw
 from jaxwear._analyses.diagnose import Candidate, Diagnosis, Fit, Model, Screen, _stats
 from jaxwear._analyses.synth import paper_conditions
 from jaxwear._inference.calibrate import build_problem, parse_fit
-from jaxwear._inference.residual import Evaluation
+from jaxwear._inference.evaluation import Evaluation
 from jaxwear._study.study import Profile
 
 

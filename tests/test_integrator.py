@@ -228,7 +228,8 @@ def test_a_raised_attempt_count_compiles_nothing_and_changes_nothing(tmp_path):
     from pathlib import Path
 
     from jaxwear._inference.calibrate import build_problem, parse_fit
-    from jaxwear._inference.residual import evaluate, traces, traces_since
+    from jaxwear._inference.evaluation import evaluate
+    from jaxwear._inference.residual import traces, traces_since
     from jaxwear._study.study import load_study
 
     p, cfg, run = CASES["boom"]
@@ -266,8 +267,9 @@ def test_attempt_estimate_in_one_call_is_the_per_experiment_estimate(tmp_path):
     evaluation); it must equal the estimate from each experiment's own parameters and
     schedule (`adaptive_attempts`), here on a rig study of two speeds and clearances and
     at K_d x 50, where the stability limit, not accuracy, sets the count."""
+    from jaxwear._inference.attempts import attempts_needed
     from jaxwear._inference.packing import parse_fit
-    from jaxwear._inference.residual import attempts_needed, build_model
+    from jaxwear._inference.residual import build_model
     from jaxwear._physics.wear import adaptive_attempts
 
     res = jw.synthesize([], "paper", noise_um=0.3, seed=3,

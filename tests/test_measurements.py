@@ -84,7 +84,7 @@ def test_angle_offset_jacobian_matches_finite_differences():
     """d(residual)/d(offset) of the differentiable periodic interpolation, against a
     central difference of the residuals themselves."""
     from jaxwear._inference.calibrate import build_problem, parse_fit
-    from jaxwear._inference.residual import evaluate
+    from jaxwear._inference.evaluation import evaluate
 
     res = synthesize([], "paper", noise_um=NOISE, seed=5, numerics=SMALL, angle_offset_deg=1.3)
     st = replace(res.study, angle_tolerance_deg=5.0)

@@ -23,7 +23,7 @@ import pytest
 import jaxwear as jw
 from jaxwear._analyses.predict.bands import t_quantile
 from jaxwear._analyses.predict.grid import forecast_snapshots
-from jaxwear._inference.residual import forward
+from jaxwear._inference.evaluation import forward
 from jaxwear._study.study import load_study
 from jaxwear.cli import main
 

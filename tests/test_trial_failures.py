@@ -213,7 +213,7 @@ def test_a_model_not_finite_at_a_trial_is_unusable_at_once(problem):
     """A parameter that makes the model NaN (not its work estimate): every integration
     step is rejected, and more attempts cannot help, so none are added (three doublings to
     8x the attempts took 3.4 s where a run takes 0.03 s)."""
-    from jaxwear._inference.residual import evaluate
+    from jaxwear._inference.evaluation import evaluate
 
     u = np.zeros(problem.packing.size)
     assert evaluate(problem, u)[0].usable
@@ -224,12 +224,8 @@ def test_a_model_not_finite_at_a_trial_is_unusable_at_once(problem):
 
 
 def test_a_trial_whose_work_estimate_is_nan_is_rejected_in_the_real_model(problem):
-    from jaxwear._inference.residual import (
-        attempts_needed,
-        evaluate,
-        forward_run,
-        needs_more_attempts,
-    )
+    from jaxwear._inference.attempts import attempts_needed, needs_more_attempts
+    from jaxwear._inference.evaluation import evaluate, forward_run
 
     prob = problem
     bad = np.zeros(prob.packing.size)

@@ -30,23 +30,17 @@ from jaxwear._core.jsonfmt import json_float as _jf
 from jaxwear._core.log import log as _log
 from jaxwear._core.noise import Noise, stated_noise
 from jaxwear._inference import lsq
-from jaxwear._inference.packing import parse_fit, study_fit_keys, unit_of, with_registration
-from jaxwear._inference.residual import (
+from jaxwear._inference.attempts import attempts_needed, needs_more_attempts, work_failure
+from jaxwear._inference.evaluation import (
     Evaluation,
     Forward,
-    Layout,
-    ResidualModel,
-    attempts_needed,
-    build_model,
     evaluate,
     forward_run,
     integration_report,
-    needs_more_attempts,
-    traces,
-    traces_since,
     unusable_point,
-    work_failure,
 )
+from jaxwear._inference.packing import parse_fit, study_fit_keys, unit_of, with_registration
+from jaxwear._inference.residual import Layout, ResidualModel, build_model, traces, traces_since
 from jaxwear._study import resolution as res
 from jaxwear._study.resolution import amplification_warnings
 from jaxwear._study.study import Study

@@ -87,8 +87,8 @@ from jaxwear._analyses.diagnose._stats import (
 from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._analyses.diagnose._verdict import diagnose
 from jaxwear._core.noise import line_residuals, noise_level
+from jaxwear._inference.evaluation import Evaluation
 from jaxwear._inference.packing import Column
-from jaxwear._inference.residual import Evaluation
 
 __all__ = [
     "ALPHA", "AMBIGUOUS_LOG_BF", "METHOD_NOTE", "SHAPE_GRID", "STRONG_LOG_BF", "Candidate",

@@ -11,14 +11,9 @@ import numpy as np
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._core.log import log as _log
 from jaxwear._inference import lsq
+from jaxwear._inference.attempts import attempts_needed, needs_more_attempts, work_failure
 from jaxwear._inference.calibrate import value_errors
-from jaxwear._inference.residual import (
-    Evaluation,
-    attempts_needed,
-    needs_more_attempts,
-    unusable_point,
-    work_failure,
-)
+from jaxwear._inference.evaluation import Evaluation, unusable_point
 
 
 @dataclass(frozen=True)

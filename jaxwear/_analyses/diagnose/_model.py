@@ -16,15 +16,15 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._extended import candidate_names
 from jaxwear._core.noise import series
-from jaxwear._inference.packing import parse_fit
-from jaxwear._inference.residual import (
+from jaxwear._inference.evaluation import (
     Evaluation,
     _evaluate_jit,
-    build_model,
     evaluate,
     forward,
     integration_report,
 )
+from jaxwear._inference.packing import parse_fit
+from jaxwear._inference.residual import build_model
 from jaxwear._study.study import Study
 
 

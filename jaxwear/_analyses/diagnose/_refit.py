@@ -16,7 +16,7 @@ from jaxwear._analyses.diagnose._screen import Screen, screen
 from jaxwear._analyses.diagnose._stats import Tests, neighbour_differences, run_tests
 from jaxwear._core.errors import InputError
 from jaxwear._core.noise import stated_noise
-from jaxwear._inference.residual import Evaluation
+from jaxwear._inference.evaluation import Evaluation
 
 # A refit's budget of evaluations (each a full run of every experiment with its Jacobian:
 # seconds at the default numerics); it stops earlier when done (`jaxwear._inference.lsq.solve`), and

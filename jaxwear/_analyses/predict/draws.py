@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
 from jaxwear._core.log import log as _log
-from jaxwear._inference.residual import forward_run
+from jaxwear._inference.evaluation import forward_run
 
 
 def run_forward(fp, u, what: str = "a posterior draw's forecast"):

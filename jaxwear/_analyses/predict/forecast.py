@@ -73,7 +73,8 @@ from jaxwear._inference.calibrate import (
     fit_study,
     study_fit_keys,
 )
-from jaxwear._inference.residual import forward_run, traces, traces_since
+from jaxwear._inference.evaluation import forward_run
+from jaxwear._inference.residual import traces, traces_since
 from jaxwear._study import resolution as _resolution
 from jaxwear._study.resolution import at_level, at_stable_update
 from jaxwear._study.study import Study

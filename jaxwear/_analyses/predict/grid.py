@@ -11,7 +11,8 @@ import numpy as np
 
 from jaxwear._analyses.predict.life import LIFE_HORIZON, LIFE_REFINE_POINTS, LIFE_ROOM_ROUNDS
 from jaxwear._core.errors import InputError
-from jaxwear._inference.residual import Layout, evaluate, experiment_schedules, integration_report
+from jaxwear._inference.evaluation import evaluate, integration_report
+from jaxwear._inference.residual import Layout, experiment_schedules
 from jaxwear._physics.config import timed
 from jaxwear._physics.schedule import bucket
 from jaxwear._study.study import Experiment, History, Profile, Study

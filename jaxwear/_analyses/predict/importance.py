@@ -59,7 +59,7 @@ from jaxwear._analyses.predict.nuts import (
 )
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
-from jaxwear._inference.residual import forward_run
+from jaxwear._inference.evaluation import forward_run
 
 NU = 7.0  # the proposal's Student-t degrees of freedom
 K_GOOD, K_USABLE = 0.5, 0.7  # PSIS k̂ thresholds (Vehtari et al. 2024)

@@ -50,8 +50,8 @@ import numpy as np
 from jaxwear._analyses.predict.draws import DrawForecasts, run_forward
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
+from jaxwear._inference.attempts import enough_attempts as _enough_attempts
 from jaxwear._inference.residual import TRACES
-from jaxwear._inference.residual import enough_attempts as _enough_attempts
 
 ADAPT_MASS_FROM_WARMUP = 150  # NumPyro's windowed schedule: 75 + 25 + 50 steps
 LEAPFROG_GUESS = 10  # mean leapfrog steps per NUTS step (measured ~6 on the rig test, dense mass)

@@ -1,0 +1,233 @@
+"""One evaluation of the residual model: rows, prior rows and Jacobian at u (or a forward run
+without it), with the integration's error estimate; an unusable value where the model cannot
+run there."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxwear._inference import lsq
+from jaxwear._inference.attempts import _dynamic, attempts_needed, enough_attempts, work_failure
+from jaxwear._inference.residual import TRACES, ResidualModel
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """The model at u (numpy).
+
+    `pred`, `r` (rows,) [µm] (model, model − measured); `J` (rows, P) = d r/d u;
+    `r_prior` (m,), `J_prior` (m, P): prior rows in SD units; `snaps` (E, S, N) [µm] and
+    `J_snaps` (E, S, N, P); `max_residual`: largest relative contact residual; `worn`:
+    largest worn-through cycle (−1: none); `sliding_m` (E,); `error_um`: integration
+    error estimate of the worst experiment (inf: the adaptive loop ran out of attempts);
+    `steps`: accepted integration steps of the longest experiment; `failure`: why the model
+    was not run at u (`unusable_evaluation`), "" where it ran.
+    """
+
+    u: np.ndarray
+    pred: np.ndarray
+    r: np.ndarray
+    J: np.ndarray
+    r_prior: np.ndarray
+    J_prior: np.ndarray
+    snaps: np.ndarray
+    J_snaps: np.ndarray | None
+    max_residual: float
+    worn: float
+    sliding_m: np.ndarray
+    error_um: float
+    steps: int
+    adaptive: bool = True
+    failure: str = ""
+
+    @property
+    def usable(self) -> bool:
+        return bool(np.all(np.isfinite(self.r)) and np.all(np.isfinite(self.J))
+                    and self.worn < 0 and np.isfinite(self.error_um) and not self.failure)
+
+    @property
+    def why(self) -> str:
+        """The cause where not usable ("" where usable), for progress lines and messages."""
+        if self.failure:
+            return self.failure
+        if self.worn >= 0:
+            return f"the layer wore through at cycle {self.worn:.0f}"
+        if not np.isfinite(self.error_um) and self.steps == 0:
+            return ("no wear step could be taken: the model is not finite at these values "
+                    f"(its contact residual is {self.max_residual:.3g})")
+        if not np.isfinite(self.error_um):
+            return ("the integration did not reach its end (the adaptive loop ran out of "
+                    "attempts)")
+        for what, a in (("rows", self.r), ("Jacobian", self.J)):
+            bad = ~np.isfinite(a)
+            if bad.any():
+                return f"{int(bad.sum())} of {bad.size} model {what} not finite"
+        return ""
+
+    @property
+    def rms_um(self) -> float:
+        return float(np.sqrt(np.mean(self.r ** 2))) if self.r.size else 0.0
+
+    def shifted(self, shift) -> Evaluation:
+        """The evaluation with every row moved by `shift` (rows,) [µm] (a change of the
+        rows' correction: the Jacobian is unchanged, the correction being fixed)."""
+        shift = np.asarray(shift, np.float64)
+        return dataclasses.replace(self, pred=self.pred + shift, r=self.r + shift)
+
+    def point(self) -> lsq.Point:
+        """The least-squares core's view: the integrator's error sets the floor of a
+        meaningful decrease only where its steps adapt (their choice makes the error jump
+        between nearby parameters; eq 23's fixed steps give a smooth bias instead)."""
+        err = float(self.error_um) if self.adaptive and math.isfinite(self.error_um) else 0.0
+        return lsq.Point(u=self.u, r=self.r, predicted=self.pred, J=self.J,
+                         r_prior=self.r_prior, J_prior=self.J_prior, usable=self.usable,
+                         error_um=err, extra=self, why=self.why)
+
+
+@eqx.filter_jit
+def _evaluate_jit(model: ResidualModel, u):
+    TRACES["jacobian"] += 1  # runs when traced only
+    def g(v):
+        snaps, res = model.snapshots(v)
+        rows = model.predict_from(snaps, v)
+        aux = (rows, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle),
+               res.sliding_distance, jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
+        return (rows, snaps), aux
+
+    (J, J_snaps), aux = jax.jacfwd(g, has_aux=True)(u)
+    return J, J_snaps, aux
+
+
+@eqx.filter_jit
+def _forward_jit(model: ResidualModel, u):
+    """Rows [µm], snapshots [µm], worn-through cycle, error estimate [µm], steps: no
+    Jacobian (a check of a linearised answer costs one plain run)."""
+    TRACES["forward"] += 1  # runs when traced only
+    snaps, res = model.snapshots(u)
+    return (model.predict_from(snaps, u), snaps, jnp.max(res.worn_through_cycle),
+            jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
+
+
+def unusable_evaluation(model: ResidualModel, u, why: str) -> Evaluation:
+    """An `Evaluation` of a model that was not run at u (`why`): rows, Jacobian and
+    snapshots NaN (shapes from a trace, no compilation), not usable."""
+    uj = jnp.asarray(u, jnp.float64)
+    shape = eqx.filter_eval_shape(lambda m, v: m.snapshots(v)[0], _dynamic(model), uj).shape
+    n, P = model.n_data, model.packing.size
+    r_prior, J_prior = model.prior_rows(np.asarray(u, np.float64))
+    return Evaluation(u=np.asarray(u, np.float64), pred=np.full(n, np.nan),
+                      r=np.full(n, np.nan), J=np.full((n, P), np.nan), r_prior=r_prior,
+                      J_prior=J_prior, snaps=np.full(shape, np.nan),
+                      J_snaps=np.full(shape + (P,), np.nan), max_residual=math.nan,
+                      worn=-1.0, sliding_m=np.full(shape[0], np.nan), error_um=math.inf,
+                      steps=0, adaptive=model.schedule.adaptive, failure=why)
+
+
+def evaluate(model: ResidualModel, u, *, doublings: int = 3
+             ) -> tuple[Evaluation, ResidualModel]:
+    """The model at u with its Jacobian, and the model it ran (its attempt count raised
+    where u needed more: a fit keeps it, so later trials neither repeat a short run nor
+    recompile). Where the work estimate at u is not finite the model is not run: an
+    unusable `Evaluation` saying why (a fit rejects it as a trial)."""
+    need = attempts_needed(model, u)
+    if not math.isfinite(need):
+        return unusable_evaluation(model, u, work_failure(model, u)), model
+    model = enough_attempts(model, u, need=need)
+    uj = jnp.asarray(u, jnp.float64)
+    out = _evaluate_jit(_dynamic(model), uj)
+    # The attempt count is an estimate: where the loop did not reach the end (a stiff
+    # layer's rejections), double it (a traced bound: no recompilation) rather than use a
+    # truncated history. Not where no experiment took a single step: a model that is not
+    # finite at u (a parameter, an effect's hook) rejects every step whatever the count
+    # (measured: three doublings to 512 attempts 3.4 s, where one run takes 0.03 s).
+    for _ in range(doublings):
+        if not (model.schedule.adaptive and not np.isfinite(float(out[2][5]))
+                and int(out[2][6]) > 0):
+            break
+        model = model.with_schedule(model.schedule.more_attempts())
+        out = _evaluate_jit(_dynamic(model), uj)
+    J, J_snaps, (rows, snaps, mres, worn, sliding, err, steps) = jax.tree.map(np.asarray, out)
+    u = np.asarray(u, np.float64)
+    meas = model.measured
+    r = rows - meas
+    if not np.isfinite(float(err)):
+        r = np.full_like(r, np.nan)  # a truncated history is not a model evaluation
+    r_prior, J_prior = model.prior_rows(u)
+    return Evaluation(u=u, pred=rows, r=r, J=J, r_prior=r_prior, J_prior=J_prior, snaps=snaps,
+                      J_snaps=J_snaps, max_residual=float(mres), worn=float(worn),
+                      sliding_m=sliding, error_um=float(err), steps=int(steps),
+                      adaptive=model.schedule.adaptive), model
+
+
+@dataclass(frozen=True)
+class Forward:
+    """A forward run (no Jacobian): `rows` (rows,) and `snaps` (E, S, N) [µm], NaN where the
+    model wore through or its integration did not reach the end; `error_um` the worst
+    experiment's integration error estimate, `steps` the longest one's accepted steps,
+    `model` the model it ran (its attempt count raised where needed)."""
+
+    rows: np.ndarray
+    snaps: np.ndarray
+    error_um: float
+    steps: int
+    model: ResidualModel
+
+    @property
+    def usable(self) -> bool:
+        return bool(np.all(np.isfinite(self.rows)))
+
+
+def forward_run(model: ResidualModel, u, *, doublings: int = 3, worn_ok: bool = False
+                ) -> Forward:
+    """The model at u without the Jacobian (`Forward`); `worn_ok`: keep the rows and
+    snapshots of a run that wore through (a forecast past the layer). Where the work
+    estimate at u is not finite the model is not run: NaN rows and snapshots, error inf."""
+    need = attempts_needed(model, u)
+    if not math.isfinite(need):
+        ev = unusable_evaluation(model, u, work_failure(model, u))
+        return Forward(ev.pred, ev.snaps, math.inf, 0, model)
+    model = enough_attempts(model, u, need=need)
+    uj = jnp.asarray(u, jnp.float64)
+    out = _forward_jit(_dynamic(model), uj)
+    for _ in range(doublings):
+        if not (model.schedule.adaptive and not np.isfinite(float(out[3]))):
+            break
+        model = model.with_schedule(model.schedule.more_attempts())
+        out = _forward_jit(_dynamic(model), uj)
+    rows, snaps, worn, err, steps = (np.asarray(x) for x in out)
+    if (float(worn) >= 0 and not worn_ok) or not np.isfinite(float(err)):
+        rows, snaps = np.full(rows.shape, np.nan), np.full(snaps.shape, np.nan)
+    return Forward(rows, snaps, float(err), int(steps), model)
+
+
+def forward(model: ResidualModel, u, *, doublings: int = 3):
+    """Rows [µm] and snapshots [µm] at u without the Jacobian, NaN where the model wore
+    through or its integration did not reach the end; and the model it ran."""
+    f = forward_run(model, u, doublings=doublings)
+    return f.rows, f.snaps, f.error_um, f.model
+
+
+def unusable_point(model: ResidualModel, u, why: str = "") -> lsq.Point:
+    """A trial a fit declines to evaluate (`why`): rejected as unusable."""
+    n, P = model.n_data, model.packing.size
+    r_prior, J_prior = model.prior_rows(u)
+    return lsq.Point(u=np.asarray(u, np.float64), r=np.full(n, np.inf),
+                     predicted=np.full(n, np.nan), J=np.zeros((n, P)), r_prior=r_prior,
+                     J_prior=J_prior, usable=False, why=why)
+
+
+def integration_report(model: ResidualModel, ev: Evaluation) -> dict:
+    """The `"integration"` block of a fit's JSON (same keys as `simulate`'s)."""
+    sched = model.schedule
+    tol = float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
+    err = float(ev.error_um)
+    return {"integrator": "adaptive" if sched.adaptive else "paper",
+            "error_estimate_um": err if math.isfinite(err) else "inf",
+            "steps": int(ev.steps), "tolerance_um": tol}
