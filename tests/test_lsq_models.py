@@ -100,11 +100,11 @@ def _no_evaluation(monkeypatch):
     def fail(*a, **k):
         raise AssertionError("a model evaluation ran before the refusal")
 
-    from jaxwear._inference import residual as _residual
+    from jaxwear._inference import evaluation as _evaluation
 
     monkeypatch.setattr(cal, "evaluate", fail)
-    monkeypatch.setattr(_residual, "_evaluate_jit", fail)
-    monkeypatch.setattr(_residual, "_forward_jit", fail)
+    monkeypatch.setattr(_evaluation, "_evaluate_jit", fail)
+    monkeypatch.setattr(_evaluation, "_forward_jit", fail)
 
 
 def test_noise_refusal_before_any_evaluation_in_predict(monkeypatch, tmp_path):
