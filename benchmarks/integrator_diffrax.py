@@ -34,15 +34,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxwear as jw
+from jaxwear._physics.adaptive import DEFAULT_WEAR_TOLERANCE_UM
 from jaxwear._physics.config import boom_config
+from jaxwear._physics.cycle import cycle_increment
 from jaxwear._physics.load import load_history
 from jaxwear._physics.schedule import crank_segments, duty_segments
-from jaxwear._physics.wear import (
-    DEFAULT_WEAR_TOLERANCE_UM,
-    build_schedule,
-    cycle_increment,
-    wear_loop,
-)
+from jaxwear._physics.wear import build_schedule, wear_loop
 
 
 def timed(f, *a, reps=3):

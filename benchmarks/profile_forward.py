@@ -21,7 +21,8 @@ import numpy as np
 
 import jaxwear as jw
 from jaxwear._physics import contact as _contact
-from jaxwear._physics.wear import build_schedule, cycle_increment, node_area, wear_loop
+from jaxwear._physics.cycle import cycle_increment, node_area
+from jaxwear._physics.wear import build_schedule, wear_loop
 
 
 def timeit(f, *args, repeats=7):

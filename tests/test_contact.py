@@ -16,7 +16,7 @@ from helpers import conforming_groove, mirror_asymmetry, node_angles, random_pro
 
 import jaxwear as jw
 from jaxwear._physics.contact import equivalent_modulus
-from jaxwear._physics.wear import node_area
+from jaxwear._physics.cycle import node_area
 
 N = 64
 STEPS = 48

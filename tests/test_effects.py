@@ -13,6 +13,7 @@ import pytest
 import jaxwear as jw
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.contact import equivalent_modulus, stiffness_per_area
+from jaxwear._physics.cycle import cycle_increment
 from jaxwear._physics.effects import (
     STRUCTURAL,
     STRUCTURAL_CANDIDATES,
@@ -23,7 +24,6 @@ from jaxwear._physics.effects import (
     registered_effects,
     unregister_effect,
 )
-from jaxwear._physics.wear import cycle_increment
 
 BUILTIN = ("running_in", "speed_dependence", "pressure_exponent", "friction", "creep")
 SMALL = ModelConfig(nodes=48, steps_per_rev=36)

@@ -15,13 +15,9 @@ import pytest
 from helpers import central_fd
 
 import jaxwear as jw
+from jaxwear._physics.adaptive import DEFAULT_WEAR_TOLERANCE_UM, _adaptive_trace
 from jaxwear._physics.config import boom_config
-from jaxwear._physics.wear import (
-    DEFAULT_WEAR_TOLERANCE_UM,
-    _adaptive_trace,
-    build_schedule,
-    wear_loop,
-)
+from jaxwear._physics.wear import build_schedule, wear_loop
 
 CFG_RIG = jw.ModelConfig(nodes=64, steps_per_rev=72)
 CFG_BOOM = boom_config(nodes=64, steps_per_rev=72)
@@ -270,7 +266,7 @@ def test_attempt_estimate_in_one_call_is_the_per_experiment_estimate(tmp_path):
     from jaxwear._inference.attempts import attempts_needed
     from jaxwear._inference.packing import parse_fit
     from jaxwear._inference.residual import build_model
-    from jaxwear._physics.wear import adaptive_attempts
+    from jaxwear._physics.adaptive import adaptive_attempts
 
     res = jw.synthesize([], "paper", noise_um=0.3, seed=3,
                         numerics=dict(nodes=48, steps_per_rev=48))

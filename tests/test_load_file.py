@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
+from jaxwear._physics.cycle import cycle_increment
 from jaxwear._physics.load_cycle import resample
-from jaxwear._physics.wear import cycle_increment
 
 ROWS, PERIOD = 720, 6.0
 

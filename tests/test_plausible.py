@@ -13,6 +13,7 @@ import pytest
 import jaxwear as jw
 from jaxwear import InputError
 from jaxwear._physics.contact import equivalent_modulus, solve_contact, stiffness_per_area
+from jaxwear._physics.cycle import node_area
 from jaxwear._physics.effects import effect_parameter_specs
 from jaxwear._physics.limits import (
     LOAD_BOUNDS,
@@ -23,7 +24,6 @@ from jaxwear._physics.limits import (
 )
 from jaxwear._physics.load import load_history
 from jaxwear._physics.params import PARAMETER_KEYS, PRESETS
-from jaxwear._physics.wear import node_area
 from jaxwear._study.plausible import RANGES, check_params, check_value, key_range
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,7 +15,7 @@ import pytest
 
 import jaxwear as jw
 from jaxwear._analyses.simulate import last_cycle_pressure
-from jaxwear._physics.wear import node_area
+from jaxwear._physics.cycle import node_area
 from jaxwear._study.study import Experiment, Study
 
 NODES, STEPS = 64, 48

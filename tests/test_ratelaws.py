@@ -19,9 +19,10 @@ import pytest
 
 import jaxwear as jw
 from jaxwear._physics.config import ModelConfig
+from jaxwear._physics.cycle import cycle_increment, node_area
 from jaxwear._physics.effects import RateContext, get_effect, registered_effects
 from jaxwear._physics.schedule import crank_segments, make_schedule
-from jaxwear._physics.wear import cycle_increment, node_area, wear_loop
+from jaxwear._physics.wear import wear_loop
 
 SMALL = ModelConfig(nodes=48, steps_per_rev=36)
 SPEED_RPM = 230.0

@@ -290,8 +290,8 @@ def test_packed_coefficients_are_the_same_correction(shaped):
     the coefficients packed equal those read one key at a time, both forms on."""
     import jax
 
+    from jaxwear._physics.cycle import cycle_rates, run_history
     from jaxwear._physics.effects.shape import pack
-    from jaxwear._physics.wear import cycle_rates, run_history
 
     m = shaped
     rng = np.random.default_rng(1)

@@ -20,8 +20,9 @@ import pytest
 from helpers import mirror_asymmetry, node_angles, wrap_deg
 
 import jaxwear as jw
+from jaxwear._physics.cycle import node_area
 from jaxwear._physics.schedule import crank_segments, make_schedule
-from jaxwear._physics.wear import build_schedule, check_result, node_area, wear_loop
+from jaxwear._physics.wear import build_schedule, check_result, wear_loop
 
 NODES, STEPS = 64, 72
 CFG_U = jw.ModelConfig(nodes=NODES, steps_per_rev=STEPS)
@@ -397,7 +398,7 @@ def test_a_wear_loop_program_holds_one_contact_solve(rig, contact):
     then had 16 while-loops against 6, and compiled in 6.4 s against 2.6 s). Counted on the
     lowered program: the loops' own scans (outer, inner; adaptive: and the stages) plus
     whatever one warm-started cycle of contact solves needs, nothing more."""
-    from jaxwear._physics.wear import _cold_starts, cycle_increment, run_history
+    from jaxwear._physics.cycle import _cold_starts, cycle_increment, run_history
 
     cfg = jw.ModelConfig(nodes=16, steps_per_rev=12, contact=contact)
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxwear as jw
-from jaxwear._physics.wear import node_area
+from jaxwear._physics.cycle import node_area
 
 load_history = eqx.filter_jit(jw.load_history)
 """`jw.load_history`, compiled (its eager nested `jvp`s cost seconds per call)."""

@@ -6,14 +6,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from jaxwear._physics.wear import (
-    WearResult,
-    build_schedule,
-    check_result,
-    cycle_increment,
-    schedule_numerics,
-    simulate,
-)
+from jaxwear._physics.cycle import WearResult, cycle_increment
+from jaxwear._physics.wear import build_schedule, check_result, schedule_numerics, simulate
 from jaxwear._study.study import Experiment, Study
 
 

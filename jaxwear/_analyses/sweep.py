@@ -22,11 +22,13 @@ import numpy as np
 from jaxwear._core.errors import InputError
 from jaxwear._core.numbers import MAX_POINTS, parse_range  # noqa: F401  (the CLI range parser)
 from jaxwear._core.parallel import sharded_vmap
+from jaxwear._physics.adaptive import DEFAULT_WEAR_TOLERANCE_UM
 from jaxwear._physics.config import ModelConfig, timed
+from jaxwear._physics.cycle import node_area
 from jaxwear._physics.effects import effect_parameter_specs
 from jaxwear._physics.params import MECHANISM_KEYS, PARAMETER_KEYS, Params, key_to_si
 from jaxwear._physics.schedule import Schedule
-from jaxwear._physics.wear import DEFAULT_WEAR_TOLERANCE_UM, build_schedule, node_area, wear_loop
+from jaxwear._physics.wear import build_schedule, wear_loop
 from jaxwear._study.resolution import for_forward, given
 from jaxwear._study.study import Study
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from jaxwear._core.errors import TrialFailed
 from jaxwear._inference.residual import ResidualModel
-from jaxwear._physics.wear import _regime_rates, adaptive_attempts
+from jaxwear._physics.adaptive import _regime_rates, adaptive_attempts
 
 # Headroom of a raised attempt count: a fit's first rescale of K_d sets the stiffness to
 # within a small factor. The count is a traced bound in the fits' programs (`_dynamic`), so

@@ -25,7 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from jaxwear._physics.wear import stable_amplification
+from jaxwear._physics.adaptive import stable_amplification
 from jaxwear._study.budget import estimate_work, max_work
 from jaxwear._study.study import Study
 

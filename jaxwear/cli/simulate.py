@@ -14,7 +14,8 @@ import numpy as np
 from jaxwear._analyses.simulate import common_length, last_cycle_pressure, run_experiment
 from jaxwear._core.log import progress
 from jaxwear._physics.config import timed
-from jaxwear._physics.wear import WearResult, integration_report
+from jaxwear._physics.cycle import WearResult
+from jaxwear._physics.wear import integration_report
 from jaxwear._report import figures as rep
 from jaxwear._study.load_file import load_rows, write_load_file
 from jaxwear._study.outputs import per_experiment

@@ -57,6 +57,7 @@ from jaxwear._analyses.diagnose._shape_text import describe, threshold
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_differences
 from jaxwear._core.jsonfmt import json_float as _num
 from jaxwear._inference import lsq
+from jaxwear._physics.cycle import cycle_increment
 from jaxwear._physics.effects.shape import (
     DEPOSIT_VARIABLES,
     FORMS,
@@ -66,7 +67,6 @@ from jaxwear._physics.effects.shape import (
     state_variables,
 )
 from jaxwear._physics.load import load_history
-from jaxwear._physics.wear import cycle_increment
 
 SIZE = 10  # B-splines per variable
 JOINT_DRAWS = 2000  # null simulations of a form's joint fit (larger matrices)

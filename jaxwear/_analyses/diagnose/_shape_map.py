@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import norm
 
+from jaxwear._physics.cycle import cycle_rates, run_history
 from jaxwear._physics.effects.shape import state_variables
-from jaxwear._physics.wear import cycle_rates, run_history
 
 PER_CYCLES = 1e4  # the map's unit: µm per 10⁴ cycles
 EVENT_WINDOW_DEG = 20.0  # "at a reversal": within this many degrees of the cycle

@@ -1,0 +1,128 @@
+"""One cycle of the wear loop: the Archard rates and increment on a frozen profile (all steps
+of a cycle at once), and the result type of a wear history."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import lax
+
+from jaxwear._core.periodic import interp_periodic
+from jaxwear._core.types import Array, Float, NodeArray, Scalar
+from jaxwear._physics.config import ModelConfig
+from jaxwear._physics.contact import solve_contact, stiffness_per_area
+from jaxwear._physics.effects import RateContext, get_effect
+from jaxwear._physics.effects.shape import precompute, shape_terms
+from jaxwear._physics.load import LoadHistory, load_history
+from jaxwear._physics.params import Params
+
+
+class WearResult(eqx.Module):
+    """Outcome of a wear simulation (SI units).
+
+    - `depth`: final wear depth h_j [m], (nodes,). `snapshots`: (n_snapshots, nodes) [m].
+    - `sliding_distance`: accumulated S [m].
+    - `worn_volume`: Σ h_j A_j [m³]; `archard_volume`: K_d Σ_updates M Σ_i (Σ_j p_ij A_j) dS_i
+      [m³] (equal for the base model: the volume identity of §4).
+    - `max_residual`: largest relative contact force residual met. `max_iterations`: Newton.
+    - `worn_through_cycle`: cycle count at which some h_j first reached L (-1: never).
+    - `history`: the load history used.
+    - `error_estimate`: estimated integration error of `depth` [m] (max over nodes of the
+      signed sum of local error estimates; inf if the adaptive loop ran out of attempts).
+      Adaptive: the embedded pair's; paper (eq 23): Euler's (M/2) Δrate between updates.
+    - `steps`: accepted steps (updates); `rejected_steps`: steps the controller redid.
+    """
+
+    depth: NodeArray
+    snapshots: Float[Array, "snapshots nodes"]
+    sliding_distance: Scalar
+    worn_volume: Scalar
+    archard_volume: Scalar
+    max_residual: Scalar
+    max_iterations: Array
+    worn_through_cycle: Scalar
+    history: LoadHistory
+    error_estimate: Scalar
+    steps: Array
+    rejected_steps: Array
+
+
+def node_area(p: Params, nodes: int) -> Scalar:
+    """A_j = R_b (2π/N) B [m²]."""
+    return p.bore_radius * (2 * jnp.pi / nodes) * p.width
+
+
+def run_history(p: Params, cfg: ModelConfig) -> LoadHistory:
+    """The load history of a run, with what the shape correction needs precomputed (its
+    constant parts are computed once, not at every stage of every step)."""
+    hist = load_history(p, cfg)
+    if cfg.shape is not None:
+        hist = dataclasses.replace(hist, shape_pre=precompute(cfg.shape, hist, cfg.nodes))
+    return hist
+
+
+def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
+                start=None):
+    """Wear of each step of one cycle on the frozen profile `h` [m] (steps, nodes), with the
+    contact solution: K_d p_ij dS_i (eq 21), then every effect's hook, then the shape
+    correction (`effects.shape`) where the configuration carries one."""
+    effects = [get_effect(n) for n in cfg.effects]
+    load, angle = hist.load[regime], hist.angle[regime]
+    slide, dt, sense = hist.slide[regime], hist.dt[regime], hist.sense[regime]
+    area = node_area(p, cfg.nodes)
+    k = stiffness_per_area(h, p, cfg.double_layer)
+    friction = None
+    for eff in effects:
+        mu = eff.friction(p, sense)
+        if mu is not None:
+            friction = mu if friction is None else friction + mu
+    sol = solve_contact(load, angle, h, p.clearance, k, area, contact=cfg.contact,
+                        friction=friction, iterations=cfg.newton_iterations, start=start)
+    rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
+    if effects:
+        ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load)
+        for eff in effects:
+            rate = eff.local_rate(p, rate, ctx)
+    if cfg.shape is not None:
+        g, deposit = shape_terms(cfg.shape, p, sol.pressure, slide, dt, sliding, angle, load,
+                                 hist.shape_pre, regime)
+        rate = rate * jnp.exp(g)
+        if deposit is not None:
+            rate = rate + deposit
+    return rate, sol
+
+
+def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
+                    start=None):
+    """Wear of one cycle on the frozen profile `h`, with its contact solution.
+
+    Returns (Δh per cycle [m] (nodes,), Σ_i (Σ_j p_ij A_j) dS_i [N·m], contact solution).
+    """
+    rate, sol = cycle_rates(p, cfg, hist, regime, h, sliding, start)
+    slide = hist.slide[regime]
+    area = node_area(p, cfg.nodes)
+    # Sums over the steps as matrix-vector products: XLA:CPU's reductions of a
+    # (steps, nodes) array cost ~3x (measured, 360 x 360: 0.09 ms against ~0.03 ms a cycle).
+    work = area * jnp.sum(slide @ sol.pressure)
+    return jnp.ones_like(slide) @ rate, work, sol
+
+
+def _cold_starts(hist: LoadHistory):
+    """Warm-start offsets (regimes, steps, 2) that ask the contact solve for a cold start
+    (NaN: `_contact._unsymmetric`), for each regime's first solve."""
+    return jnp.full((*hist.load.shape, 2), jnp.nan)
+
+
+def _warm_start(cfg: ModelConfig, hist: LoadHistory, starts, h_seen, regime, h):
+    """Pin offsets (steps, 2) [m] to start the contact solve of `regime` from, or None.
+
+    Predictor: where the bore wore by Δh since this regime's last solve (`starts` at
+    profile `h_seen`), the pin moves out by about Δh along the load to keep its
+    penetration. Held out of differentiation: only the solve's answer carries gradients."""
+    if cfg.contact != "unsymmetric":
+        return None
+    ang = hist.angle[regime]
+    grown = lax.stop_gradient(interp_periodic(h - h_seen[regime], ang))
+    return starts[regime] + grown[:, None] * jnp.stack([jnp.cos(ang), jnp.sin(ang)], 1)
