@@ -297,7 +297,7 @@ def test_running_in_is_integrated_on_its_clock(monkeypatch):
     with the same a·S_r), where stepping in cycles with the factor in the rate (the clock
     switched off) takes over twice as many; and both agree within the tolerance, against the
     latter at a tenth of it."""
-    import jaxwear._physics.wear as wear
+    import jaxwear._physics.adaptive as adaptive
 
     cfg = boom_config(nodes=48, steps_per_rev=72, effects=("running_in",))
     tol = DEFAULT_WEAR_TOLERANCE_UM
@@ -308,7 +308,7 @@ def test_running_in_is_integrated_on_its_clock(monkeypatch):
         sched = build_schedule(p, cfg, hours=6, snapshots=[1, 5, 6], tolerance_um=tolerance,
                                attempts=None if clock else 8192)
         if not clock:
-            monkeypatch.setattr(wear, "_clock_effect", lambda p, effects: None)
+            monkeypatch.setattr(adaptive, "_clock_effect", lambda p, effects: None)
         try:  # a fresh trace each time: the clock is chosen while tracing
             r = jax.jit(lambda p: wear_loop(p, cfg, sched))(p)
         finally:
