@@ -41,6 +41,12 @@ from ._errors import InputError
 from ._params import MECHANISM_KEYS
 
 STRAIN_LIMIT = 0.25  # peak elastic strain p/E_w of the wearing layer, unworn bore
+# Smallest peak indentation u/c (pin pressed into the unworn layer, over the clearance) the
+# model is run at. The contact solve works in offsets the size of the clearance; below this
+# it did not converge (0.01 N on the 15 x 28 mm load-file joint, u/c = 5e-5: relative force
+# residual 2e-7 once the bore had worn by a fraction of the indentation; issue 41), and a
+# load this light (a few Pa of projected pressure) wears nothing a gauge resolves.
+INDENT_LIMIT = 1e-4
 
 
 @dataclass(frozen=True)
@@ -120,6 +126,8 @@ RANGES: dict[str, Range | None] = {
     # experiments (DESIGN §6)
     "experiment.revolutions": Range(1.0, 1e12, _CYCLES),
     "experiment.hours": Range(0.0, 1e6, "up to 114 years of running", lo_open=True),
+    "experiment.cycles": Range(1.0, 1e12, "at least one whole period of the load file (one "
+                                          "cycle's wear is the model's unit), at most 10¹²"),
     "experiment.angle_offset_deg": Range(-360.0, 360.0, "an angle within one turn either way"),
     # fit (DESIGN §6)
     "fit.clearance_tolerance_um": Range(0.0, math.inf, "a standard deviation (0 fixes, inf "
@@ -327,9 +335,55 @@ def check_strain(where: str, p, cfg) -> None:
         return
     load = bound.bound(p, cfg)
     strain = peak_strain(p, load, cfg.double_layer)
+    if 0 < strain and strain * _stiffness(p, cfg.double_layer)[1] / _stiffness(
+            p, cfg.double_layer)[0] < INDENT_LIMIT * float(p.clearance):
+        raise InputError(light_load_message(where, p, cfg, bound, load, strain))
     if strain <= STRAIN_LIMIT:
         return
+    if cfg.driver == "load_history":  # the file's numbers, not a key, carry the load
+        raise InputError(load_file_strain_message(where, p, cfg, load, strain))
     raise InputError(f"{where}: {strain_message(p, cfg, bound, load, strain)}")
+
+
+def light_load_message(where: str, p, cfg, bound: LoadBound, load: float, strain: float
+                       ) -> str:
+    """A peak load that presses the layer in by less than `INDENT_LIMIT` of the clearance:
+    the message names the load file (load_history) or the key that sets the load."""
+    k, e_layer = _stiffness(p, cfg.double_layer)
+    u, c = strain * e_layer / k, float(p.clearance)
+    pressure = load / (2.0 * float(p.bore_radius) * float(p.width))
+    what = (f"a peak load of {load:.3g} N presses the layer in by {u:.3g} m, {u / c:.2g} of "
+            f"the clearance ({pressure:.3g} Pa of projected pressure; loaded joints run at "
+            f"1-100 MPa): below the {INDENT_LIMIT:g} of the clearance the contact solve is run "
+            f"at, and a load this light wears nothing measurable")
+    if cfg.driver == "load_history":
+        block = max(cfg.duty_cycle, key=lambda b: b.load.peak_load)
+        return (f"{block.load.path}: columns 2-3 (load_x_N, load_y_N): {what} ({where}); "
+                f"expected the load on the bushing in newtons (kN written as N?)")
+    others = ", ".join(k_ for k_ in bound.keys if k_ != bound.key)
+    return (f"{where}: {bound.key} = {float(p.get(bound.key)):g} (SI): {what}; expected a "
+            f"larger {bound.key}" + (f" (or {others})" if others else ""))
+
+
+def load_file_strain_message(where: str, p, cfg, load: float, strain: float) -> str:
+    """A load file whose peak load strains the layer beyond `STRAIN_LIMIT`: the message names
+    the file, its row and columns first (a load_history joint's load is the file's numbers;
+    `load_scale` only when the study sets it other than 1), then `where` (the experiment)."""
+    block = max(cfg.duty_cycle, key=lambda b: b.load.peak_load)
+    cyc = block.load
+    row = int(np.argmax(np.hypot(cyc.force[:, 0], cyc.force[:, 1])))
+    scale = float(p.load_scale)
+    limit_N = strain_load_limit(p, cfg.double_layer)
+    pressure = strain * _stiffness(p, cfg.double_layer)[1] / 1e6
+    scaled = "" if scale == 1.0 else f" x load_scale = {scale:g}"
+    return (f"{cyc.path}: data row {row + 1} (time_s = {cyc.time[row] + 0.0:g} from the first), "
+            f"columns 2-3 (load_x_N, load_y_N): a peak load of {cyc.peak_load:.4g} N{scaled} "
+            f"({where}) gives ~{pressure:.3g} MPa on the layer, an elastic strain of "
+            f"~{strain:.3g}, beyond the model's {STRAIN_LIMIT:g} ({limit_N:.3g} N on this "
+            f"joint), because the Winkler foundation is linear elasticity of a thin layer; "
+            f"expected the load on the bushing in newtons (not mN), or a stiffer layer "
+            f"(layer_E_GPa), a wider bearing (width_mm), a smaller clearance_mm"
+            + ("" if scale == 1.0 else ", a smaller load_scale"))
 
 
 def strain_message(p, cfg, bound: LoadBound, load: float, strain: float) -> str:
@@ -365,6 +419,8 @@ def contact_failure(what: str, p, cfg, residual: float, peak_load: float) -> Exc
     bound = LOAD_BOUNDS.get(cfg.driver)
     strain = peak_strain(p, peak_load, cfg.double_layer) if p is not None else math.nan
     if bound is not None and strain > STRAIN_LIMIT:
+        if cfg.driver == "load_history":
+            return InputError(load_file_strain_message(what, p, cfg, peak_load, strain))
         return InputError(f"{head}; {strain_message(p, cfg, bound, peak_load, strain)}")
     keys = ", ".join((bound.keys if bound is not None else ()) + (
         "clearance_mm", "layer_E_GPa", "layer_thickness_mm"))
@@ -475,6 +531,8 @@ def check_study(study):
             check(k, v, f"{where}.{k}")
         if exp.revolutions is not None:
             check("experiment.revolutions", exp.revolutions, f"{where}.revolutions")
+        if "cycles" in given:  # named as written, before the hours it converts to
+            check("experiment.cycles", given["cycles"], f"{where}.cycles")
         if exp.hours is not None:
             check("experiment.hours", exp.hours, f"{where}.hours" if "hours" in given
                   else f"{where}: hours (the last of its history)")
