@@ -19,6 +19,8 @@ from __future__ import annotations
 
 from argparse import Namespace
 
+from .._data_checks import check_wear_measured
+
 DEFAULT_OUT = "jaxwear_out"
 
 
@@ -31,6 +33,7 @@ class Verb:
     takes_json = False  # --json FILE
     out_required = False  # --out without a default (synth)
     out_help = f"output folder (default {DEFAULT_OUT})"
+    fits_data = False  # fits the study's measurements: refuse data with no wear in them
 
     def add_arguments(self, p) -> None:
         """The verb's own options (STUDY, --out and --json are added by `add_to`)."""
@@ -88,6 +91,8 @@ class Verb:
         opts["args"] = args
         study = self.load(args, opts)
         self.resolve(study, opts)
+        if self.fits_data:
+            check_wear_measured(study)
         out = open_outputs(study, args.out, planned=self.outputs(study, opts),
                            json_file=getattr(args, "json", None))
         opts["estimate"] = check_work(self.work_study(study, opts),

@@ -196,6 +196,7 @@ def calibrate_outputs(study) -> list[str]:
 
 
 class Calibrate(Verb):
+    fits_data = True
     name = "calibrate"
     help = "fit K_d, clearances (and effect strengths) to data"
     takes_json = True

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .._config import TIMED_DRIVERS
+from .._data_checks import check_noise_measurable, check_wear_measured
 from .._errors import InputError
 from ._pipeline import Verb, fit_columns
 
@@ -107,6 +108,7 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
 
 
 class Diagnose(Verb):
+    fits_data = True
     name = "diagnose"
     help = "find the physics the base model is missing"
     takes_json = True
@@ -115,6 +117,10 @@ class Diagnose(Verb):
         p.add_argument("--shape", action="store_true",
                        help="always analyse the shape of the missing wear (default: only "
                             "when the verdict is unexplained)")
+
+    def resolve(self, study, opts):
+        check_wear_measured(study)  # before the noise: all zeros is the plainer reason
+        check_noise_measurable(study)  # a noise level of 0 weights the misfit by 1/0
 
     def outputs(self, study, opts):
         return list(DIAGNOSE_OUTPUTS + shape_outputs())

@@ -196,6 +196,7 @@ def summary_text(res) -> str:
 
 
 class Predict(Verb):
+    fits_data = True
     name = "predict"
     help = "forecast wear and remaining life with bands"
     takes_json = True

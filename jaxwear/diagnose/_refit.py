@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from .._data_checks import check_noise_measurable, check_wear_measured
 from .._errors import InputError
 from ._evidence import STRONG_LOG_BF, evidence
 from ._fit import Fit, _log, fit_masked
@@ -123,6 +124,9 @@ def _noise(model: Model, known: float | None = None):
     e, _ = neighbour_differences(model, model.measured)
     if len(e) < MIN_TRIPLES:
         raise InputError(too_few_triples(model.study, len(e), model.n))
+    if not nz.data_sigma_um > 0:  # equal depths: weights of 1/0 ended in LinAlgError
+        check_wear_measured(model.study)
+        check_noise_measurable(model.study)
     return float(nz.data_sigma_um), float(nz.data_dof)
 
 
