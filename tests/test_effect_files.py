@@ -219,3 +219,73 @@ def test_the_example_effect_file_loads(tmp_path):
                                  extra="debris_gain = 0.5"))
     assert study.config.effects == ("debris",)
     assert float(study.params().get("debris_gain")) == 0.5
+
+
+# ------------------------------------------------------------------ issue 41: hooks checked
+
+HOOK = '''import jax.numpy as jnp
+import jaxwear as jw
+
+
+class Bad(jw.Effect):
+    name = "bad"
+    parameters = {{"bad_gain": jw.EffectParameter(1.0, {default}, 0.0, 0.0, 10.0, "g [-]",
+                                                 scale=0.1)}}
+
+    def local_rate(self, p, rate, ctx):
+        g = p.effect_params["bad_gain"]
+        return {body}
+'''
+
+# (case, default strength, local_rate's return, the message's pattern). Before issue 41:
+# nan-on exit 1 "contact solve did not converge ... please report"; shape TypeError
+# dot_general; raises "ValueError: hook failed" (no file, no line); nan-off as a diagnose
+# candidate ~6 min of halved K_d; negative exit 0 with negative depths.
+BAD_HOOKS = [
+    ("nan-on", 1.0, "jnp.where(g > 0, jnp.nan, 1.0) * rate",
+     r"bad\.py: line 5: Bad\.local_rate at default \(bad_gain = 1\) returned NaN"),
+    ("nan-on-default-off", 0.0, "jnp.where(g > 0, jnp.nan, 1.0) * rate",
+     r"bad\.py: line 5: Bad\.local_rate at on \(off \+ scale\) \(bad_gain = 0\.1\) returned NaN"),
+    ("shape", 1.0, "rate[:, :3]",
+     r"bad\.py: line 5: Bad\.local_rate at off \(bad_gain = 0\) returned shape \(6, 3\); "
+     r"expected .*\(steps, nodes\)"),
+    ("raises", 1.0, "rate if g < 0 else (_ for _ in ()).throw(ValueError('hook failed'))",
+     r"bad\.py: line 12: Bad\.local_rate at off \(bad_gain = 0\) raised ValueError: hook "
+     r"failed"),
+    ("nan-off", 0.0, "rate * jnp.nan",
+     r"bad\.py: line 5: Bad\.local_rate at off \(bad_gain = 0\) returned NaN at 48 of 48"),
+    ("negative", 1.0, "rate * (1.0 - 3.0 * g)",
+     r"bad\.py: line 5: Bad\.local_rate at default \(bad_gain = 1\) returned negative wear"),
+]
+
+
+@pytest.mark.parametrize("case,default,body,pattern", BAD_HOOKS, ids=[b[0] for b in BAD_HOOKS])
+@pytest.mark.parametrize("on", [True, False], ids=["switched-on", "candidate"])
+def test_a_bad_hook_is_refused_when_the_file_loads(tmp_path, capsys, case, default, body,
+                                                   pattern, on):
+    """Each hook is tried on a small cycle at off, default (and realistic) strengths when
+    the file is loaded: a bad answer is exit 2 naming the file, the line, the class and
+    hook, the strength and what was wrong; nothing is registered, nothing written."""
+    (tmp_path / "bad.py").write_text(HOOK.format(default=default, body=body))
+    study = _study(tmp_path, files=("bad.py",), effects=["bad"] if on else [])
+    before = registered_effects()
+    assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert __import__("re").search(pattern, err), err
+    assert registered_effects() == before
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_hook_that_fails_later_names_its_file(tmp_path, capsys):
+    """Python control flow on a traced strength passes the eager load-time check and
+    fails once the model is traced by jit: the one line names the file and line."""
+    body = "rate * (2.0 if g > 5 else 1.0)"
+    (tmp_path / "late.py").write_text(HOOK.format(default=1.0, body=body).replace(
+        '"bad"', '"late"').replace("bad_gain", "late_gain"))
+    study = _study(tmp_path, files=("late.py",), effects=["late"])
+    assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]  # after the progress line
+    assert "Traceback" not in err, err
+    assert __import__("re").match(r"jaxwear: .*late\.py: line 12: in local_rate: \w+", last), err

@@ -73,7 +73,11 @@ def main(argv=None) -> int:
     except Exception as e:  # one line, never a traceback, unless asked for
         if os.environ.get("JAXWEAR_DEBUG"):
             raise
-        print(f"jaxwear: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
+        from ..effects._files import effect_file_frame
+
+        where = effect_file_frame(e)  # an effect from a file that failed inside a run
+        print(f"jaxwear: {where + ': ' if where else ''}{type(e).__name__}: {_one_line(e)}",
+              file=sys.stderr)
         return 1
     return 0
 
