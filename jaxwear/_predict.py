@@ -56,6 +56,7 @@ from ._calibrate import (
 )
 from ._config import timed
 from ._errors import InputError
+from ._optional import check_method_packages
 from ._predict_result import Curve, Life, Prediction, PredictResult, _jf  # noqa: F401
 from ._residual import (
     Layout,
@@ -425,6 +426,7 @@ def guided_points(study: Study, res: PredictResult, points: list[np.ndarray]):
 def _check_args(study, at, train_until, level, limit_um, method, noise_um):
     if method not in METHODS:
         raise InputError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    check_method_packages(method)
     if not (isinstance(level, (int, float)) and 0 < level < 1):
         raise InputError(f"--level must be in (0, 1), got {level!r}")
     at = [float(a) for a in (at if np.ndim(at) else [at])]

@@ -777,3 +777,44 @@ def test_ctrl_c_at_any_moment_is_one_line(tmp_path):
             continue
         assert (p.returncode, err.strip().splitlines()[-1]) == (1, "jaxwear: interrupted"), err
         assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+
+
+# ------------------------------------------------------------------ issue 41: samplers
+
+
+def _scan_study(folder):
+    a, d = _scar_rows()
+    return _study(folder, "angle_deg,depth_um\n" + "".join(f"{x},{y}\n" for x, y in zip(a, d)))
+
+
+@pytest.mark.parametrize("method,blocked", [("nuts", "numpyro"), ("nuts", "arviz"),
+                                            ("importance", "arviz"),
+                                            ("importance", "h5netcdf")])
+def test_a_sampler_without_its_packages_is_refused_before_any_work(
+        tmp_path, engines_stubbed, monkeypatch, method, blocked):
+    """`--method nuts` without numpyro fitted for 12 s and died of ModuleNotFoundError;
+    `--method importance` without arviz the same. The package made unimportable (a None in
+    sys.modules is what Python's import refuses): exit 2 before the study is read, with
+    the install command."""
+    monkeypatch.setitem(__import__("sys").modules, blocked, None)
+    line = _refused(["predict", tmp_path / "none.toml", "--at", "3000", "--method", method,
+                     "--out", tmp_path / "o"],
+                    f"--method {method} needs", blocked, 'pip install "jaxwear[bayes]"')
+    assert "none.toml" not in line  # refused before the (missing) study was looked at
+
+
+def test_a_sampler_without_its_packages_is_refused_from_python(tmp_path, monkeypatch):
+    """`jaxwear.predict(..., method="nuts")`: the same refusal, before the fit."""
+    from jaxwear._predict import predict
+
+    monkeypatch.setitem(__import__("sys").modules, "numpyro", None)
+    with pytest.raises(InputError, match=r'numpyro.*pip install "jaxwear\[bayes\]"'):
+        predict(load_study(_scan_study(tmp_path)), [3000.0], method="nuts")
+
+
+@pytest.mark.parametrize("seed", ["-1", "1.5", "1e30"])
+def test_a_bad_sampler_seed_is_refused_up_front(tmp_path, engines_stubbed, seed):
+    """`--seed -1` failed after the fit."""
+    _refused(["predict", _scan_study(tmp_path), "--at", "3000", "--method", "importance",
+              "--seed", seed, "--out", tmp_path / "o"], "--seed", seed)
+    assert not (tmp_path / "o").exists()

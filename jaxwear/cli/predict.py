@@ -21,6 +21,7 @@ import numpy as np
 from .._config import timed
 from .._errors import InputError
 from .._numbers import number, number_list
+from .._optional import check_method_packages
 from ._pipeline import Verb, fit_columns
 
 
@@ -246,6 +247,7 @@ class Predict(Verb):
         if args.method not in ("laplace", "nuts", "importance"):
             raise InputError(f"--method: expected laplace, nuts or importance, got "
                              f"{args.method!r}")
+        check_method_packages(args.method)  # before any file is read or model built
         if args.ess is not None and args.method != "importance":
             raise InputError(f"--ess: only with --method importance (got --method "
                              f"{args.method})")
@@ -255,7 +257,8 @@ class Predict(Verb):
             nuts = dict(draws=number("--draws", args.draws or default, positive=True,
                                      integer=True),
                         chains=number("--chains", args.chains, positive=True, integer=True),
-                        seed=number("--seed", args.seed, integer=True),
+                        seed=number("--seed", args.seed, integer=True, nonneg=True,
+                                    hi=2 ** 32),
                         max_minutes=number("--max-minutes", args.max_minutes, positive=True),
                         n_predictive=number("--predictive-draws", args.predictive_draws,
                                             positive=True, integer=True))
