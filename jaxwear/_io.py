@@ -27,6 +27,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from ._errors import InputError
+from ._interrupt import raise_if_interrupted
 
 
 def input_files(study) -> list[Path]:
@@ -236,6 +237,7 @@ def atomic_open(path, mode: str = "w", **kw):
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, _mode())
+        raise_if_interrupted()  # a Ctrl-C whose exception was dropped: no output
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -253,6 +255,7 @@ def atomic_path(path):
     try:
         yield Path(tmp)
         os.chmod(tmp, _mode())
+        raise_if_interrupted()
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

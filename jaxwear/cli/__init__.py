@@ -52,25 +52,37 @@ def build_parser() -> Parser:
 
 
 def main(argv=None) -> int:
-    from .._errors import InputError
-    from .._interrupt import release
+    from .._interrupt import release, restore
 
-    release()  # Ctrl-C from here on is caught below
+    release()  # Ctrl-C from here on is caught below (and remembered: `_interrupt`)
+    try:
+        return _run(argv)
+    finally:
+        restore()
+
+
+def _run(argv) -> int:
+    from .._errors import InputError
+    from .._interrupt import EXIT_CODE, MESSAGE, interrupted
+
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         ap = build_parser()
         args = ap.parse_args(join_negative_values(argv, value_options(ap)))
         _enable_cache()
         args.verb.execute(args)
+        if interrupted():  # a Ctrl-C whose exception was dropped (a gc callback ate it)
+            raise KeyboardInterrupt
     except InputError as e:
         print(f"jaxwear: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # one line, exit 1 (`jaxwear._interrupt`)
-        from .._interrupt import EXIT_CODE, MESSAGE
-
         print(MESSAGE, file=sys.stderr)
         return EXIT_CODE
     except Exception as e:  # one line, never a traceback, unless asked for
+        if interrupted():  # Python wrapped the interrupt (a class body's __set_name__)
+            print(MESSAGE, file=sys.stderr)
+            return EXIT_CODE
         if os.environ.get("JAXWEAR_DEBUG"):
             raise
         from ..effects._files import effect_file_frame
