@@ -27,6 +27,7 @@ import numpy as np
 from . import lsq
 from ._errors import InputError
 from ._noise import Noise, stated_noise
+from ._outside import parameter_flags
 from ._packing import parse_fit, study_fit_keys, unit_of, with_registration
 from ._residual import (
     Evaluation,
@@ -127,6 +128,8 @@ class FitResult:
     # None where no finer level was run)
     finer_minus_rows_um: np.ndarray | None = None
     finer_level: tuple | None = None
+    # fitted values outside the ranges the inputs are held to (`_outside.parameter_flags`)
+    outside: list = dataclasses.field(default_factory=list)
 
     @property
     def converged(self) -> bool:
@@ -172,6 +175,7 @@ class FitResult:
             "next_step_standard_errors": _jf(self.step_se),
             "message": self.message,
             "flags": list(self.flags),
+            "outside_model": list(self.outside),
             "n_data": int(self.n_data),
             "clearance_tolerance_um": tol if math.isfinite(tol) else "inf",
             "max_contact_residual": float(self.max_contact_residual),
@@ -446,6 +450,8 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
         result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
         result = correct_to_finer(study, keys, result, layout, **kw)
     result.compiles = traces_since(before)
+    result.outside = parameter_flags(result.names, result.values, study.preset)
+    result.flags[:0] = [f for f in result.outside if f not in result.flags]  # first
     return result
 
 

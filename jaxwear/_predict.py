@@ -57,6 +57,7 @@ from ._calibrate import (
 from ._config import timed
 from ._errors import InputError
 from ._optional import check_method_packages
+from ._outside import OUTSIDE, forecast_flags
 from ._predict_result import Curve, Life, Prediction, PredictResult, _jf  # noqa: F401
 from ._residual import (
     Layout,
@@ -660,7 +661,12 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         if any(b - a > LIFE_RTOL * abs(c) for a, b, c in x.brackets))
     # compilations of the whole answer (fit, checks and every forecast), by kind
     res.extra["compiles"] = traces_since(before)
-    return res
+    # answers outside the model first: the fit's values, forecasts below measured depths
+    outside = list(dict.fromkeys(
+        [f for f in res.flags if f.startswith(OUTSIDE)]
+        + forecast_flags(res.predictions, res.measured, res.noise_um, res.unit)))
+    res.flags[:] = outside + [f for f in res.flags if f not in outside]
+    return replace(res, outside=outside)
 
 
 SAMPLING_NODES_SHARE = 0.5  # the importance sampler's level: this share of the fit's nodes

@@ -27,6 +27,7 @@ from .._calibrate import (
 )
 from .._config import timed
 from .._errors import InputError
+from .._outside import loud_lines
 from .._resolution import at_level
 from ._pipeline import Verb, fit_columns
 
@@ -50,8 +51,9 @@ def _fmt(v: float) -> str:
 def summary_text(result: FitResult, study_name: str) -> str:
     """The stdout summary: parameter table, RMSE overall and per experiment, flags."""
     prob = result.problem
-    lines = [f"calibration of {study_name}: {len(prob.exp_names)} experiments, "
-             f"{result.n_data} data rows, {len(result.names)} fitted parameters"]
+    lines = loud_lines(result.flags)  # answers outside the model first
+    lines.append(f"calibration of {study_name}: {len(prob.exp_names)} experiments, "
+                 f"{result.n_data} data rows, {len(result.names)} fitted parameters")
     status = "converged" if result.converged else "NOT CONVERGED"
     lines.append(f"fit: {status} after {result.iterations} model evaluations ({result.message})")
     w = max([len("parameter")] + [len(n) for n in result.names]) + 2

@@ -13,6 +13,7 @@ from pathlib import Path
 from .._config import TIMED_DRIVERS
 from .._data_checks import check_noise_measurable, check_wear_measured
 from .._errors import InputError
+from .._outside import loud_lines
 from ._pipeline import Verb, fit_columns
 
 DIAGNOSE_OUTPUTS = ("diagnosis.json", "residuals.csv", "report.html")
@@ -159,6 +160,8 @@ class Diagnose(Verb):
         diag = dia.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)),
                             figures=True)
         doc = write_outputs(diag, out)
+        for line in loud_lines(doc["outside_model"]):  # answers outside the model first
+            print(line)
         v = doc["verdict"]
         name = " + ".join(v["effects"]) if v["effects"] else "none"
         print(f"verdict: {v['status']} (missing effect: {name}); base RMSE "

@@ -22,6 +22,7 @@ from .._config import timed
 from .._errors import InputError
 from .._numbers import number, number_list
 from .._optional import check_method_packages
+from .._outside import loud_lines
 from ._pipeline import Verb, fit_columns
 
 
@@ -168,9 +169,10 @@ def plot_profiles(out, study, res):
 
 
 def summary_text(res) -> str:
-    lines = [f"forecast ({res.method}, level {res.level:g}): noise {res.noise_um:.3g} µm "
-             f"({'given' if res.noise_given else f'estimated, {res.dof} dof'}), "
-             f"quantile {res.quantile:.3g}"]
+    lines = loud_lines(res.flags)  # answers outside the model first
+    lines.append(f"forecast ({res.method}, level {res.level:g}): noise {res.noise_um:.3g} µm "
+                 f"({'given' if res.noise_given else f'estimated, {res.dof} dof'}), "
+                 f"quantile {res.quantile:.3g}")
     for name, v in res.parameters.items():
         lines.append(f"  {name} = {v['value']:.5g} ± {v['stderr'] or float('nan'):.2g}")
     lines.append(f"{'experiment':<20}{'at':>10}  {'depth_um':>10}  {'band_um':>21}  measured")

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._outside import parameter_flags
 from .._study import Study
 from ._evidence import derived, rmse_per_experiment, where_it_fails
 from ._fit import Fit
@@ -74,6 +75,15 @@ class Diagnosis:
                     for k, (v, se) in derived(self.model, fit).items()})
         return out
 
+    def outside_model(self, *parameter_sets) -> list[str]:
+        """`_outside.parameter_flags` of the fitted (not derived) values of the base model
+        and of the model after, once each."""
+        flags = []
+        for params in parameter_sets:
+            fitted = {k: v["value"] for k, v in params.items() if not v.get("derived")}
+            flags += parameter_flags(list(fitted), list(fitted.values()), self.study.preset)
+        return list(dict.fromkeys(flags))
+
     def to_json(self) -> dict:
         m = self.model
         cands = []
@@ -123,6 +133,7 @@ class Diagnosis:
                         "partial": list(self.partial), "alternatives": list(self.alternatives),
                         "confident": self.status != "effect_found" or not self.alternatives},
             "after": after,
+            "outside_model": self.outside_model(base["parameters"], after["parameters"]),
             **({"shape": self.shape.to_json()} if self.shape is not None else {}),
             **({"shape_after_effect": self.shape_after_effect.to_json()}
                if self.shape_after_effect is not None else {}),
