@@ -249,13 +249,16 @@ BAD_HOOKS = [
     ("shape", 1.0, "rate[:, :3]",
      r"bad\.py: line 5: Bad\.local_rate at off \(bad_gain = 0\) returned shape \(6, 3\); "
      r"expected .*\(steps, nodes\)"),
-    ("raises", 1.0, "rate if g < 0 else (_ for _ in ()).throw(ValueError('hook failed'))",
+    ("raises", 1.0, "(_ for _ in ()).throw(ValueError('hook failed'))",
      r"bad\.py: line 12: Bad\.local_rate at off \(bad_gain = 0\) raised ValueError: hook "
      r"failed"),
     ("nan-off", 0.0, "rate * jnp.nan",
      r"bad\.py: line 5: Bad\.local_rate at off \(bad_gain = 0\) returned NaN at 48 of 48"),
     ("negative", 1.0, "rate * (1.0 - 3.0 * g)",
      r"bad\.py: line 5: Bad\.local_rate at default \(bad_gain = 1\) returned negative wear"),
+    ("python-if", 1.0, "rate * (2.0 if g > 5 else 1.0)",  # fine eagerly, not in the loop
+     r"bad\.py: line 12: Bad\.local_rate at off \(bad_gain = 0\) raised "
+     r"TracerBoolConversionError: Python control flow .* jnp\.where"),
 ]
 
 
@@ -278,9 +281,10 @@ def test_a_bad_hook_is_refused_when_the_file_loads(tmp_path, capsys, case, defau
 
 
 def test_a_hook_that_fails_later_names_its_file(tmp_path, capsys):
-    """Python control flow on a traced strength passes the eager load-time check and
-    fails once the model is traced by jit: the one line names the file and line."""
-    body = "rate * (2.0 if g > 5 else 1.0)"
+    """A hook that works on the check's 8 nodes and raises on the study's 40: the run's
+    one line (exit 1) names the file and line, not only "ValueError: ..."."""
+    body = ("rate if ctx.pressure.shape[1] <= 8 else "
+            "(_ for _ in ()).throw(ValueError('only 8 nodes'))")
     (tmp_path / "late.py").write_text(HOOK.format(default=1.0, body=body).replace(
         '"bad"', '"late"').replace("bad_gain", "late_gain"))
     study = _study(tmp_path, files=("late.py",), effects=["late"])
@@ -288,4 +292,5 @@ def test_a_hook_that_fails_later_names_its_file(tmp_path, capsys):
     err = capsys.readouterr().err
     last = err.strip().splitlines()[-1]  # after the progress line
     assert "Traceback" not in err, err
-    assert __import__("re").match(r"jaxwear: .*late\.py: line 12: in local_rate: \w+", last), err
+    assert __import__("re").match(r"jaxwear: .*late\.py: line 12: in \S+: ValueError: only 8 "
+                                  r"nodes$", last), err

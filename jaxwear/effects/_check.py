@@ -7,12 +7,12 @@ not converge ... please report" (or, NaN even when off and loaded as a diagnose 
 as K_d halved 8 times at ~40 s an evaluation), one that returned negative wear as exit 0
 with negative depths.
 
-`check_effect` calls each hook once, eagerly, at each strength setting the effect will be
-run at first: `off` (the base model: diagnose's score test differentiates there), `default`,
-`realistic` (what `synth` hides) and, where those all coincide, `off` plus one `scale` (an
-effect switched on). The cycle is 6 steps x 8 nodes of a plausible joint (a pressure bump
-of 2 MPa that turns with the load, 0.1 mm of sliding and 10 ms a step, at the start of a
-run and after 5 m of sliding); the answers must be:
+`check_effect` calls each hook once, compiled as the wear loop runs it, at each strength
+setting the effect will be run at first: `off` (the base model: diagnose's score test
+differentiates there), `default`, `realistic` (what `synth` hides) and, where those all
+coincide, `off` plus one `scale` (an effect switched on). The cycle is 6 steps x 8 nodes
+of a plausible joint (a pressure bump of 2 MPa that turns with the load, 0.1 mm of sliding
+and 10 ms a step, at the start of a run and after 5 m of sliding); the answers must be:
 
 - `local_rate`: shape (steps, nodes), finite, and >= 0 (wear per step [m]: a hook may lower
   the Archard rate, never below zero; below zero is material added);
@@ -21,8 +21,11 @@ run and after 5 m of sliding); the answers must be:
 - `cycles_at`: None, or a finite scalar.
 
 A failure is an `InputError` naming the file, the line (in the file where the hook raised,
-else the class's), the class and hook, the strengths and what was wrong. It costs a few
-milliseconds per effect (no compilation: eager calls on 48 numbers).
+else the class's), the class and hook, the strengths and what was wrong. Each hook is
+traced by `jax.jit` once for all settings, as the wear loop runs it (Python control flow on
+a traced strength fails here, at load); about as long as eager calls, whose every primitive
+compiles on its own (0.4-2.6 s for each of the two effects of tests/test_effect_files.py on
+a loaded 2-core host, mostly compilation).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -87,6 +91,10 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
     rate = base.wear_coefficient * pressure * slide[:, None]
     sense = jnp.where(jnp.arange(STEPS) % 2 == 0, 1.0, -1.0)
     name = type(eff).__name__
+    # each hook compiled once (the settings share its shapes) and run as the wear loop runs
+    # it, traced: Python control flow on a strength fails here, not an hour into a fit
+    jitted = {hook: jax.jit(lambda p, *a, hook=hook: getattr(eff, hook)(p, *a))
+              for hook in ("friction", "local_rate", "block_factor", "cycles_at")}
     for label, values in strength_settings(eff):
         p = base.with_values({k: v * eff.parameters[k].to_si for k, v in values.items()})
         at = f"at {label} ({', '.join(f'{k} = {v:g}' for k, v in values.items())})"
@@ -98,9 +106,12 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
 
         def call(hook, *args):
             try:
-                return getattr(eff, hook)(p, *args)
+                return jitted[hook](p, *args)
             except Exception as e:
                 msg = " ".join(str(e).split()) or "(no message)"
+                if isinstance(e, jax.errors.ConcretizationTypeError):  # JAX's text names ours
+                    msg = ("Python control flow (if, while, float(), int()) on a traced "
+                           "value; the hooks run inside jax.jit: write it with jnp.where")
                 fail(hook, f"raised {type(e).__name__}: {msg}",
                      _line_in(e, Path(path).resolve(), class_line))
 
