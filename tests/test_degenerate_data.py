@@ -79,3 +79,23 @@ def test_covariance_is_linear_in_the_rows():
     # fewer rows than columns: the null space still spans what the rows leave free
     c2 = covariance(rng.normal(size=(2, 4)))
     assert c2.null_directions.shape == (4, 2) and c2.undetermined.all()
+
+
+def test_rows_read_their_nodes_without_a_rows_by_nodes_copy(tmp_path):
+    """The model's value at each row came from a (rows, nodes) gather of every row's whole
+    profile: under the shape analysis's ~150 forward-mode tangents 58 KB a row at 48 nodes,
+    17 GB for a 300 000-row scan. No intermediate of the row read-out is larger than a few
+    values per row now (the traced program of `predict_from`, no model run)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxwear import load_study
+    from jaxwear._packing import parse_fit
+    from jaxwear._residual import build_model
+
+    rows = 3000
+    study = load_study(_study(tmp_path, np.linspace(-0.3, 2.0, rows).tolist()))
+    model = build_model(study, parse_fit(study, "K_d,clearance"))
+    jaxpr = jax.make_jaxpr(model.predict_from)(jnp.zeros((1, 1, 48)))
+    biggest = max(v.aval.size for eqn in jaxpr.eqns for v in eqn.outvars)
+    assert biggest <= 4 * rows, biggest  # was rows x 48 = 144 000
