@@ -435,17 +435,14 @@ def check_load_magnitudes(study) -> None:
         check_load_magnitude(study.path, f"experiment {study.experiments[i].name!r}", b.load, p)
 
 
-# Effects whose wear is not tied to sliding: a joint that never turns still wears by them.
-_UNSLIDING_EFFECTS = ("creep",)
-
 
 def check_joint_moves(study) -> None:
     """Refuse (`InputError`) a load_history study whose joint never wears in the base model:
     every load file all 0 N (never loaded: no pressure), or every file's angle constant
     (the pin never turns in the bushing: no sliding, and Archard wear is K_d p dS = 0).
     Such a run ended with exit 0 and depths of exactly 0, without a word (issue 41). With
-    an effect switched on that wears without sliding (creep) a still joint is a study:
-    then a warning (stderr) says that only that effect wears."""
+    an effect switched on (creep, or a user's deposit, may wear without sliding) a still
+    joint is a study: then a warning (stderr) says that only the effects can wear."""
     blocks = study.config.duty_cycle
     files = ", ".join(dict.fromkeys(b.load.path for b in blocks))
     if all(b.load.peak_load == 0 for b in blocks):
@@ -453,11 +450,12 @@ def check_joint_moves(study) -> None:
                          f"joint is never loaded and nothing wears (every depth would be "
                          f"exactly 0); expected the load on the bushing in newtons")
     if all(b.load.rotation == 0 for b in blocks):
-        still = [e for e in study.config.effects if e in _UNSLIDING_EFFECTS]
+        still = list(study.config.effects)
         why = ("column 4 (angle_deg): every row has the same angle, so the pin never turns "
                "in the bushing: no sliding, and the Archard wear K_d p dS is exactly 0")
         if not still:
             raise InputError(f"{files}: {why}; expected the pin's rotation relative to the "
                              f"bushing in degrees, changing over the period (wear not tied "
                              f"to sliding needs an effect such as creep switched on)")
-        print(f"warning: {files}: {why}; only {', '.join(still)} wears", file=sys.stderr)
+        print(f"warning: {files}: {why}; only the effects switched on ({', '.join(still)}) "
+              f"can wear it", file=sys.stderr)

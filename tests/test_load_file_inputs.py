@@ -273,7 +273,7 @@ def test_a_still_joint_with_creep_on_warns(tmp_path, engines_stubbed):
     rc, err = _main(["simulate", _load_study(tmp_path, still, doc=doc), "--out",
                      tmp_path / "o"])
     assert rc == "loaded", err
-    assert "warning" in err and "only creep wears" in err, err
+    assert "warning" in err and "only the effects switched on (creep) can wear" in err, err
 
 
 def test_a_folder_as_the_load_file_is_called_a_folder(tmp_path, engines_stubbed):
