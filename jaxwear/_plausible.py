@@ -39,6 +39,7 @@ import numpy as np
 
 from ._errors import InputError
 from ._params import MECHANISM_KEYS
+from .effects._files import file_effects
 
 STRAIN_LIMIT = 0.25  # peak elastic strain p/E_w of the wearing layer, unworn bore
 # Smallest peak indentation u/c (pin pressed into the unworn layer, over the clearance) the
@@ -424,6 +425,10 @@ def contact_failure(what: str, p, cfg, residual: float, peak_load: float) -> Exc
         return InputError(f"{head}; {strain_message(p, cfg, bound, peak_load, strain)}")
     keys = ", ".join((bound.keys if bound is not None else ()) + (
         "clearance_mm", "layer_E_GPa", "layer_thickness_mm"))
+    mine = file_effects(cfg.effects)
+    if mine:  # a user's hook (NaN at a strength its load-time check did not try) first
+        head = (f"{head}, with effect(s) from files switched on: {', '.join(mine)}; check "
+                f"their hooks for NaN or inf at the strengths the fit tried")
     return RuntimeError(f"{head} (layer strain ~{strain:.2g}, within the model's range "
                         f"{STRAIN_LIMIT:g}): a failure of the solver, not of the input; the "
                         f"contact is driven by {keys}: a value nearer the paper's, or other "

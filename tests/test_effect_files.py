@@ -294,3 +294,16 @@ def test_a_hook_that_fails_later_names_its_file(tmp_path, capsys):
     assert "Traceback" not in err, err
     assert __import__("re").match(r"jaxwear: .*late\.py: line 12: in \S+: ValueError: only 8 "
                                   r"nodes$", last), err
+
+
+def test_a_nan_at_an_untried_strength_names_the_effect_file(tmp_path, capsys):
+    """NaN only above a strength the load-time check does not try (the study sets 6): the
+    run's contact solve fails, and its one line names the effect and its file (it said
+    "... please report the study", the file never named)."""
+    body = "jnp.where(g > 5, jnp.nan, 1.0) * rate"
+    (tmp_path / "bad.py").write_text(HOOK.format(default=1.0, body=body))
+    study = _study(tmp_path, files=("bad.py",), effects=["bad"], extra="bad_gain = 6.0")
+    assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 1
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "did not converge" in last and "bad (from " in last and "bad.py)" in last, last
+    assert not (tmp_path / "o" / "profiles.csv").exists()

@@ -273,3 +273,15 @@ def effect_file_frame(exc: BaseException) -> str | None:
     if found is None and cause is not None and cause is not exc:
         return effect_file_frame(cause)
     return found
+
+
+def file_effects(names) -> list[str]:
+    """"NAME (from FILE)" for each of the effect `names` registered from an effect file: a
+    run that fails with them switched on names them (a NaN from a hook at a strength the
+    load-time check did not try surfaces as a contact solve that does not converge)."""
+    out = []
+    for name in names:
+        entry = _ORIGIN.get(name)
+        if entry is not None and registered_effects().get(name) is entry[1]:
+            out.append(f"{name} (from {entry[0]})")
+    return out
