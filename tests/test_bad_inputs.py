@@ -778,3 +778,89 @@ def test_ctrl_c_at_any_moment_is_one_line(tmp_path):
             continue
         assert (p.returncode, err.strip().splitlines()[-1]) == (1, "jaxwear: interrupted"), err
         assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+
+
+# ------------------------------------------------------------------ issue 41: samplers
+
+
+def _scan_study(folder):
+    a, d = _scar_rows()
+    return _study(folder, "angle_deg,depth_um\n" + "".join(f"{x},{y}\n" for x, y in zip(a, d)))
+
+
+@pytest.mark.parametrize("method,blocked", [("nuts", "numpyro"), ("nuts", "arviz"),
+                                            ("importance", "arviz"),
+                                            ("importance", "h5netcdf")])
+def test_a_sampler_without_its_packages_is_refused_before_any_work(
+        tmp_path, engines_stubbed, monkeypatch, method, blocked):
+    """`--method nuts` without numpyro fitted for 12 s and died of ModuleNotFoundError;
+    `--method importance` without arviz the same. The package made unimportable (a None in
+    sys.modules is what Python's import refuses): exit 2 before the study is read, with
+    the install command."""
+    monkeypatch.setitem(__import__("sys").modules, blocked, None)
+    line = _refused(["predict", tmp_path / "none.toml", "--at", "3000", "--method", method,
+                     "--out", tmp_path / "o"],
+                    f"--method {method} needs", blocked, 'pip install "jaxwear[bayes]"')
+    assert "none.toml" not in line  # refused before the (missing) study was looked at
+
+
+def test_a_sampler_without_its_packages_is_refused_from_python(tmp_path, monkeypatch):
+    """`jaxwear.predict(..., method="nuts")`: the same refusal, before the fit."""
+    from jaxwear._analyses.predict.forecast import predict
+
+    monkeypatch.setitem(__import__("sys").modules, "numpyro", None)
+    with pytest.raises(InputError, match=r'numpyro.*pip install "jaxwear\[bayes\]"'):
+        predict(load_study(_scan_study(tmp_path)), [3000.0], method="nuts")
+
+
+@pytest.mark.parametrize("seed", ["-1", "1.5", "1e30"])
+def test_a_bad_sampler_seed_is_refused_up_front(tmp_path, engines_stubbed, seed):
+    """`--seed -1` failed after the fit."""
+    _refused(["predict", _scan_study(tmp_path), "--at", "3000", "--method", "importance",
+              "--seed", seed, "--out", tmp_path / "o"], "--seed", seed)
+    assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------ issue 41: interrupts
+
+
+def _swallowed_ctrl_c():
+    """A real SIGINT whose KeyboardInterrupt is dropped where it lands, as Python does in a
+    garbage-collector callback (measured: JAX's `_xla_gc_callback` just after a fit)."""
+    import signal
+
+    try:
+        signal.raise_signal(signal.SIGINT)
+    except KeyboardInterrupt:
+        pass
+
+
+@pytest.mark.parametrize("then", ["writes", "raises"])
+def test_a_dropped_ctrl_c_still_ends_the_run(tmp_path, monkeypatch, capsys, then):
+    """Ctrl-C just after a fit ran on to exit 0 with every output written (the exception
+    dropped in a gc callback), or ended as `RuntimeError: Error calling __set_name__` (it
+    landed in a class body of matplotlib's import). Remembered by the handler: no output
+    replaces its file, and the run ends with the one line and exit 1."""
+    import signal
+
+    import jaxwear._analyses.simulate as sim
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+    def engine(study, out):
+        _swallowed_ctrl_c()
+        if then == "raises":
+            raise RuntimeError("Error calling __set_name__ on 'x' instance 'y' in 'Z'")
+        out.write_text("profiles.csv", "experiment,angle_deg,depth_um\n")
+
+    monkeypatch.setattr(sim, "simulate_study", engine)
+    study = _study(tmp_path, revs="500")
+    rc = main(["simulate", str(study), "--out", str(tmp_path / "o")])
+    assert (rc, capsys.readouterr().err) == (1, "jaxwear: interrupted\n")
+    assert not (tmp_path / "o" / "profiles.csv").exists()
+    # after main: Python's own handling again, nothing left flagged
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    from jaxwear._core.io import atomic_write
+
+    atomic_write(tmp_path / "later.txt", "x")
+    assert (tmp_path / "later.txt").read_text() == "x"

@@ -219,3 +219,91 @@ def test_the_example_effect_file_loads(tmp_path):
                                  extra="debris_gain = 0.5"))
     assert study.config.effects == ("debris",)
     assert float(study.params().get("debris_gain")) == 0.5
+
+
+# ------------------------------------------------------------------ issue 41: hooks checked
+
+HOOK = '''import jax.numpy as jnp
+import jaxwear as jw
+
+
+class Bad(jw.Effect):
+    name = "bad"
+    parameters = {{"bad_gain": jw.EffectParameter(1.0, {default}, 0.0, 0.0, 10.0, "g [-]",
+                                                 scale=0.1)}}
+
+    def local_rate(self, p, rate, ctx):
+        g = p.effect_params["bad_gain"]
+        return {body}
+'''
+
+# (case, default strength, local_rate's return, the message's pattern). Before issue 41:
+# nan-on exit 1 "contact solve did not converge ... please report"; shape TypeError
+# dot_general; raises "ValueError: hook failed" (no file, no line); nan-off as a diagnose
+# candidate ~6 min of halved K_d; negative exit 0 with negative depths.
+BAD_HOOKS = [
+    ("nan-on", 1.0, "jnp.where(g > 0, jnp.nan, 1.0) * rate",
+     r"bad\.py: line 5: Bad\.local_rate at default \(bad_gain = 1\) returned NaN"),
+    ("nan-on-default-off", 0.0, "jnp.where(g > 0, jnp.nan, 1.0) * rate",
+     r"bad\.py: line 5: Bad\.local_rate at on \(off \+ scale\) \(bad_gain = 0\.1\) returned NaN"),
+    ("shape", 1.0, "rate[:, :3]",
+     r"bad\.py: line 5: Bad\.local_rate at off \(bad_gain = 0\) returned shape \(6, 3\); "
+     r"expected .*\(steps, nodes\)"),
+    ("raises", 1.0, "(_ for _ in ()).throw(ValueError('hook failed'))",
+     r"bad\.py: line 12: Bad\.local_rate at off \(bad_gain = 0\) raised ValueError: hook "
+     r"failed"),
+    ("nan-off", 0.0, "rate * jnp.nan",
+     r"bad\.py: line 5: Bad\.local_rate at off \(bad_gain = 0\) returned NaN at 48 of 48"),
+    ("negative", 1.0, "rate * (1.0 - 3.0 * g)",
+     r"bad\.py: line 5: Bad\.local_rate at default \(bad_gain = 1\) returned negative wear"),
+    ("python-if", 1.0, "rate * (2.0 if g > 5 else 1.0)",  # fine eagerly, not in the loop
+     r"bad\.py: line 12: Bad\.local_rate at off \(bad_gain = 0\) raised "
+     r"TracerBoolConversionError: Python control flow .* jnp\.where"),
+]
+
+
+@pytest.mark.parametrize("case,default,body,pattern", BAD_HOOKS, ids=[b[0] for b in BAD_HOOKS])
+@pytest.mark.parametrize("on", [True, False], ids=["switched-on", "candidate"])
+def test_a_bad_hook_is_refused_when_the_file_loads(tmp_path, capsys, case, default, body,
+                                                   pattern, on):
+    """Each hook is tried on a small cycle at off, default (and realistic) strengths when
+    the file is loaded: a bad answer is exit 2 naming the file, the line, the class and
+    hook, the strength and what was wrong; nothing is registered, nothing written."""
+    (tmp_path / "bad.py").write_text(HOOK.format(default=default, body=body))
+    study = _study(tmp_path, files=("bad.py",), effects=["bad"] if on else [])
+    before = registered_effects()
+    assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert __import__("re").search(pattern, err), err
+    assert registered_effects() == before
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_hook_that_fails_later_names_its_file(tmp_path, capsys):
+    """A hook that works on the check's 8 nodes and raises on the study's 40: the run's
+    one line (exit 1) names the file and line, not only "ValueError: ..."."""
+    body = ("rate if ctx.pressure.shape[1] <= 8 else "
+            "(_ for _ in ()).throw(ValueError('only 8 nodes'))")
+    (tmp_path / "late.py").write_text(HOOK.format(default=1.0, body=body).replace(
+        '"bad"', '"late"').replace("bad_gain", "late_gain"))
+    study = _study(tmp_path, files=("late.py",), effects=["late"])
+    assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]  # after the progress line
+    assert "Traceback" not in err, err
+    assert __import__("re").match(r"jaxwear: .*late\.py: line 12: in \S+: ValueError: only 8 "
+                                  r"nodes$", last), err
+
+
+def test_a_nan_at_an_untried_strength_names_the_effect_file(tmp_path, capsys):
+    """NaN only above a strength the load-time check does not try (the study sets 6): the
+    run's contact solve fails, and its one line names the effect and its file (it said
+    "... please report the study", the file never named)."""
+    body = "jnp.where(g > 5, jnp.nan, 1.0) * rate"
+    (tmp_path / "bad.py").write_text(HOOK.format(default=1.0, body=body))
+    study = _study(tmp_path, files=("bad.py",), effects=["bad"], extra="bad_gain = 6.0")
+    assert main(["simulate", str(study), "--out", str(tmp_path / "o")]) == 1
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "did not converge" in last and "bad (from " in last and "bad.py)" in last, last
+    assert not (tmp_path / "o" / "profiles.csv").exists()

@@ -240,3 +240,96 @@ def test_simulate_never_writes_over_a_load_file(tmp_path, engines_stubbed):
     _refused(["simulate", study, "--out", tmp_path], "load_a.csv",
              "refusing to replace an input")
     assert (tmp_path / "load_a.csv").read_text() == before
+
+
+# ------------------------------------------------------------------ issue 41: load files
+
+
+def _scaled(rows, factor):
+    return [(t, fx * factor, fy * factor, a) for t, fx, fy, a in rows]
+
+
+def test_a_load_file_that_never_loads_or_never_turns_is_refused(tmp_path, engines_stubbed):
+    """All-zero loads, one angle on every row, or a file of two equal rows ran to exit 0
+    with depths of exactly 0 and no word (issue 41): nothing can wear (no pressure; no
+    sliding, Archard wear K_d p dS = 0), so each is refused, naming the file and column."""
+    zero = [(t, 0.0, 0.0, a) for t, _, _, a in LOAD_ROWS]
+    _refused_nothing_written(_load_study(tmp_path / "z", zero), "l.csv", "load_x_N",
+                             "every row is 0 N", "never loaded")
+    still = [(t, fx, fy, 12.0) for t, fx, fy, _ in LOAD_ROWS]
+    _refused_nothing_written(_load_study(tmp_path / "s", still), "l.csv",
+                             "column 4 (angle_deg)", "same angle", "no sliding")
+    two = [(0.0, 8000.0, 100.0, 0.0), (1.0, 8000.0, 100.0, 0.0)]
+    _refused_nothing_written(_load_study(tmp_path / "t", two), "l.csv", "same angle")
+
+
+def test_a_still_joint_with_creep_on_warns(tmp_path, engines_stubbed):
+    """Creep wears without sliding: a still joint is then a study, with a warning."""
+    import copy
+
+    doc = copy.deepcopy(BASE_LOAD)
+    doc["model"]["effects"] = ["creep"]
+    still = [(t, fx, fy, 12.0) for t, fx, fy, _ in LOAD_ROWS]
+    rc, err = _main(["simulate", _load_study(tmp_path, still, doc=doc), "--out",
+                     tmp_path / "o"])
+    assert rc == "loaded", err
+    assert "warning" in err and "only the effects switched on (creep) can wear" in err, err
+
+
+def test_a_folder_as_the_load_file_is_called_a_folder(tmp_path, engines_stubbed):
+    import copy
+
+    doc = copy.deepcopy(BASE_LOAD)
+    doc["model"]["load_history"] = "loads"
+    study = _load_study(tmp_path, doc=doc)
+    (tmp_path / "loads").mkdir()
+    line = _refused_nothing_written(study, "model.load_history", "'loads' is a folder",
+                                    "expected a load file")
+    assert "not found" not in line
+
+
+@pytest.mark.parametrize("cycles,must", [(0.5, "cycles = 0.5"), (1e15, "cycles = 1e+15")])
+def test_cycles_out_of_range_name_cycles_as_written(tmp_path, engines_stubbed, cycles, must):
+    """`cycles = 0.5` blamed `hours` (which the study does not set); `cycles = 1e15` named
+    the hours it converts to (1.67e12 h)."""
+    import copy
+
+    doc = copy.deepcopy(BASE_LOAD)
+    doc["experiment"][1]["cycles"] = cycles
+    line = _refused_nothing_written(_load_study(tmp_path, doc=doc), "study.toml",
+                                    "experiment 'b'.cycles", must, "[1, 1e+12]")
+    assert "hours" not in line
+
+
+def test_a_history_past_the_cycles_names_cycles(tmp_path, engines_stubbed):
+    import copy
+
+    doc = copy.deepcopy(BASE_LOAD)
+    del doc["experiment"][0]["hours"]
+    doc["experiment"][0]["cycles"] = 3000  # 5 h of the 6 s file; the history goes to 10 h
+    line = _refused_nothing_written(_load_study(tmp_path, doc=doc), "experiment 'a'",
+                                    "history goes to 10 h", "cycles = 3000, 5 h")
+    assert "> hours" not in line
+
+
+def test_a_load_beyond_the_layer_blames_the_file_not_load_scale(tmp_path, engines_stubbed):
+    """Loads of 1e12 N blamed `load_scale = 1`, a key the study does not set: the file's
+    numbers carry the load, so the file, its columns and the peak row are named."""
+    peak = max(float(np.hypot(fx, fy)) for _, fx, fy, _ in LOAD_ROWS)
+    rows = _scaled(LOAD_ROWS, 1e12 / peak)
+    line = _refused_nothing_written(_load_study(tmp_path, rows), "l.csv", "data row 1",
+                                    "(load_x_N, load_y_N)", "1e+12 N", "strain",
+                                    "in newtons")
+    assert "load_scale" not in line
+
+
+def test_a_load_too_light_to_indent_the_layer_is_refused(tmp_path, engines_stubbed):
+    """0.01 N on the 15 x 28 mm bore (24 Pa) ended in exit 1 'contact solve did not
+    converge ... please report': the indentation is 5e-5 of the clearance. Refused before
+    any work, naming the file; 10.9 N (indentation 5.5e-3 of it) is run."""
+    peak = max(float(np.hypot(fx, fy)) for _, fx, fy, _ in LOAD_ROWS)
+    _refused_nothing_written(_load_study(tmp_path / "t", _scaled(LOAD_ROWS, 0.01 / peak)),
+                             "l.csv", "0.01 N", "of the clearance", "in newtons")
+    rc, err = _main(["simulate", _load_study(tmp_path / "l", _scaled(LOAD_ROWS, 10.9 / peak)),
+                     "--out", tmp_path / "o"])
+    assert rc == "loaded", err

@@ -62,8 +62,57 @@ def guard_import() -> None:
 
 _GUARD: list = []
 
+# While `cli.main` runs (`release` .. `restore`): whether a Ctrl-C came. Python raises the
+# `KeyboardInterrupt` at whatever bytecode runs when the signal is handled, and one that
+# lands in a garbage-collector callback (JAX's `_xla_gc_callback`) or a `__del__` is
+# printed as "Exception ignored" and dropped: a Ctrl-C just after a fit then ran on to exit
+# 0 with every output written (issue 41). The flag outlives the exception: outputs are not
+# written once it is set (`_io`, `raise_if_interrupted`) and `main` exits `EXIT_CODE`.
+_STATE = {"armed": False, "interrupted": False}
+
+
+def _on_sigint(signum, frame):
+    if _STATE["armed"]:
+        _STATE["interrupted"] = True
+    raise KeyboardInterrupt
+
+
+def _unraisable(previous):
+    def hook(info):
+        # the dropped `KeyboardInterrupt` is remembered (`_on_sigint`); its "Exception
+        # ignored in ..." traceback would be the run's last words otherwise
+        if not (_STATE["armed"] and isinstance(info.exc_value, KeyboardInterrupt)):
+            previous(info)
+
+    return hook
+
 
 def release() -> None:
-    """From here on Ctrl-C raises `KeyboardInterrupt` again (caught by `cli.main`)."""
-    if _GUARD and signal.getsignal(signal.SIGINT) is _GUARD[0]:
+    """From here on Ctrl-C raises `KeyboardInterrupt` again (caught by `cli.main`), and is
+    remembered even where the exception is dropped (`interrupted`), silently."""
+    _STATE.update(armed=True, interrupted=False, unraisable=sys.unraisablehook)
+    sys.unraisablehook = _unraisable(sys.unraisablehook)
+    current = signal.getsignal(signal.SIGINT)
+    if (_GUARD and current is _GUARD[0]) or current is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _on_sigint)
+
+
+def restore() -> None:
+    """The end of `cli.main`: Python's own Ctrl-C handling again, the flag cleared (a
+    process that calls `main` and goes on, a notebook or a test, is not left flagged)."""
+    _STATE.update(armed=False, interrupted=False)
+    if _STATE.get("unraisable") is not None:
+        sys.unraisablehook = _STATE.pop("unraisable")
+    if signal.getsignal(signal.SIGINT) is _on_sigint:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def interrupted() -> bool:
+    """Whether a Ctrl-C came while `cli.main` runs (even one whose exception was dropped)."""
+    return bool(_STATE["armed"] and _STATE["interrupted"])
+
+
+def raise_if_interrupted() -> None:
+    """`KeyboardInterrupt` if `interrupted()`: called before an output replaces its file."""
+    if interrupted():
+        raise KeyboardInterrupt

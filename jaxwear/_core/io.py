@@ -27,6 +27,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.interrupt import raise_if_interrupted
 from jaxwear._core.jsonfmt import _fmt, _json_default
 
 
@@ -204,6 +205,7 @@ def atomic_open(path, mode: str = "w", **kw):
             f.flush()
             os.fsync(f.fileno())
         os.chmod(tmp, _mode())
+        raise_if_interrupted()  # a Ctrl-C whose exception was dropped: no output
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -221,6 +223,7 @@ def atomic_path(path):
     try:
         yield Path(tmp)
         os.chmod(tmp, _mode())
+        raise_if_interrupted()
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -42,6 +42,7 @@ from jaxwear._inference.evaluation import (
 from jaxwear._inference.packing import parse_fit, study_fit_keys, unit_of, with_registration
 from jaxwear._inference.residual import Layout, ResidualModel, build_model, traces, traces_since
 from jaxwear._study import resolution as res
+from jaxwear._study.outside import parameter_flags
 from jaxwear._study.resolution import amplification_warnings
 from jaxwear._study.study import Study
 
@@ -122,6 +123,8 @@ class FitResult:
     # None where no finer level was run)
     finer_minus_rows_um: np.ndarray | None = None
     finer_level: tuple | None = None
+    # fitted values outside the ranges the inputs are held to (`_outside.parameter_flags`)
+    outside: list = dataclasses.field(default_factory=list)
 
     @property
     def converged(self) -> bool:
@@ -167,6 +170,7 @@ class FitResult:
             "next_step_standard_errors": _jf(self.step_se),
             "message": self.message,
             "flags": list(self.flags),
+            "outside_model": list(self.outside),
             "n_data": int(self.n_data),
             "clearance_tolerance_um": tol if math.isfinite(tol) else "inf",
             "max_contact_residual": float(self.max_contact_residual),
@@ -449,6 +453,8 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
         result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
         result = correct_to_finer(study, keys, result, layout, **kw)
     result.compiles = traces_since(before)
+    result.outside = parameter_flags(result.names, result.values, study.preset)
+    result.flags[:0] = [f for f in result.outside if f not in result.flags]  # first
     return result
 
 

@@ -297,10 +297,15 @@ class ResidualModel(eqx.Module):
         differentiable in the offset: the weight is smooth in the angle and the node indices
         (floor) are locally constant, so d depth/d offset is the profile's slope there."""
         d = self.data
-        prof = snaps_um[d.exp, d.snap]  # (rows, nodes)
+        # Each row reads its two nodes (and a history row its snapshot's maximum) straight
+        # from the snapshots: gathering each row's whole profile first, (rows, nodes), was
+        # under the shape analysis's ~150 forward-mode tangents 58 KB a row at 48 nodes
+        # (17 GB for a 300 000-row scan; issue 41).
+        n = snaps_um.shape[-1]
+        flat = snaps_um.reshape(-1)
+        start = (d.exp * snaps_um.shape[1] + d.snap) * n  # (rows,) each row's profile
         fits_angles = any(c.key == "angle_offset_deg" for c in self.columns)
         if fits_angles and u is not None:
-            n = prof.shape[1]
             vals = self.values(u)
             k = jnp.clip(d.offset_col, 0, None)
             shift = jnp.where(d.offset_col >= 0, vals[k] - self.nominal_angle_deg[d.exp], 0.0)
@@ -311,9 +316,8 @@ class ResidualModel(eqx.Module):
             w = x - fl
         else:
             i0, i1, w = d.i0, d.i1, d.w
-        at = jnp.take_along_axis(prof, i0[:, None], 1)[:, 0] * (1 - w) + \
-            jnp.take_along_axis(prof, i1[:, None], 1)[:, 0] * w
-        rows = jnp.where(d.is_max, jnp.max(prof, axis=1), at)
+        at = flat[start + i0] * (1 - w) + flat[start + i1] * w
+        rows = jnp.where(d.is_max, jnp.max(snaps_um, axis=-1)[d.exp, d.snap], at)
         return rows if self.defect_um is None else rows + self.defect_um
 
     def predict(self, u):

@@ -31,7 +31,13 @@ from pathlib import Path
 
 from jaxwear._core.errors import InputError
 from jaxwear._physics.effects import _base
-from jaxwear._physics.effects._base import Effect, register_effect, registered_effects
+from jaxwear._physics.effects._base import (
+    EFFECT_ORIGINS,
+    Effect,
+    register_effect,
+    registered_effects,
+)
+from jaxwear._study.effect_check import check_effect
 
 KEY = "model.effect_files"
 _PACKAGE = "jaxwear_effect_files"  # sys.modules prefix of loaded files
@@ -39,7 +45,7 @@ _PACKAGE = "jaxwear_effect_files"  # sys.modules prefix of loaded files
 # resolved path -> (sha256 of the source, the effects it registered)
 _LOADED: dict[Path, tuple[str, tuple[Effect, ...]]] = {}
 # effect name -> (resolved path, the effect object registered from it)
-_ORIGIN: dict[str, tuple[Path, Effect]] = {}
+_ORIGIN = EFFECT_ORIGINS  # name -> (file, effect), in the registry's module
 
 
 def effect_file_names(study) -> list[str]:
@@ -152,6 +158,8 @@ def load_effect_file(path) -> tuple[Effect, ...]:
             raise InputError(f"{path}: line {line}: {cls.__name__}() failed ({e}); an effect "
                              f"must be constructible without arguments") from None
     _check_conflicts(path, resolved, effects, class_lines)
+    for eff in effects:  # each hook tried once, before anything is registered
+        check_effect(path, eff, _class_line(eff, class_lines))
     # A new version of a file replaces what its old version registered.
     for name, (origin, eff) in list(_ORIGIN.items()):
         if origin == resolved and registered_effects().get(name) is eff:
@@ -253,3 +261,22 @@ def _line_of(study_path: Path) -> str:
         if re.match(r"\s*effect_files\s*=", text):
             return f"line {i}: "
     return ""
+
+
+def effect_file_frame(exc: BaseException) -> str | None:
+    """"FILE: line N: in FUNCTION" of the innermost traceback frame of `exc` in a loaded
+    effect file, or None: an effect that passed the load-time check (`_check`) and fails
+    later, inside a run (other strengths, traced by jit), is named by its file (issue 41)."""
+    files = {str(p) for p in _LOADED}
+    found, tb = None, exc.__traceback__
+    while tb is not None:
+        code = tb.tb_frame.f_code
+        if code.co_filename in files:
+            found = f"{code.co_filename}: line {tb.tb_lineno}: in {code.co_name}"
+        tb = tb.tb_next
+    cause = exc.__cause__ or exc.__context__
+    if found is None and cause is not None and cause is not exc:
+        return effect_file_frame(cause)
+    return found
+
+

@@ -220,6 +220,9 @@ def parse_model(path: Path, model: dict, fail) -> tuple:
         if not isinstance(name, str) or not name.strip():
             fail(f"{where} must be a file name ({','.join(COLUMNS)}), got {name!r}")
         f = path.parent / name
+        if f.is_dir():
+            fail(f"{where}: {name!r} is a folder ({f}); expected a load file "
+                 f"({','.join(COLUMNS)})")
         if not f.is_file():
             fail(f"{where}: load file {name!r} not found (looked for {f})")
         return read_load_file(f)
@@ -305,10 +308,38 @@ def timed_profile(path, where: str, profile, hours: float, config):
 
 def check_load_magnitudes(study) -> None:
     """`check_load_magnitude` once per load file of a load_history study, at the experiment
-    that loads it least (the smallest `load_scale` x file load over the bore)."""
+    that loads it least (the smallest `load_scale` x file load over the bore); and, first,
+    a joint that never wears (`check_joint_moves`)."""
+    check_joint_moves(study)
     for b in study.config.duty_cycle:
         plist = [study.params(e) for e in study.experiments]
         p = min(plist, key=lambda q: float(q.load_scale) / (float(q.bore_radius)
                                                              * float(q.width)))
         i = plist.index(p)
         check_load_magnitude(study.path, f"experiment {study.experiments[i].name!r}", b.load, p)
+
+
+
+def check_joint_moves(study) -> None:
+    """Refuse (`InputError`) a load_history study whose joint never wears in the base model:
+    every load file all 0 N (never loaded: no pressure), or every file's angle constant
+    (the pin never turns in the bushing: no sliding, and Archard wear is K_d p dS = 0).
+    Such a run ended with exit 0 and depths of exactly 0, without a word (issue 41). With
+    an effect switched on (creep, or a user's deposit, may wear without sliding) a still
+    joint is a study: then a warning (stderr) says that only the effects can wear."""
+    blocks = study.config.duty_cycle
+    files = ", ".join(dict.fromkeys(b.load.path for b in blocks))
+    if all(b.load.peak_load == 0 for b in blocks):
+        raise InputError(f"{files}: columns 2-3 (load_x_N, load_y_N): every row is 0 N, so the "
+                         f"joint is never loaded and nothing wears (every depth would be "
+                         f"exactly 0); expected the load on the bushing in newtons")
+    if all(b.load.rotation == 0 for b in blocks):
+        still = list(study.config.effects)
+        why = ("column 4 (angle_deg): every row has the same angle, so the pin never turns "
+               "in the bushing: no sliding, and the Archard wear K_d p dS is exactly 0")
+        if not still:
+            raise InputError(f"{files}: {why}; expected the pin's rotation relative to the "
+                             f"bushing in degrees, changing over the period (wear not tied "
+                             f"to sliding needs an effect such as creep switched on)")
+        print(f"warning: {files}: {why}; only the effects switched on ({', '.join(still)}) "
+              f"can wear it", file=sys.stderr)

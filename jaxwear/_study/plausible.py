@@ -38,7 +38,16 @@ import numpy as np
 
 from jaxwear._core.errors import InputError
 from jaxwear._physics.effects import effect_parameter_specs
-from jaxwear._physics.limits import LOAD_BOUNDS, STRAIN_LIMIT, peak_strain, strain_message
+from jaxwear._physics.limits import (
+    INDENT_LIMIT,
+    LOAD_BOUNDS,
+    STRAIN_LIMIT,
+    _stiffness,
+    light_load_message,
+    load_file_strain_message,
+    peak_strain,
+    strain_message,
+)
 from jaxwear._physics.params import MECHANISM_KEYS
 
 
@@ -119,6 +128,8 @@ RANGES: dict[str, Range | None] = {
     # experiments (DESIGN §6)
     "experiment.revolutions": Range(1.0, 1e12, _CYCLES),
     "experiment.hours": Range(0.0, 1e6, "up to 114 years of running", lo_open=True),
+    "experiment.cycles": Range(1.0, 1e12, "at least one whole period of the load file (one "
+                                          "cycle's wear is the model's unit), at most 10¹²"),
     "experiment.angle_offset_deg": Range(-360.0, 360.0, "an angle within one turn either way"),
     # fit (DESIGN §6)
     "fit.clearance_tolerance_um": Range(0.0, math.inf, "a standard deviation (0 fixes, inf "
@@ -215,8 +226,13 @@ def check_strain(where: str, p, cfg) -> None:
         return
     load = bound.bound(p, cfg)
     strain = peak_strain(p, load, cfg.double_layer)
+    if 0 < strain and strain * _stiffness(p, cfg.double_layer)[1] / _stiffness(
+            p, cfg.double_layer)[0] < INDENT_LIMIT * float(p.clearance):
+        raise InputError(light_load_message(where, p, cfg, bound, load, strain))
     if strain <= STRAIN_LIMIT:
         return
+    if cfg.driver == "load_history":  # the file's numbers, not a key, carry the load
+        raise InputError(load_file_strain_message(where, p, cfg, load, strain))
     raise InputError(f"{where}: {strain_message(p, cfg, bound, load, strain)}")
 
 
@@ -321,6 +337,8 @@ def check_study(study):
             check(k, v, f"{where}.{k}")
         if exp.revolutions is not None:
             check("experiment.revolutions", exp.revolutions, f"{where}.revolutions")
+        if "cycles" in given:  # named as written, before the hours it converts to
+            check("experiment.cycles", given["cycles"], f"{where}.cycles")
         if exp.hours is not None:
             check("experiment.hours", exp.hours, f"{where}.hours" if "hours" in given
                   else f"{where}: hours (the last of its history)")

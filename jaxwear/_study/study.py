@@ -539,7 +539,10 @@ def load_study(path) -> Study:
                 _fail(path, f"{where}: an oscillating joint or a load history needs 'hours' "
                             f"(or 'cycles' of a load history) or a 'history' file")
             if history is not None and np.max(history.hours) > hours + 1e-9:
-                _fail(path, f"{where}: history goes to {np.max(history.hours):g} h > hours")
+                length = (f"cycles = {e['cycles']!r}, {hours:g} h" if "cycles" in e
+                          else f"hours = {hours:g}")
+                _fail(path, f"{where}: history goes to {np.max(history.hours):g} h, beyond the "
+                            f"experiment's end ({length}); expected a history within the run")
             if profile is not None:
                 profile = _load_file.timed_profile(path, where, profile, hours, config)
         exp = Experiment(ename, overrides, revs, hours, profile, history)

@@ -15,8 +15,9 @@ from pathlib import Path
 import jax
 
 from jaxwear._core.errors import InputError
-from jaxwear._core.interrupt import EXIT_CODE, MESSAGE, release
+from jaxwear._core.interrupt import EXIT_CODE, MESSAGE, interrupted, release, restore
 from jaxwear._core.xla_flags import apply as configure_xla
+from jaxwear._study.effect_files import effect_file_frame
 from jaxwear.cli._parser import Parser, join_negative_values, value_options
 from jaxwear.cli.calibrate import Calibrate
 from jaxwear.cli.design import Design
@@ -60,25 +61,39 @@ def main(argv=None) -> int:
     # the command line's own process opts in to XLA:CPU's faster-compiling emitters (the
     # library leaves XLA's settings to its user); before any computation starts the backend
     configure_xla()
+    release()  # Ctrl-C from here on is caught below (and remembered: `_interrupt`)
+    try:
+        return _run(argv)
+    finally:
+        restore()
 
-    release()  # Ctrl-C from here on is caught below
+
+def _run(argv) -> int:
+
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
         ap = build_parser()
         args = ap.parse_args(join_negative_values(argv, value_options(ap)))
         _enable_cache()
         args.verb.execute(args)
+        if interrupted():  # a Ctrl-C whose exception was dropped (a gc callback ate it)
+            raise KeyboardInterrupt
     except InputError as e:
         print(f"jaxwear: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # one line, exit 1 (`jaxwear._core.interrupt`)
-
         print(MESSAGE, file=sys.stderr)
         return EXIT_CODE
     except Exception as e:  # one line, never a traceback, unless asked for
+        if interrupted():  # Python wrapped the interrupt (a class body's __set_name__)
+            print(MESSAGE, file=sys.stderr)
+            return EXIT_CODE
         if os.environ.get("JAXWEAR_DEBUG"):
             raise
-        print(f"jaxwear: {type(e).__name__}: {_one_line(e)}", file=sys.stderr)
+
+        where = effect_file_frame(e)  # an effect from a file that failed inside a run
+        print(f"jaxwear: {where + ': ' if where else ''}{type(e).__name__}: {_one_line(e)}",
+              file=sys.stderr)
         return 1
     return 0
 

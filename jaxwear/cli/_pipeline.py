@@ -21,6 +21,7 @@ from argparse import Namespace
 
 from jaxwear._inference.packing import study_columns
 from jaxwear._study.budget import check_work
+from jaxwear._study.data_checks import check_wear_measured
 from jaxwear._study.outputs import open_outputs
 from jaxwear._study.study import load_study
 
@@ -36,6 +37,7 @@ class Verb:
     takes_json = False  # --json FILE
     out_required = False  # --out without a default (synth)
     out_help = f"output folder (default {DEFAULT_OUT})"
+    fits_data = False  # fits the study's measurements: refuse data with no wear in them
 
     def add_arguments(self, p) -> None:
         """The verb's own options (STUDY, --out and --json are added by `add_to`)."""
@@ -90,6 +92,8 @@ class Verb:
         opts["args"] = args
         study = self.load(args, opts)
         self.resolve(study, opts)
+        if self.fits_data:
+            check_wear_measured(study)
         out = open_outputs(study, args.out, planned=self.outputs(study, opts),
                            json_file=getattr(args, "json", None))
         opts["estimate"] = check_work(self.work_study(study, opts),

@@ -29,6 +29,7 @@ from jaxwear._inference.calibrate import (
 from jaxwear._physics.config import timed
 from jaxwear._report.figures import plt, thinned, thinned_label
 from jaxwear._study.outputs import per_experiment
+from jaxwear._study.outside import loud_lines
 from jaxwear._study.resolution import at_level
 from jaxwear.cli._pipeline import Verb, fit_columns
 
@@ -52,8 +53,9 @@ def _fmt(v: float) -> str:
 def summary_text(result: FitResult, study_name: str) -> str:
     """The stdout summary: parameter table, RMSE overall and per experiment, flags."""
     prob = result.problem
-    lines = [f"calibration of {study_name}: {len(prob.exp_names)} experiments, "
-             f"{result.n_data} data rows, {len(result.names)} fitted parameters"]
+    lines = loud_lines(result.flags)  # answers outside the model first
+    lines.append(f"calibration of {study_name}: {len(prob.exp_names)} experiments, "
+                 f"{result.n_data} data rows, {len(result.names)} fitted parameters")
     status = "converged" if result.converged else "NOT CONVERGED"
     lines.append(f"fit: {status} after {result.iterations} model evaluations ({result.message})")
     w = max([len("parameter")] + [len(n) for n in result.names]) + 2
@@ -196,6 +198,7 @@ def calibrate_outputs(study) -> list[str]:
 
 
 class Calibrate(Verb):
+    fits_data = True
     name = "calibrate"
     help = "fit K_d, clearances (and effect strengths) to data"
     takes_json = True

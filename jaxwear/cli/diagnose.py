@@ -18,10 +18,13 @@ from jaxwear._inference.packing import study_fit_keys
 from jaxwear._physics.effects import effect_parameter_specs
 from jaxwear._report.diagnosis import DIAGNOSE_OUTPUTS, shape_outputs, write_outputs
 from jaxwear._report.shape_plot import shape_pngs
+from jaxwear._study.data_checks import check_noise_measurable, check_wear_measured
+from jaxwear._study.outside import loud_lines
 from jaxwear.cli._pipeline import Verb, fit_columns
 
 
 class Diagnose(Verb):
+    fits_data = True
     name = "diagnose"
     help = "find the physics the base model is missing"
     takes_json = True
@@ -30,6 +33,10 @@ class Diagnose(Verb):
         p.add_argument("--shape", action="store_true",
                        help="always analyse the shape of the missing wear (default: only "
                             "when the verdict is unexplained)")
+
+    def resolve(self, study, opts):
+        check_wear_measured(study)  # before the noise: all zeros is the plainer reason
+        check_noise_measurable(study)  # a noise level of 0 weights the misfit by 1/0
 
     def outputs(self, study, opts):
         return list(DIAGNOSE_OUTPUTS + shape_outputs())
@@ -60,6 +67,8 @@ class Diagnose(Verb):
         diag = _diagnosis.diagnose(study, verbose=True, shape=bool(getattr(args, "shape", False)),
                             figures=shape_pngs)
         doc = write_outputs(diag, out)
+        for line in loud_lines(doc["outside_model"]):  # answers outside the model first
+            print(line)
         v = doc["verdict"]
         name = " + ".join(v["effects"]) if v["effects"] else "none"
         print(f"verdict: {v['status']} (missing effect: {name}); base RMSE "

@@ -24,10 +24,12 @@ from jaxwear._analyses.predict.life import LIFE_HORIZON
 from jaxwear._core.errors import InputError
 from jaxwear._core.jsonfmt import json_float
 from jaxwear._core.numbers import number, number_list
+from jaxwear._core.optional import check_method_packages
 from jaxwear._inference.packing import study_fit_keys
 from jaxwear._physics.config import timed
 from jaxwear._report.figures import plt, thinned, thinned_label
 from jaxwear._study.outputs import per_experiment
+from jaxwear._study.outside import loud_lines
 from jaxwear._study.plausible import check_value
 from jaxwear._study.resolution import amplification_warnings
 from jaxwear.cli._pipeline import Verb, fit_columns
@@ -172,9 +174,10 @@ def plot_profiles(out, study, res):
 
 
 def summary_text(res) -> str:
-    lines = [f"forecast ({res.method}, level {res.level:g}): noise {res.noise_um:.3g} µm "
-             f"({'given' if res.noise_given else f'estimated, {res.dof} dof'}), "
-             f"quantile {res.quantile:.3g}"]
+    lines = loud_lines(res.flags)  # answers outside the model first
+    lines.append(f"forecast ({res.method}, level {res.level:g}): noise {res.noise_um:.3g} µm "
+                 f"({'given' if res.noise_given else f'estimated, {res.dof} dof'}), "
+                 f"quantile {res.quantile:.3g}")
     for name, v in res.parameters.items():
         lines.append(f"  {name} = {v['value']:.5g} ± {v['stderr'] or float('nan'):.2g}")
     lines.append(f"{'experiment':<20}{'at':>10}  {'depth_um':>10}  {'band_um':>21}  measured")
@@ -201,6 +204,7 @@ def summary_text(res) -> str:
 
 
 class Predict(Verb):
+    fits_data = True
     name = "predict"
     help = "forecast wear and remaining life with bands"
     takes_json = True
@@ -250,6 +254,7 @@ class Predict(Verb):
         if args.method not in ("laplace", "nuts", "importance"):
             raise InputError(f"--method: expected laplace, nuts or importance, got "
                              f"{args.method!r}")
+        check_method_packages(args.method)  # before any file is read or model built
         if args.ess is not None and args.method != "importance":
             raise InputError(f"--ess: only with --method importance (got --method "
                              f"{args.method})")
@@ -259,7 +264,8 @@ class Predict(Verb):
             nuts = dict(draws=number("--draws", args.draws or default, positive=True,
                                      integer=True),
                         chains=number("--chains", args.chains, positive=True, integer=True),
-                        seed=number("--seed", args.seed, integer=True),
+                        seed=number("--seed", args.seed, integer=True, nonneg=True,
+                                    hi=2 ** 32),
                         max_minutes=number("--max-minutes", args.max_minutes, positive=True),
                         n_predictive=number("--predictive-draws", args.predictive_draws,
                                             positive=True, integer=True))

@@ -17,6 +17,7 @@ from jaxwear._analyses.diagnose._stats import Tests, neighbour_differences, run_
 from jaxwear._core.errors import InputError
 from jaxwear._core.noise import stated_noise
 from jaxwear._inference.evaluation import Evaluation
+from jaxwear._study.data_checks import check_noise_measurable, check_wear_measured
 
 # A refit's budget of evaluations (each a full run of every experiment with its Jacobian:
 # seconds at the default numerics); it stops earlier when done (`jaxwear._inference.lsq.solve`), and
@@ -194,6 +195,9 @@ def _noise(model: Model, known: float | None = None):
     e, _ = neighbour_differences(model, model.measured)
     if len(e) < MIN_TRIPLES:
         raise InputError(too_few_triples(model.study, len(e), model.n))
+    if not nz.data_sigma_um > 0:  # equal depths: weights of 1/0 ended in LinAlgError
+        check_wear_measured(model.study)
+        check_noise_measurable(model.study)
     return float(nz.data_sigma_um), float(nz.data_dof)
 
 

@@ -12,6 +12,7 @@ from jaxwear._analyses.diagnose._fit import Fit
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._screen import Screen
 from jaxwear._analyses.diagnose._stats import ALPHA, Tests
+from jaxwear._study.outside import parameter_flags
 from jaxwear._study.study import Study
 
 
@@ -97,6 +98,15 @@ class Diagnosis:
                     for k, (v, se) in derived(self.model, fit).items()})
         return out
 
+    def outside_model(self, *parameter_sets) -> list[str]:
+        """`_outside.parameter_flags` of the fitted (not derived) values of the base model
+        and of the model after, once each."""
+        flags = []
+        for params in parameter_sets:
+            fitted = {k: v["value"] for k, v in params.items() if not v.get("derived")}
+            flags += parameter_flags(list(fitted), list(fitted.values()), self.study.preset)
+        return list(dict.fromkeys(flags))
+
     def to_json(self) -> dict:
         m = self.model
         cands = []
@@ -147,6 +157,7 @@ class Diagnosis:
                         "confident": self.confident, "refits_failed": list(self.failed),
                         "flags": list(self.flags)},
             "after": after,
+            "outside_model": self.outside_model(base["parameters"], after["parameters"]),
             **({"shape": self.shape.to_json()} if self.shape is not None else {}),
             **({"shape_after_effect": self.shape_after_effect.to_json()}
                if self.shape_after_effect is not None else {}),

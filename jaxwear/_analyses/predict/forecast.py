@@ -65,6 +65,7 @@ from jaxwear._analyses.predict.result import PredictResult
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
+from jaxwear._core.optional import check_method_packages
 from jaxwear._inference.calibrate import (
     FitResult,
     build_problem,
@@ -76,6 +77,7 @@ from jaxwear._inference.calibrate import (
 from jaxwear._inference.evaluation import forward_run
 from jaxwear._inference.residual import traces, traces_since
 from jaxwear._study import resolution as _resolution
+from jaxwear._study.outside import OUTSIDE, forecast_flags
 from jaxwear._study.resolution import at_level, at_stable_update
 from jaxwear._study.study import Study
 
@@ -99,6 +101,7 @@ METHODS = ("laplace", "nuts", "importance")
 def _check_args(study, at, train_until, level, limit_um, method, noise_um):
     if method not in METHODS:
         raise InputError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    check_method_packages(method)
     if not (isinstance(level, (int, float)) and 0 < level < 1):
         raise InputError(f"--level must be in (0, 1), got {level!r}")
     at = [float(a) for a in (at if np.ndim(at) else [at])]
@@ -327,7 +330,12 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         if any(b - a > LIFE_RTOL * abs(c) for a, b, c in x.brackets))
     # compilations of the whole answer (fit, checks and every forecast), by kind
     res.extra["compiles"] = traces_since(before)
-    return res
+    # answers outside the model first: the fit's values, forecasts below measured depths
+    outside = list(dict.fromkeys(
+        [f for f in res.flags if f.startswith(OUTSIDE)]
+        + forecast_flags(res.predictions, res.measured, res.noise_um, res.unit)))
+    res.flags[:] = outside + [f for f in res.flags if f not in outside]
+    return replace(res, outside=outside)
 
 
 SAMPLING_NODES_SHARE = 0.5  # the importance sampler's level: this share of the fit's nodes

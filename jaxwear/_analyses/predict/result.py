@@ -95,6 +95,7 @@ class PredictResult:
     fit_resolution: dict | None = None  # the fit's spatial resolution and its check
     fit_evaluations: int | None = None  # model evaluations of the fit, checks included
     noise_source: str = ""  # how the noise level was obtained (`_noise.Noise.describe`)
+    outside: list = field(default_factory=list)  # answers outside the model (`_outside`)
 
     def to_json(self) -> dict:
         doc = {
@@ -119,6 +120,7 @@ class PredictResult:
                     "resolution": self.fit_resolution,
                     "model_evaluations": self.fit_evaluations},
             "flags": list(self.flags),
+            "outside_model": list(self.outside),
         }
         doc.update(self.extra)
         return doc

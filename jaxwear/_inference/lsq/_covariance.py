@@ -70,7 +70,10 @@ def factor(Jw: np.ndarray, D: np.ndarray | None = None) -> Factor:
     if k == 0 or Jw.shape[0] == 0:
         return Factor(np.zeros((Jw.shape[0], 0)), np.zeros(0), np.zeros((k, 0)), np.eye(k), D,
                       np.ones(k, bool))
-    U, s, Vt = np.linalg.svd(Jw / D, full_matrices=True)
+    # The thin SVD: U (rows, k), linear in the rows. full_matrices=True made U (rows, rows):
+    # 671 GiB for a 300 000-row scan (issue 41). Vt is (k, k) whenever rows >= k; with fewer
+    # rows than columns the full Vt is needed for the null space, and U is small then.
+    U, s, Vt = np.linalg.svd(Jw / D, full_matrices=Jw.shape[0] < k)
     U = U[:, :len(s)]
     top = float(s[0]) if len(s) else 0.0
     rank = int(np.sum(s > NULL_RTOL * top)) if top > 0 else 0

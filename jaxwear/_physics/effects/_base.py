@@ -194,3 +194,20 @@ def safe_power(x, exponent):
     """x**exponent for x ≥ 0 with finite gradients at x = 0 (where the result is 0)."""
     pos = x > 0
     return jnp.where(pos, jnp.where(pos, x, 1.0) ** exponent, 0.0)
+
+
+# Where each effect registered from a file came from: name -> (path, effect). Filled by the
+# study layer's effect-file loader; read here so that a failure deep in a run can name the file.
+EFFECT_ORIGINS: dict = {}
+
+
+def file_effects(names) -> list[str]:
+    """"NAME (from FILE)" for each of the effect `names` registered from an effect file: a
+    run that fails with them switched on names them (a NaN from a hook at a strength the
+    load-time check did not try surfaces as a contact solve that does not converge)."""
+    out = []
+    for name in names:
+        entry = EFFECT_ORIGINS.get(name)
+        if entry is not None and registered_effects().get(name) is entry[1]:
+            out.append(f"{name} (from {entry[0]})")
+    return out
