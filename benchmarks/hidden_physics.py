@@ -1,6 +1,6 @@
 """Hidden physics for validation without inverse crime (issue 25; docs/hidden_physics.md).
 
-An independent generator of complete studies (DESIGN §6: study.toml, one profile CSV per
+An independent generator of complete studies (design.md §6: study.toml, one profile CSV per
 experiment, truth.json beside them and not referenced) whose data carry wear laws that
 jaxwear's library does not have, computed at numerics finer than any fit uses. Plain NumPy,
 built on `numpy_reference.py` (its kinematics, forces and constants); it shares no code with
@@ -16,16 +16,16 @@ Laws (`LAWS`; each with a strength, 0 = the base model): `impact` (wear deposite
 load direction where it turns fast, resolved along the swept arc), `threshold` (the wear
 rate jumps above a contact pressure), `two_variable` (the rate jumps above a pressure x
 sliding-speed product, the PV limit), `null` (nothing hidden). Conditions: `paper` (the
-rig matrix of DESIGN §6), `other` (other speeds, clearances, revolutions, spring rates and
+rig matrix of design.md §6), `other` (other speeds, clearances, revolutions, spring rates and
 crank lengths, so that crank speed and load turn rate are not confounded) or a TOML file.
 
-The wear loop is DESIGN §3-4 (Winkler springs of the worn layer, unsymmetric contact,
+The wear loop is design.md §3-4 (Winkler springs of the worn layer, unsymmetric contact,
 Archard wear with eq 23's M revolutions per update and a partial block where a snapshot
 or the end asks for it); the contact is solved for all steps of a revolution at once by a
 batched semi-smooth Newton method with backtracking on the convex potential (relative force
 residual < 1e-10), warm-started from the previous update.
 
-Structural choices (DESIGN §3, §5), for the diagnosis of a study that leaves them out:
+Structural choices (design.md §3, §5), for the diagnosis of a study that leaves them out:
 `--backing-compliance-um-per-MPa C` puts a backing layer of compliance C = L_b/E_w,b
 under the wearing one (the double elastic layer, springs in series: 1/k_j = (L - h_j)/E_w
 + C; 0 = a single layer), and `--study-contact symmetric` writes a study that states the
@@ -147,7 +147,7 @@ class Condition:
         return sorted(set(float(r) for r in pts) | {float(self.revolutions)})
 
 
-PAPER = (  # DESIGN §6: the rig matrix of the paper (§3.3)
+PAPER = (  # design.md §6: the rig matrix of the paper (§3.3)
     Condition("n276-r10000", 276.0, 10000.0, 0.05),
     Condition("n276-r15000", 276.0, 15000.0, 0.05),
     Condition("n148-r10000", 148.0, 10000.0, 0.05),
@@ -242,13 +242,13 @@ def _num(path, where, v, pos=False):
 
 
 def load_at(phi1, omega, clearance, spring, l1, passes=2, gamma0=0.0):
-    """SCLA (DESIGN §1, `scla_passes` = 2, γ0 = 0) at crank angles `phi1` [rad] (any array):
+    """SCLA (design.md §1, `scla_passes` = 2, γ0 = 0) at crank angles `phi1` [rad] (any array):
     each instant is independent (a stationary clearance link), so any sampling of the
     revolution gives the same values there. Returns F_C (…, 2) [N], θ_W [rad] (bushing in
     the coupler eye: θ_W = γ + Φ2) and Φ̇2 [rad/s]."""
     phi1 = np.asarray(phi1, float)
     gamma = np.full(phi1.shape, float(gamma0))
-    x0 = ref.L2 - l1  # spring relaxed at inner dead centre (DESIGN §1)
+    x0 = ref.L2 - l1  # spring relaxed at inner dead centre (design.md §1)
     for _ in range(passes):
         kin = ref.kinematics(phi1, omega, gamma, clearance, l1)
         fx, fy = ref.pin_force(phi1, omega, *kin, spring, x0, l1)
@@ -258,7 +258,7 @@ def load_at(phi1, omega, clearance, spring, l1, passes=2, gamma0=0.0):
 
 @dataclass(frozen=True)
 class Cycle:
-    """One revolution on the step grid t_i = i T/n (DESIGN §1): load vector W (steps, 2)
+    """One revolution on the step grid t_i = i T/n (design.md §1): load vector W (steps, 2)
     [N], sliding per step dS_i [m], sliding speed v_i [m/s], step Δt [s]."""
 
     load: np.ndarray
@@ -328,7 +328,7 @@ def impact_deposit(law: Law, cond: Condition, clearance: float, nodes: int,
 
 def contact_batch(normals, gap, k, area, load, e0=None, tol=1e-10):
     """Pressures p (steps, nodes) [Pa] from Σ_j p_ij A n_j = W_i for every step i at once
-    (DESIGN §3, unsymmetric), and the pin offsets e (steps, 2) [m].
+    (design.md §3, unsymmetric), and the pin offsets e (steps, 2) [m].
 
     Semi-smooth Newton on the convex potential Π_i(e) = Σ_j ½ kA max(e·n_j - g_j, 0)² -
     W_i·e, backtracking on Π where a full step does not decrease it; started from `e0`
@@ -433,9 +433,9 @@ class Numerics:
 
 def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
                  num: Numerics = Numerics(), backing: float = 0.0) -> dict:
-    """Wear of one specimen: Archard (DESIGN §4) with eq 23's updates of M revolutions
+    """Wear of one specimen: Archard (design.md §4) with eq 23's updates of M revolutions
     (profile frozen within one), ending exactly at every measurement point, plus the law.
-    `backing` [m/Pa]: compliance L_b/E_w,b of a backing layer in series (DESIGN §3's double
+    `backing` [m/Pa]: compliance L_b/E_w,b of a backing layer in series (design.md §3's double
     layer; 0: the single layer).
 
     **Returns:** `depth` (points, nodes) [m] at `points` (revolutions), `theta` (nodes,)
@@ -454,7 +454,7 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
     for target in points:
         while done < target - 1e-9:
             block = min(num.M, target - done)
-            # eq 14, the worn (thinner) layer, in series with a backing (DESIGN §3)
+            # eq 14, the worn (thinner) layer, in series with a backing (design.md §3)
             k = 1.0 / ((ref.LAYER - h) / ref.E_W + backing)
             p, e = contact_batch(normals, clearance + h, k, area, cyc.load, e)
             rate = K_d * p * cyc.slide[:, None]  # eq 21 per step and node
@@ -561,7 +561,7 @@ def _toml(v) -> str:
 
 def study_text(conditions, kd_start: float, study_numerics, clearance_sd_um: float,
                spring: float = 1009.4, contact: str | None = None) -> str:
-    """study.toml (DESIGN §6): nominal clearances, the K_d start, the numerics a user would
+    """study.toml (design.md §6): nominal clearances, the K_d start, the numerics a user would
     choose (`study_numerics` None: none, so jaxwear chooses them by the error), the
     clearance tolerance; `contact` the contact the study states (None: the default)."""
     lines = ["# Written by benchmarks/hidden_physics.py: data with physics outside jaxwear's",

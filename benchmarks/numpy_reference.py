@@ -1,4 +1,4 @@
-"""Independent plain-NumPy reference of the crank-slider wear model (DESIGN.md §1, §3, §4).
+"""Independent plain-NumPy reference of the crank-slider wear model (design.md §1, §3, §4).
 
 Written "as the paper describes it": Python loops over wear updates and over the steps of a
 revolution, NumPy vectorisation over the bore nodes only. No JAX, so it shares no code with
@@ -36,7 +36,7 @@ def kinematics(phi1, omega, gamma, xi, l1=L1):
 
 
 def pin_force(phi1, omega, phi2, phi2_d, phi2_dd, xs, xs_dd, spring, x0, l1=L1):
-    """F_C, the force of the slider's pin on the coupler (eqs 8-10 as fixed in DESIGN.md §1).
+    """F_C, the force of the slider's pin on the coupler (eqs 8-10 as fixed in design.md §1).
 
     Scalars or NumPy arrays (element-wise)."""
     fcx = -spring * (xs - x0) - M3 * xs_dd  # slider, x: m3 ẍs = F_s - F_Cx
@@ -59,7 +59,7 @@ def pin_force(phi1, omega, phi2, phi2_d, phi2_dd, xs, xs_dd, spring, x0, l1=L1):
 def load_history(speed_rpm, steps, clearance, spring, scla_passes, gamma0, x0=None, l1=L1):
     """SCLA (paper §1.2): γ frozen per step, forces, γ <- atan2(F_Cy, F_Cx), repeat.
 
-    `x0` the spring's free position (default L2 - l1, DESIGN §1), `l1` the crank length.
+    `x0` the spring's free position (default L2 - l1, design.md §1), `l1` the crank length.
     Returns F (steps, 2), θ_W (steps,) in the bushing (coupler) frame, Φ̇2 (steps,) and T.
     """
     x0 = L2 - l1 if x0 is None else x0
@@ -100,7 +100,7 @@ def _solve_1d(cosb, gap, ka, w_mag):
 
 
 def contact_unsymmetric(normals, gap, k, area, w_vec, tol=1e-10):
-    """Pressures p_j from Σ_j p_j A_j n_j = W (DESIGN.md §3), e a free 2-vector.
+    """Pressures p_j from Σ_j p_j A_j n_j = W (design.md §3), e a free 2-vector.
 
     The residual is the gradient of the convex potential Π(e) = Σ ½ kA max(e·n - g, 0)² - W·e,
     so a (semi-smooth) Newton step with backtracking on Π converges from the 1-D solution
@@ -216,7 +216,7 @@ def _zone_peak(h_um, lo_deg, hi_deg):
 
 
 if __name__ == "__main__":
-    # DESIGN.md §8 test vectors (an independent implementation of the same page).
+    # design.md §8 test vectors (an independent implementation of the same page).
     force, theta_w, phi2_d, period = load_history(276.0, 360, 0.05e-3, 1009.4, 2, 0.0)
     table = {0: (253.343, 5.366, 1.214), 45: (95.810, -32.480, -4.403),
              90: (-167.107, 60.136, -179.299), 270: (-167.102, -49.396, 175.976)}

@@ -56,7 +56,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 import numpy_reference  # noqa: E402
 
-RIG_MATRIX = [  # DESIGN §6: (name, speed r/min, revolutions, nominal clearance mm)
+RIG_MATRIX = [  # design.md §6: (name, speed r/min, revolutions, nominal clearance mm)
     ("n276-r10000", 276.0, 10000, 0.05), ("n276-r15000", 276.0, 15000, 0.05),
     ("n148-r10000", 148.0, 10000, 0.05), ("n230-r10000-c010", 230.0, 10000, 0.10),
     ("n230-r10000-c015", 230.0, 10000, 0.15)]

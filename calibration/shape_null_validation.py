@@ -5,7 +5,7 @@ Each seed: a null study (nothing hidden) made by the independent generator
 (`benchmarks/hidden_physics.py`) at finer numerics than the fit, whole-bore scans with
 0.3 µm noise, clearance tolerances; diagnosed with `--shape` in this process (the compiled
 models are shared by the seeds). A false alarm is a shape analysis that names a variable
-(`best` not null). Two numerics: the study's grid left to jaxwear (auto, DESIGN §6), and a
+(`best` not null). Two numerics: the study's grid left to jaxwear (auto, design.md §6), and a
 coarse grid the user sets (`--coarse`), where the model's own discretisation misfit is
 largest. The rate is compared with the family-wise α = 1e-3 by its Clopper-Pearson
 interval.

@@ -1,7 +1,7 @@
 """Validation of the loop "see where the model fails, learn what is missing, add it, watch
 the error fall" on physics the library does not have (issue 25, docs/shape_validation.md).
 
-Data: `benchmarks/hidden_physics.py`, an independent NumPy implementation of DESIGN §1-4
+Data: `benchmarks/hidden_physics.py`, an independent NumPy implementation of design.md §1-4
 (no jaxwear code) at finer numerics than any fit, whole-bore scans every 2° with 0.3 µm
 noise on every point, clearance tolerances, interrupted tests. Library effects are hidden
 by `jaxwear synth` at twice the study's nodes and steps and a tenth of its update.

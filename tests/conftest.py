@@ -81,7 +81,7 @@ def _effect_registry_as_found():
 
 @pytest.fixture(scope="session")
 def rig():
-    """Rig preset: Tables 1 and 3, 276 r/min, k = 1009.4 N/m, x0 = L2 - L1 (DESIGN §8)."""
+    """Rig preset: Tables 1 and 3, 276 r/min, k = 1009.4 N/m, x0 = L2 - L1 (design.md §8)."""
     return jaxwear.preset("rig")
 
 

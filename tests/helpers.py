@@ -62,7 +62,7 @@ def mirror_asymmetry(pressure, j0: int) -> float:
 
 
 def node_angles(n: int) -> np.ndarray:
-    """θ_j = 2πj/N [rad] (DESIGN §3)."""
+    """θ_j = 2πj/N [rad] (design.md §3)."""
     return 2 * np.pi * np.arange(n) / n
 
 

@@ -1,4 +1,4 @@
-"""Calibration against synthetic data of known truth (DESIGN §6-7).
+"""Calibration against synthetic data of known truth (design.md §6-7).
 
 The data are made by the model through the public API (`jw.simulate`) with chosen true K_d
 and clearances, at finer numerics than the fit's (128 nodes, 144 steps, M = 10 against 64,

@@ -1,4 +1,4 @@
-"""`jaxwear simulate STUDY.toml --out DIR` (DESIGN §6-7), run as a user would: a subprocess.
+"""`jaxwear simulate STUDY.toml --out DIR` (design.md §6-7), run as a user would: a subprocess.
 
 Good input: exit 0, profiles.csv with experiment,angle_deg,depth_um, one row per node per
 experiment, in µm and degrees (checked against the library in SI), plots written.

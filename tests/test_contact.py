@@ -1,4 +1,4 @@
-"""Winkler elastic-foundation contact of a pin in a (worn) bore (DESIGN §3, paper §2).
+"""Winkler elastic-foundation contact of a pin in a (worn) bore (design.md §3, paper §2).
 
 Independent references: the equilibrium Σ p_j A_j n_j = W and the Winkler law
 p_j = k_j max(e·n_j - g_j, 0) recomputed here from the returned offset, eq 15 and the
@@ -80,7 +80,7 @@ def worn_profiles():
 @pytest.mark.parametrize("contact", ["unsymmetric"])
 @pytest.mark.parametrize("case", range(6))
 def test_equilibrium_on_worn_bores(rig, contact, case):
-    """Σ p_j A_j n_j = W to 1e-9 relative for random loads and directions (DESIGN §3)."""
+    """Σ p_j A_j n_j = W to 1e-9 relative for random loads and directions (design.md §3)."""
     h = worn_profiles()[case]
     rng = np.random.default_rng(case)
     load = rng.uniform(0.5, 3000.0, STEPS)
@@ -210,7 +210,7 @@ def test_uniform_wear_is_a_larger_clearance(rig):
 
 @pytest.mark.parametrize("contact", ["unsymmetric", "symmetric"])
 def test_zero_load_gives_zero_pressure(rig, contact):
-    """DESIGN §3: a step with |W| = 0 gives p = 0, and leaves its neighbours alone."""
+    """design.md §3: a step with |W| = 0 gives p = 0, and leaves its neighbours alone."""
     h = worn_profiles()[3]
     load = np.array([0.0, 100.0, 0.0, 0.0, 1500.0, 0.0])
     angle = np.array([0.3, 0.3, -2.0, 1.0, 3.0, 0.0])

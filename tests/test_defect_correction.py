@@ -1,4 +1,4 @@
-"""One compile per answer (DESIGN §6, issue 27): a fit whose study leaves the resolution
+"""One compile per answer (design.md §6, issue 27): a fit whose study leaves the resolution
 open compiles its Jacobian once, at the coarsest level, and reaches the finer level's answer
 by defect correction (forward runs there only).
 

@@ -156,7 +156,7 @@ def test_k_d_alone_longest_run_wins_and_information_matches_finite_differences(s
 
 
 def test_design_json_contract(small_rig, tmp_path):
-    """DESIGN §7: goal, between, candidates (conditions, value) best first, recommended
+    """design.md §7: goal, between, candidates (conditions, value) best first, recommended
     (speed_rpm, clearance_mm, revolutions, measure_at, value) of --budget different
     experiments; the stanza pastes into a study and the conditions load as one."""
     out, js = tmp_path / "out", tmp_path / "d.json"

@@ -2,14 +2,14 @@
 item 2): `python -m jaxwear diagnose STUDY --json FILE` in a subprocess, as a user runs it.
 
 The data are not jaxwear's: `benchmarks/hidden_physics.py` (an independent NumPy
-implementation of DESIGN §1-4, sharing no code with the package) made them at 360 nodes x
+implementation of design.md §1-4, sharing no code with the package) made them at 360 nodes x
 360 steps with eq 23's M = 25, five times the study's 64 x 72 (adaptive) in each
 direction, with 0.3 µm noise on every point of whole-bore scans every 2° (negative depths
 kept), true clearances nominal + N(0, 3 µm) and K_d drawn around the study's start. The
 commands that made them are in `tests/data/heldout41/README.md`; the truth (truth.json)
 is beside each study and not referenced by it.
 
-- `unsymmetric/`: the paper's rig matrix (DESIGN §6), one scan per specimen at its end
+- `unsymmetric/`: the paper's rig matrix (design.md §6), one scan per specimen at its end
   (900 rows, the design of issue 41); the data have the unsymmetric contact, the study
   states `contact = "symmetric"`. This seed reproduced the issue's crash before the fix
   (exit 1 after the base fit: "jaxwear: ValueError: cannot convert float NaN to integer":
@@ -20,7 +20,7 @@ is beside each study and not referenced by it.
 - `double_layer/`: the same matrix measured at 2000, 5000 and 10000 revolutions (2880
   rows: with end scans only this backing, C_b = 1 µm/MPa, is at the edge of detection at
   the family-wise level 1e-3: p 3.6e-3 measured on one seed); the data have a backing
-  layer in series with the PTFE layer (DESIGN §3), the study states a single layer.
+  layer in series with the PTFE layer (design.md §3), the study states a single layer.
 
 Measured (2 cores shared with other jobs, load ~14): see the report in the commit message
 and `_diagnose`'s printed line (wall and CPU seconds of each command).
@@ -101,7 +101,7 @@ def test_held_out_structural_effect_is_named_from_the_command_line(tmp_path, nam
 
 def test_the_generators_backing_layer_is_jaxwears_double_layer_at_matched_numerics():
     """The generator's double layer (`--backing-compliance-um-per-MPa`, added for this
-    study) against jaxwear's (`double_layer = true`, DESIGN §3: 1/k = (L - h)/E_w +
+    study) against jaxwear's (`double_layer = true`, design.md §3: 1/k = (L - h)/E_w +
     L_b/E_w,b) at the same discrete equations (64 x 72, eq 23 with M = 100): a backing
     of compliance C is a steel backing of thickness C E_w,b, E_w,b from eq 15."""
     import numpy as np

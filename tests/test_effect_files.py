@@ -1,4 +1,4 @@
-"""User effects from files: `[model] effect_files = [...]` (DESIGN §7, docs/effects.md).
+"""User effects from files: `[model] effect_files = [...]` (design.md §7, docs/effects.md).
 
 A study names Python files; every `jaxwear.Effect` subclass they define is registered before
 the study is built, in every verb. Checked here: a loaded effect switched on changes the

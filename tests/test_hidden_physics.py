@@ -3,7 +3,7 @@ jaxwear, and its laws against their own definitions (docs/hidden_physics.md).
 
 - With nothing hidden, at the same numerics (nodes, steps, eq 23's M), jaxwear's `simulate`
   at the truth parameters read from the written study reproduces the generator's truth
-  profiles: the two implement DESIGN §1-4 alike (they share no code; the generator builds
+  profiles: the two implement design.md §1-4 alike (they share no code; the generator builds
   on `numpy_reference.py`). Checked on a paper condition and on one with another crank
   length and spring, so that every key the study states is read the same way.
 - The written scans are the truth plus noise of the stated level on every point.

@@ -1,4 +1,4 @@
-"""The adaptive wear integrator (DESIGN §4, the wear history as an ODE; issue 9).
+"""The adaptive wear integrator (design.md §4, the wear history as an ODE; issue 9).
 
 Independent references: the paper's update at M = 1 (eq 23 one cycle at a time, the
 finest the model allows; its own Euler error is ~1e-4 of the peak here), the Archard

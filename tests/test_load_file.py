@@ -1,4 +1,4 @@
-"""Your own joint's load file (DESIGN §2, preset "load_history"): the resampling onto the wear
+"""Your own joint's load file (design.md §2, preset "load_history"): the resampling onto the wear
 loop's steps.
 
 Independent references: the exact integrals of a piecewise-linear angle and a held load

@@ -1,4 +1,4 @@
-"""Your own joint (preset "load_history", DESIGN §2): every verb on a load-history study
+"""Your own joint (preset "load_history", design.md §2): every verb on a load-history study
 whose data come from finer numerics than it runs (the identity with the presets is in
 test_load_history_identity.py).
 
@@ -134,7 +134,7 @@ def test_study_reads_the_file_and_its_period(verb_study):
     assert block.load.period == pytest.approx(60 / 276, rel=1e-12)
     assert block.load.rows == 144
     # the rotation per period: the rig's 10.655 mm of sliding per revolution on its 7.45 mm
-    # pin radius (DESIGN §8), the coupler's swing, whatever the pin
+    # pin radius (design.md §8), the coupler's swing, whatever the pin
     assert block.load.rotation == pytest.approx(10.655 / 7.45, rel=2e-3)
 
 

@@ -1,4 +1,4 @@
-"""Your own joint (preset "load_history", DESIGN §2): the identity with the presets. The
+"""Your own joint (preset "load_history", design.md §2): the identity with the presets. The
 rig's and the boom's loads, written by `simulate --out` (`load_EXP.csv`, one file per duty
 block), run back through preset "load_history" give the same profile as the presets, within
 the integration error both runs report (64 x 72; the rig 2000 revolutions, the boom 5 h:
@@ -68,7 +68,7 @@ def test_presets_loads_written_and_run_back_give_the_same_wear(tmp_path, preset)
     err_b = summary(tmp_path / "lh")[name]["integration"]["error_estimate_um"]
     assert np.abs(a - b).max() <= err_a + err_b, (np.abs(a - b).max(), err_a, err_b)
     assert a.max() > 50 * (err_a + err_b)  # a real profile, not two zeros
-    # sliding: the boom's exactly; the rig's within 2e-5: its stationary-link rates (DESIGN
+    # sliding: the boom's exactly; the rig's within 2e-5: its stationary-link rates (design.md
     # §1: γ̇ = 0) miss the clearance link's turns when the force reverses, so they do not
     # integrate to a closed path (2.3e-5 rad per revolution at 72 steps); a load file is
     # periodic, and its closing step closes it

@@ -1,7 +1,7 @@
 """The least-squares core inside calibrate, diagnose and predict: one meaning of
 `converged`, the same flags for a fit that ran out of budget or a parameter the data do
 not determine, refusals before any model evaluation, and the resolution chosen by the
-error (DESIGN §6) checked against a finer fit.
+error (design.md §6) checked against a finer fit.
 
 Data come from `jaxwear.synthesize` (truth at twice the fit's nodes and steps and a tenth
 of its M, whole-bore noise, negative depths kept), never from the fit's own model and grid.
@@ -74,7 +74,7 @@ def test_budget_is_flagged_alike_in_calibrate_and_diagnose(small):
 
 
 def test_undetermined_parameter_is_flagged_alike_in_calibrate_and_diagnose(tmp_path, small):
-    """The pin is rigid in the model (DESIGN §3): its modulus cannot move any depth. Fitted
+    """The pin is rigid in the model (design.md §3): its modulus cannot move any depth. Fitted
     anyway, it has no standard error and a flag, in calibrate and in diagnose."""
     study = load_study(small)
     res = jw.calibrate(study, "K_d,clearance,pin_E_GPa")

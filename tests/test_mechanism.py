@@ -1,8 +1,8 @@
-"""Crank-slider with a clearance link: kinematics and joint force (DESIGN §1, paper §1).
+"""Crank-slider with a clearance link: kinematics and joint force (design.md §1, paper §1).
 
-Independent references used here: DESIGN §8 test vectors, a numpy re-implementation of
+Independent references used here: design.md §8 test vectors, a numpy re-implementation of
 eqs 1-3 differentiated by finite differences in time with the d'Alembert equations of
-DESIGN §1, hand statics for a quasi-static crank, and the closed-form sliding distance
+design.md §1, hand statics for a quasi-static crank, and the closed-form sliding distance
 4 R_p arcsin(L1/L2) per revolution.
 """
 
@@ -35,7 +35,7 @@ def forces(p, t, algorithm="scla", passes=2, gamma0=0.0):
 
 
 def step_times(p, n=N_STEPS):
-    """t_i = i T / n, T = 2π/ω (DESIGN §1)."""
+    """t_i = i T / n, T = 2π/ω (design.md §1)."""
     period = 2 * np.pi / float(p.speed)
     return jnp.arange(n) * (period / n)
 
@@ -45,7 +45,7 @@ def magnitude(jf):
 
 
 # --------------------------------------------------------------------------------------
-# Independent numpy model (DESIGN §1 written out again; derivatives by finite differences)
+# Independent numpy model (design.md §1 written out again; derivatives by finite differences)
 # --------------------------------------------------------------------------------------
 
 def np_positions(q, t, gamma, xi):
@@ -67,7 +67,7 @@ def np_kinematics(q, t, gamma, xi, dt):
 
 
 def np_forces(q, t, gamma, xi, dt):
-    """d'Alembert (DESIGN §1): slider in x, coupler moments about B."""
+    """d'Alembert (design.md §1): slider in x, coupler moments about B."""
     (phi2, xs, _, _), _, (phi2_dd, xs_dd, gx_dd, gy_dd) = np_kinematics(q, t, gamma, xi, dt)
     fx = -q["k"] * (xs - q["x0"]) - q["m3"] * xs_dd
     rx, ry = q["L2"] * np.cos(phi2), -q["L2"] * np.sin(phi2)  # r_DB
@@ -96,7 +96,7 @@ def table1(p):
 
 
 # --------------------------------------------------------------------------------------
-# Preset and DESIGN §8
+# Preset and design.md §8
 # --------------------------------------------------------------------------------------
 
 def test_rig_preset_is_table1_and_table3(rig):
@@ -104,7 +104,7 @@ def test_rig_preset_is_table1_and_table3(rig):
     assert q["L1"] == pytest.approx(0.070) and q["L2"] == pytest.approx(0.200)
     assert q["m2"] == pytest.approx(1.0943) and q["m3"] == pytest.approx(5.0)
     assert q["k"] == pytest.approx(1009.4)
-    assert q["x0"] == pytest.approx(q["L2"] - q["L1"])  # DESIGN §1 default
+    assert q["x0"] == pytest.approx(q["L2"] - q["L1"])  # design.md §1 default
     assert q["w"] == pytest.approx(276 * 2 * np.pi / 60)
     assert q["xi"] == pytest.approx(0.05e-3)
     assert float(rig.bore_radius) == pytest.approx(7.5e-3)
@@ -116,7 +116,7 @@ def history360(rig):
     return _history(rig, jw.ModelConfig())
 
 
-# step, F_Cx [N], F_Cy [N], θ_W [deg]  (DESIGN §8, rig preset, SCLA, 360 steps)
+# step, F_Cx [N], F_Cy [N], θ_W [deg]  (design.md §8, rig preset, SCLA, 360 steps)
 # Every number is printed to 3 decimals: each must agree to half a unit in the last digit.
 HALF = 5e-4 * (1 + 1e-9)
 SECTION8 = [(0, 253.343, 5.366, 1.214), (45, 95.810, -32.480, -4.403),
@@ -173,7 +173,7 @@ def test_bushing_in_slider_is_reaction(rig):
 
 @pytest.mark.parametrize("spring", [0.0, 1009.4, 1800.0])
 def test_forces_match_independent_numpy_model(spring):
-    """SCLA (2 passes) against the numpy model of DESIGN §1 at every step.
+    """SCLA (2 passes) against the numpy model of design.md §1 at every step.
 
     FD step dt = 1e-5 s: truncation ~dt² L1 ω⁴/12 ≈ 5e-9 m/s² and round-off
     ~1e-16 · 0.2 m / dt² ≈ 2e-7 m/s², against accelerations of ~60 m/s²: relative 1e-8.
@@ -281,11 +281,11 @@ def test_scla_matches_li_away_from_force_reversals(spring):
 
 
 def test_ideal_vs_scla_differ_by_order_clearance(rig):
-    """DESIGN §8: |F| of the ideal joint and of the SCLA differ by 2e-4 relative at most.
+    """design.md §8: |F| of the ideal joint and of the SCLA differ by 2e-4 relative at most.
 
     Measured at §8 conditions: peak loads differ by 1.99e-4; the largest per-step
     difference of |F| is 0.0548 N = 2.16e-4 of the peak load (mostly the spring's k ξ =
-    0.050 N), i.e. "2e-4" to the one significant figure DESIGN gives: asserted < 2.5e-4.
+    0.050 N), i.e. "2e-4" to the one significant figure design.md gives: asserted < 2.5e-4.
     Doubling ξ doubles the difference (O(ξ) terms; measured ratio 2.00).
     """
     t = step_times(rig)

@@ -1,6 +1,6 @@
 """jaxwear against the plain-NumPy reference `benchmarks/numpy_reference.py`.
 
-The reference is an independent implementation of DESIGN §1, §3 and §4 (Python loops over
+The reference is an independent implementation of design.md §1, §3 and §4 (Python loops over
 updates and steps, its own kinematics, force balance and contact Newton; no JAX, no shared
 code). Both solve the same discrete equations to a force residual far below 1e-9, so on the
 same grid and the same M the wear profiles must agree to round-off of the contact solves,
@@ -30,7 +30,7 @@ def params():
 
 
 def test_load_history_matches(params):
-    """Forces, bushing-frame load angle and sliding per step (DESIGN §1)."""
+    """Forces, bushing-frame load angle and sliding per step (design.md §1)."""
     cfg = jw.ModelConfig(nodes=NODES, steps_per_rev=STEPS)
     hist = jax.jit(jw.load_history, static_argnums=1)(params, cfg)
     force, theta_w, phi2_d, period = ref.load_history(SPEED, STEPS, CLEARANCE_MM * 1e-3, SPRING,

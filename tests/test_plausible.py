@@ -96,7 +96,7 @@ def peak_loads():
 
 def test_peak_load_is_the_mechanisms(peak_loads):
     """The peak load the strain check uses (the hand-derived eqs in NumPy, ideal joint, 720
-    angles) is the model's (jvp kinematics, SCLA, 360 steps) to 2e-3: DESIGN §8 bounds the
+    angles) is the model's (jvp kinematics, SCLA, 360 steps) to 2e-3: design.md §8 bounds the
     clearance link's effect by 2e-4, the rest is where the samples fall."""
     for kw, peak in peak_loads:
         assert crank_slider_peak_load(jw.preset("rig", **kw)) == pytest.approx(peak,

@@ -1,4 +1,4 @@
-"""Forecasts with bands (`jaxwear.predict`, DESIGN §7) against a known truth.
+"""Forecasts with bands (`jaxwear.predict`, design.md §7) against a known truth.
 
 The data come from the model at finer numerics than the fit's (128 nodes, 144 steps, M = 25
 against 64, 72, M = 100: no inverse crime), measured as whole scans every 3° with Gaussian

@@ -1,13 +1,13 @@
-"""Every built-in effect against its wear-rate law of DESIGN §5, computed by hand in numpy.
+"""Every built-in effect against its wear-rate law of design.md §5, computed by hand in numpy.
 
 The library's parts that are not the effect (the load history, the contact solve) supply
 their outputs: the pressure p_ij of one cycle on a frozen, worn profile, dS_i, Δt_i and the
-sliding sense s_i. The expected wear is then written out from DESIGN §5 in numpy and
+sliding sense s_i. The expected wear is then written out from design.md §5 in numpy and
 compared with what the wear loop's one-cycle increment (`cycle_increment`, the function the
 loop accumulates) and the hooks return. Each effect is switched on at a strength well away
 from `off`, so a wrong law (exponent, reference value, missing factor, sign) moves the
 result by far more than the tolerances, which are round-off (1e-12 relative) except for the
-contact equilibrium (the 1e-9 that DESIGN §3 requires of the solve).
+contact equilibrium (the 1e-9 that design.md §3 requires of the solve).
 
 Small grid (48 nodes, 36 steps per revolution): a few seconds, no wear loop compiled except
 for running-in's block factor (one short `wear_loop`).
@@ -33,8 +33,8 @@ STRENGTH = {"speed_dependence": {"speed_exponent": 0.3},
             "creep": {"creep_m_per_Pa_s": 1e-15},
             "friction": {"friction_coefficient": 0.2},
             "running_in": {"running_in_amplitude": 0.7, "running_in_distance_m": 5.0}}
-V_REF = 0.01  # m/s (DESIGN §5, speed_dependence)
-P_REF = 1.0e6  # Pa (DESIGN §5, pressure_exponent)
+V_REF = 0.01  # m/s (design.md §5, speed_dependence)
+P_REF = 1.0e6  # Pa (design.md §5, pressure_exponent)
 
 
 def _np(x):
@@ -138,7 +138,7 @@ def test_creep_law(base):
 
 
 def test_friction_contact_equilibrium_and_sense(base):
-    """Σ_j A_j p_j (n_j + μ s t_j) = W for every step to 1e-9 relative (DESIGN §3, §5),
+    """Σ_j A_j p_j (n_j + μ s t_j) = W for every step to 1e-9 relative (design.md §3, §5),
     t_j = (-sin θ_j, cos θ_j), s = sign(Φ̇2) = sign(cos Φ1) for the crank-slider (the
     stationary clearance link: Φ̇2 = L1 ω cos Φ1 / (L2 cos Φ2)); the wear stays Archard on
     that pressure. The frictionless equation misses by about μ: the check has teeth."""

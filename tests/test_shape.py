@@ -1,4 +1,4 @@
-"""The shape of the missing wear (`diagnose --shape`, DESIGN §7, issues 20 and 25).
+"""The shape of the missing wear (`diagnose --shape`, design.md §7, issues 20 and 25).
 
 Unit tests check the pieces against hand calculations and closed forms; the integration
 test runs the worked example of docs/effects.md on physics the library does not have,

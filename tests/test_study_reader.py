@@ -1,4 +1,4 @@
-"""Measured data as instruments deliver them (DESIGN §6): negative depths, extra columns,
+"""Measured data as instruments deliver them (design.md §6): negative depths, extra columns,
 depth in mm, a BOM, an angular registration offset."""
 
 import numpy as np

@@ -132,7 +132,7 @@ def test_adaptive_sweep_reruns_points_that_need_more_steps():
 def test_sweep_of_a_study_without_numerics_chooses_its_resolution(tmp_path):
     """A study that leaves nodes and steps open: the sweep picks the coarsest level whose
     peaks at the grid's corners agree with the next finer level's within 0.1 % of the largest
-    (DESIGN §6)
+    (design.md §6)
     and says so; the claim is checked here against that finer level run independently."""
     from jaxwear._study.resolution import LEVELS, PEAK_RTOL
 

@@ -42,7 +42,7 @@ def written(tmp_path_factory):
 
 def test_written_study_is_a_valid_interrupted_test_design(written):
     out, res = written
-    st = load_study(out / "study.toml")  # the file contract of DESIGN §6
+    st = load_study(out / "study.toml")  # the file contract of design.md §6
     raw = tomllib.loads((out / "study.toml").read_text())
     lines = [ln for ln in (out / "study.toml").read_text().splitlines()
              if not ln.startswith("#")]

@@ -1,6 +1,6 @@
-"""Archard wear loop (DESIGN §4, paper §3) and the boom joint (DESIGN §2, paper §4).
+"""Archard wear loop (design.md §4, paper §3) and the boom joint (design.md §2, paper §4).
 
-Independent references: the Archard volume identity, DESIGN §8 (full size, marked slow),
+Independent references: the Archard volume identity, design.md §8 (full size, marked slow),
 the short-time limit h = R K_d Σ_i p_i dS_i on the unworn bore, sliding distances by hand,
 convergence in M, N and n_steps, snapshot/splitting identities, mirror symmetry of the boom
 joint and the qualitative findings of paper Figs 8-9.
@@ -72,7 +72,7 @@ def figs():
 # --------------------------------------------------------------------------------------
 
 def test_archard_volume_identity(rig, run2000, figs):
-    """Σ_j h_j A_j = K_d Σ_updates M Σ_i (Σ_j p_ij A_j) dS_i (DESIGN §4), both contacts."""
+    """Σ_j h_j A_j = K_d Σ_updates M Σ_i (Σ_j p_ij A_j) dS_i (design.md §4), both contacts."""
     for res in (run2000, figs[1]["unsymmetric"], figs[1]["symmetric"]):
         assert float(res.worn_volume) > 0
         assert float(res.worn_volume) == pytest.approx(float(res.archard_volume), rel=1e-9)
@@ -287,12 +287,12 @@ def test_figs_8_9_wear_area(figs):
     assert area(u[1]) > area(s[1])
     assert area(u[1]) > area(u[0])
     assert area(s[1]) == area(s[0])
-    # the traditional model digs deeper in the same place (DESIGN §8: 15.6 vs 8.0 µm)
+    # the traditional model digs deeper in the same place (design.md §8: 15.6 vs 8.0 µm)
     assert float(jnp.max(s[1])) > 1.2 * float(jnp.max(u[1]))
 
 
 # --------------------------------------------------------------------------------------
-# Boom joint: oscillating driver, double layer, duty cycle (DESIGN §2, Table 4)
+# Boom joint: oscillating driver, double layer, duty cycle (design.md §2, Table 4)
 # --------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -343,7 +343,7 @@ def test_boom_wear_symmetric_about_load(boom_run):
 
 
 # --------------------------------------------------------------------------------------
-# DESIGN §8 at full size (N = 360, 360 steps, 10 000 revolutions)
+# design.md §8 at full size (N = 360, 360 steps, 10 000 revolutions)
 # --------------------------------------------------------------------------------------
 
 def printed(digits):
@@ -363,7 +363,7 @@ def section8(rig):
 
 @pytest.mark.slow
 def test_design_wear_vectors_unsymmetric(section8):
-    """DESIGN §8 to the digits printed: peak 8.039 µm at 179° (the node, N = 360), second
+    """design.md §8 to the digits printed: peak 8.039 µm at 179° (the node, N = 360), second
     zone 6.217 µm near 0° (within ±2°), worn volume 2.034 mm³; measured 8.03940 µm at node
     179, 6.21666 µm at node 2, 2.03416 mm³."""
     res = section8["unsymmetric"]
@@ -383,7 +383,7 @@ def test_design_wear_vectors_unsymmetric(section8):
 
 @pytest.mark.slow
 def test_design_wear_vectors_symmetric(section8):
-    """DESIGN §8: the traditional contact's peak 15.59 µm at 179°; measured 15.5928 µm at
+    """design.md §8: the traditional contact's peak 15.59 µm at 179°; measured 15.5928 µm at
     node 179."""
     h = um(section8["symmetric"].depth)
     assert h.max() == pytest.approx(15.59, **printed(2))

@@ -81,7 +81,7 @@ def pressure_map(p: jw.Params, cfg: jw.ModelConfig, depth_m, snap: bool = True):
 
     The load history is the model's (`jw.load_history`); with `snap` its directions are
     rounded to the nodes (see `snap_to_nodes`). Raises if a contact solve did not converge
-    (relative force residual ≥ 1e-9, DESIGN §3).
+    (relative force residual ≥ 1e-9, design.md §3).
 
     **Returns:** (pressure [Pa] (steps, nodes), load-node index (steps,), load angle [rad]).
     """

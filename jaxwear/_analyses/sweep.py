@@ -66,7 +66,7 @@ class SweepResult:
     error_estimate_um: np.ndarray | None = None
     steps: np.ndarray | None = None
     tolerance_um: float | None = None
-    resolution: dict | None = None  # nodes and steps used, and their check (DESIGN §6)
+    resolution: dict | None = None  # nodes and steps used, and their check (design.md §6)
 
     @property
     def shape(self) -> tuple:
@@ -223,7 +223,7 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
     if choose_resolution and isinstance(base, Study) and cfg is None:
         # a study that leaves nodes and steps open: the coarsest level whose peak depths at
         # the grid's corners (every axis at its two ends) agree with the next finer level's
-        # within 0.1 % (DESIGN §6), then the whole grid at that level
+        # within 0.1 % (design.md §6), then the whole grid at that level
 
         if base.auto_resolution and grid:
             corners = {k: sorted({float(np.min(v)), float(np.max(v))})

@@ -1,6 +1,6 @@
 """A virtual test rig with hidden effects: `jaxwear synth` (issue "find the missing physics").
 
-It writes a study (TOML + CSV, DESIGN §6) whose data come from the full model with chosen
+It writes a study (TOML + CSV, design.md §6) whose data come from the full model with chosen
 effects switched on, as a careful experimenter would have measured them:
 
 - **Interrupted tests.** Each specimen is measured at several revolution counts (default

@@ -1,6 +1,6 @@
 """Ctrl-C at any moment of the command line is one line and exit 1 (issue 29).
 
-`cli.main` turns a `KeyboardInterrupt` into `jaxwear: interrupted` and exit 1 (DESIGN §7:
+`cli.main` turns a `KeyboardInterrupt` into `jaxwear: interrupted` and exit 1 (design.md §7:
 0 done, 2 bad input, 1 anything else; not the shell's 130, so that scripts see only the
 three documented codes). Before `main` runs, the package itself is being imported (JAX takes
 seconds), and an interrupt there printed Python's traceback. `guard_import` is called first

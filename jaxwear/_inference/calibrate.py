@@ -4,8 +4,8 @@ The study is posed as a residual model (`_residual.ResidualModel`, its parameter
 packed by `_packing`) and solved by the one least-squares core (`_inference.lsq`); this module
 drives it: the noise rule (`_noise.stated_noise`), the robust start, the guard against
 trials that would make the integrator crawl, the integration error re-checked at the
-answer, the resolution chosen by the error (DESIGN §6), and the result (`FitResult`, its
-DESIGN §7 JSON).
+answer, the resolution chosen by the error (design.md §6), and the result (`FitResult`, its
+design.md §7 JSON).
 
 Outcome semantics: a fit that stops without meeting its convergence test still returns its
 result, with `status` ("stalled", "budget", "undetermined", "worn_through",
@@ -144,7 +144,7 @@ class FitResult:
                 for n, v, s in zip(self.names, self.values, self.stderr)}
 
     def to_json(self) -> dict:
-        """The DESIGN §7 document: `parameters` and `rmse_um`, then diagnostics."""
+        """The design.md §7 document: `parameters` and `rmse_um`, then diagnostics."""
         tol = float(self.clearance_tolerance_um)
         noise = self.noise
         return {
@@ -410,7 +410,7 @@ def summarize(problem: ResidualModel, out: lsq.Outcome, evaluations: int,
 
 def calibrate(study: Study, fit_spec=None, *, start=None, verbose=False,
               max_evaluations: int = 30, noise_um: float | None = None) -> FitResult:
-    """Fit a study's parameters to its data (DESIGN §7 `calibrate`).
+    """Fit a study's parameters to its data (design.md §7 `calibrate`).
 
     **Arguments:**
     - `study`: a loaded study with profile and/or history data.
@@ -423,7 +423,7 @@ def calibrate(study: Study, fit_spec=None, *, start=None, verbose=False,
       else the noise rule of `_noise`).
     - `max_evaluations`: the fit's budget of model evaluations.
 
-    **Returns:** a `FitResult` (`.to_json()` gives the DESIGN §7 document).
+    **Returns:** a `FitResult` (`.to_json()` gives the design.md §7 document).
     """
     keys = study_fit_keys(study, fit_spec)
     return fit_study(study, keys, start=start, noise_um=noise_um,
@@ -435,7 +435,7 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
               se_tol: float = lsq.SE_TOL, layout: Layout | None = None) -> FitResult:
     """The whole fit of a study: build the problem, refuse what is known before any
     evaluation, fit, re-check the integration error at the answer and, where the study
-    leaves the resolution to the error (DESIGN §6), fit at the coarsest level of
+    leaves the resolution to the error (design.md §6), fit at the coarsest level of
     `_resolution.LEVELS` and consult the finer levels by forward runs only
     (`correct_to_finer`): one Jacobian compilation per answer. `result.resolution` reports
     it, `result.iterations` counts every model evaluation (forward runs and checks
@@ -464,7 +464,7 @@ MAX_CORRECTIONS = 4  # defect corrections towards one level before it is called 
 def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | None = None,
                      **fit_kw) -> FitResult:
     """`result` (a fit at the coarsest level) checked against the finer levels, and
-    corrected to them where needed, by forward runs there only (DESIGN §6).
+    corrected to them where needed, by forward runs there only (design.md §6).
 
     At the answer û, one forward run at the next finer level gives its rows; the
     change those residuals make to the Gauss-Newton step with the fit's own Jacobian (the

@@ -14,7 +14,7 @@ Parameterisation (why each choice):
 - a strength with a `per` partner (running-in: amplitude a with distance S_r) as the
   product the data identify: value_i = (start_i + scale_i u_i)·exp(−u_j)
   (`EffectParameter.per`);
-- a Gaussian prior (clearance tolerance, registration tolerance; DESIGN §6) is one row
+- a Gaussian prior (clearance tolerance, registration tolerance; design.md §6) is one row
   (value − centre)/sd, in units of its standard deviation: the least-squares core weights
   the data rows by 1/σ instead, so a prior's weight never depends on the noise level.
 """
@@ -59,7 +59,7 @@ def unit_of(name: str) -> str:
 class Column:
     """One entry of u.
 
-    - `name`: output name (DESIGN §7: `K_d_per_Pa`, `clearance_mm/EXP`, an effect key);
+    - `name`: output name (design.md §7: `K_d_per_Pa`, `clearance_mm/EXP`, an effect key);
       `key`: the study key; `experiment`: its index for a per-experiment parameter.
     - `log`: u = ln(value/start), else u = (value − start)/`scale` (key units per unit u).
     - `to_si`: key unit → SI. `lower`, `upper`: bounds in key units.

@@ -16,7 +16,7 @@ TIMED_DRIVERS = ("oscillating", "load_history")  # experiments run for hours
 
 @dataclass(frozen=True)
 class DutyBlock:
-    """One block of a duty cycle (DESIGN §2): the oscillating joint's swing of
+    """One block of a duty cycle (design.md §2): the oscillating joint's swing of
     `amplitude_deg`, or (preset "load_history") one period of `load`, a `LoadCycle` from a
     file, repeated for `duration_h` (inf: a single file, repeated for the whole run)."""
 

@@ -1,4 +1,4 @@
-"""Winkler elastic foundation contact of a pin in a (worn) bore (DESIGN §3, paper §2, §4.1).
+"""Winkler elastic foundation contact of a pin in a (worn) bore (design.md §3, paper §2, §4.1).
 
 The unsymmetric model solves the vector equilibrium Σ_j p_j A_j n_j = W for the pin offset e.
 It is the gradient of the convex piecewise-quadratic potential
@@ -7,7 +7,7 @@ search on that potential converges from any start that touches the bore. The col
 the exact 1-D solution along the load (monotone Newton from the right on a convex
 piecewise-linear function); the wear loop warm-starts from the previous update.
 
-Coulomb friction (DESIGN §5) needs no solver of its own: n_j + μ s t_j = √(1+μ²) R(β) n_j
+Coulomb friction (design.md §5) needs no solver of its own: n_j + μ s t_j = √(1+μ²) R(β) n_j
 with tan β = μ s, so Σ p_j A_j (n_j + μ s t_j) = W is the frictionless problem for the load
 R(-β) W / √(1+μ²).
 
@@ -334,20 +334,20 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
 def solve_contact(load: StepArray, angle: StepArray, h: NodeArray, clearance, k: NodeArray,
                   area, *, contact: str = "unsymmetric", friction=None,
                   iterations: int = 40, tol: float = 1e-10, start=None) -> ContactSolution:
-    """Contact pressure for every step of a cycle on a frozen bore profile (DESIGN §3).
+    """Contact pressure for every step of a cycle on a frozen bore profile (design.md §3).
 
     **Arguments:**
     - `load`, `angle`: |W| [N] and θ_W [rad], shape (steps,).
     - `h`: wear depth [m], (nodes,). `clearance`: c [m]. `k`: stiffness [Pa/m], (nodes,).
     - `area`: A_j [m²] (scalar). `contact`: `"unsymmetric"` or `"symmetric"`.
     - `friction`: None, or μ·s per step (steps,): Coulomb friction adds μ s t_j to each
-      node's force direction (DESIGN §5), solved as the rotated, reduced load (see above).
+      node's force direction (design.md §5), solved as the rotated, reduced load (see above).
     - `start`: optional warm start for the offsets (steps, 2) [m], e.g. the previous wear
       update's solution; by default (and for the rows that are NaN) the exact 1-D solution
       along the load.
 
     - `tol`: Newton stops when every step's relative force residual is below it; 1e-10 is a
-      tenth of the 1e-9 that DESIGN §3 requires (and the implicit-gradient correction is one
+      tenth of the 1e-9 that design.md §3 requires (and the implicit-gradient correction is one
       more exact Newton step on top).
 
     **Returns:** a `ContactSolution`; `residual` is the relative force residual of the

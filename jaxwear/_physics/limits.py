@@ -35,10 +35,10 @@ class LoadBound:
 
 
 def crank_slider_peak_load(p, cfg=None) -> float:
-    """The peak joint load |F_C| [N] of one crank revolution (DESIGN §1), by the model's own
+    """The peak joint load |F_C| [N] of one crank revolution (design.md §1), by the model's own
     hand-derived eqs 4-10 (`_mechanism.kinematics_by_hand`, `forces_from_kinematics`)
     evaluated in NumPy at 720 crank angles for the ideal joint: no compilation, ~1 ms. The
-    clearance link changes |F| by 2e-4 relative at most (DESIGN §8), the sampling by less."""
+    clearance link changes |F| by 2e-4 relative at most (design.md §8), the sampling by less."""
 
     host = SimpleNamespace(**{k.field: float(getattr(p, k.field))
                               for k in PARAMETER_KEYS.values()})
@@ -89,7 +89,7 @@ def winkler_load(u: float, c: float, kRB: float) -> float:
 
 def peak_strain(p, load: float, double_layer: bool) -> float:
     """Peak elastic strain p_max/E_w of the wearing layer [-] under `load` [N] on the unworn
-    bore (the Winkler contact of DESIGN §3 in closed form: the penetration u solves
+    bore (the Winkler contact of design.md §3 in closed form: the penetration u solves
     `winkler_load(u) = load` by bisection; p_max = k u)."""
     if not load > 0:
         return 0.0

@@ -96,7 +96,7 @@ def _from_files(p: Params, cfg: ModelConfig) -> LoadHistory:
 
 
 def load_history(p: Params, cfg: ModelConfig) -> LoadHistory:
-    """The cycle's load history for the configured driver (DESIGN §1-2), its load times
+    """The cycle's load history for the configured driver (design.md §1-2), its load times
     `load_scale`."""
     if cfg.driver == "oscillating":
         hist = _oscillating(p, cfg)

@@ -1,4 +1,4 @@
-"""Crank-slider with a clearance link: kinematics and the joint reaction force (DESIGN §1).
+"""Crank-slider with a clearance link: kinematics and the joint reaction force (design.md §1).
 
 All functions are elementwise in time, so one call evaluates every step of a revolution at
 once. Time derivatives come from nested `jax.jvp` (exact, no hand algebra to get wrong); the
@@ -83,7 +83,7 @@ def kinematics_by_hand(p: Params, t: StepArray, gamma, xi, xp=jnp) -> Kinematics
 
 
 def forces_from_kinematics(p: Params, k: Kinematics, xp=jnp):
-    """Eqs 8-10 (d'Alembert), signs fixed as in DESIGN §1. Returns (F_Cx, F_Cy) [N].
+    """Eqs 8-10 (d'Alembert), signs fixed as in design.md §1. Returns (F_Cx, F_Cy) [N].
     (`xp`: as for `kinematics_by_hand`.)"""
     L2, m2, m3 = p.coupler_length, p.coupler_mass, p.slider_mass
     spring = -p.spring_rate * (k.xs - p.spring_free_position)
@@ -93,7 +93,7 @@ def forces_from_kinematics(p: Params, k: Kinematics, xp=jnp):
     inertial_y = -m2 * k.gy_dd - m2 * p.gravity
     moment_g = 0.5 * (dx * inertial_y - dy * inertial_x)  # r_GB × (-m2 a_G - m2 g ŷ)
     psi_dd = -k.phi2_dd  # ψ = -Φ2 is the coupler's counter-clockwise angle
-    inertia = m2 * L2**2 / 12.0  # uniform bar about its centre (our assumption, DESIGN §1)
+    inertia = m2 * L2**2 / 12.0  # uniform bar about its centre (our assumption, design.md §1)
     # r_DB × F_C + moment_g - I_G ψ̈ = 0, solved for F_Cy; dx = L2 cos Φ2 > 0 since L1 < L2.
     fy = (dy * fx - moment_g + inertia * psi_dd) / dx
     return fx, fy
@@ -111,7 +111,7 @@ def _wrap(a):
 
 def crank_slider_forces(p: Params, t: StepArray, algorithm: str = "scla", scla_passes: int = 2,
                         gamma0: float = 0.0) -> JointForce:
-    """Joint reaction force at times `t` [s] by the chosen algorithm (DESIGN §1).
+    """Joint reaction force at times `t` [s] by the chosen algorithm (design.md §1).
 
     - `ideal`: no clearance (ξ = 0).
     - `scla`: stationary clearance link from a constant γ0, `scla_passes` passes.

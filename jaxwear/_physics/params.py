@@ -25,7 +25,7 @@ def _f(x) -> Scalar:
 class Params(eqx.Module):
     """All physical parameters, SI units (m, kg, N, Pa, s, rad).
 
-    Crank-slider (DESIGN §1, Table 1) and oscillating driver (§2) share one pytree; fields a
+    Crank-slider (design.md §1, Table 1) and oscillating driver (§2) share one pytree; fields a
     driver does not use are ignored by it. Effect strengths (§5) live here too, at the value
     that switches them off, so a disabled effect leaves the model unchanged.
     """
@@ -66,7 +66,8 @@ class Params(eqx.Module):
 
     @property
     def pin_radius(self) -> Scalar:
-        """R_p = R_b - c [m]: changing the clearance changes the pin, not the bore (DESIGN §3)."""
+        """R_p = R_b - c [m]: changing the clearance changes the pin, not the bore
+        (design.md §3)."""
         return self.bore_radius - self.clearance
 
     def replace(self, **kw) -> Params:
@@ -117,7 +118,7 @@ _MM = 1e-3
 _GPA = 1e9
 _RPM = 2 * math.pi / 60
 
-# Study-file keys (DESIGN §6: "the key names its unit"). Dimensionless keys carry no suffix.
+# Study-file keys (design.md §6: "the key names its unit"). Dimensionless keys carry no suffix.
 PARAMETER_KEYS: dict[str, Key] = {
     "crank_length_mm": Key("crank_length", _MM, "L1, crank AB"),
     "coupler_length_mm": Key("coupler_length", _MM, "L2, coupler BD"),
@@ -172,7 +173,7 @@ _BOOM.update({
     "load_N": 10000.0, "load_angle_deg": 90.0, "swing_period_s": 10.0,
     "spring_N_per_m": 0.0, "speed_rpm": 0.0,
 })
-# Your own joint (DESIGN §2): the load and motion come from files, the joint's geometry and
+# Your own joint (design.md §2): the load and motion come from files, the joint's geometry and
 # materials from [model.parameters]; where a study leaves a key out it is the rig joint's
 # (Table 3: bore 15 mm, width 28 mm, PTFE layer 0.5 mm). The mechanism keys do not enter.
 _LOAD_HISTORY = dict(_RIG)
@@ -190,7 +191,7 @@ def _resolve(values: dict[str, float], effect_values: dict[str, float]) -> Param
     for key, spec in PARAMETER_KEYS.items():
         si[spec.field] = float(values[key]) * spec.to_si
     if math.isnan(si["spring_free_position"]):
-        # x0 is not in the paper: spring relaxed at inner dead centre (DESIGN §1).
+        # x0 is not in the paper: spring relaxed at inner dead centre (design.md §1).
         si["spring_free_position"] = si["coupler_length"] - si["crank_length"]
     eff = {k: _f(v) for k, v in effect_values.items()}
     return Params(**{k: _f(v) for k, v in si.items()}, effect_params=eff)

@@ -1,4 +1,4 @@
-"""Output of `design` (no model runs here): the DESIGN §7 document `design.json`, the plot of
+"""Output of `design` (no model runs here): the design.md §7 document `design.json`, the plot of
 the goal's value over the varied ranges, the ready-to-paste `[[experiment]]` stanza of the
 recommended experiment(s), the conditions study `jaxwear synth --conditions` makes their
 virtual data from, and the text summary.
@@ -77,7 +77,7 @@ def _detail(d: dict) -> dict:
 
 
 def to_json(res: DesignResult, study: Study, *, limit: int | None = None) -> dict:
-    """The DESIGN §7 document: `goal`, `between`, `candidates` (best first, each its
+    """The design.md §7 document: `goal`, `between`, `candidates` (best first, each its
     `conditions` and `value`, with `measure_at` and the goal's details), `recommended`."""
     order = res.order if limit is None else res.order[:limit]
     cands = []

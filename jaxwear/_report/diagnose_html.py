@@ -233,7 +233,7 @@ def _num(x, fmt=".4g"):
 
 
 def report_html(diag, doc: dict, saved: dict | None = None) -> str:
-    """The report: verdict paragraph, figures, tables (DESIGN §7 `diagnose --out`).
+    """The report: verdict paragraph, figures, tables (design.md §7 `diagnose --out`).
     `saved`: {"shape" or "shape_after_effect": {figure label: PNG path}} of the shape
     figures already written beside it (embedded as written, not drawn again)."""
     v = doc["verdict"]

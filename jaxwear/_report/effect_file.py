@@ -1,4 +1,4 @@
-"""`missing_wear.py`: the refitted shape of the missing wear as an effect file (DESIGN §7).
+"""`missing_wear.py`: the refitted shape of the missing wear as an effect file (design.md §7).
 
 A self-contained Python file: the correction is data inside it (each variable's knots and
 B-spline coefficients), evaluated by a dozen lines of plain jax.numpy, so the user can read

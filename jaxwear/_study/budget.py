@@ -10,7 +10,7 @@ wear updates, `nodes = 100000000` for arrays of steps × nodes floats far beyond
   hours × 3600 / swing_period_s for the oscillating joint.
 - the adaptive integrator (the default) has no fixed M: its steps are bounded by what it
   needs, not by a cap. Stability: the explicit 3(2) pair is stable while ΔN·λ ≲ 2.5 with
-  λ = K_d k S_cycle per cycle (DESIGN §4; k the foundation stiffness of the unworn layer,
+  λ = K_d k S_cycle per cycle (design.md §4; k the foundation stiffness of the unworn layer,
   S_cycle the sliding per cycle; `_wear.adaptive_attempts`), so a piece of c cycles takes at
   least c λ / 2.5 steps, and about 3.4x that in attempts at the limit (rejections, and
   accepted steps below the limit: measured on the boom; 4x is used). Accuracy: ~40 steps
@@ -110,7 +110,7 @@ def _cycles_and_segments(study, exp) -> tuple[float, float]:
 
 def stiff_rates(study, exp) -> list[tuple[float, float]]:
     """[(λ [1/cycle], share of the cycles)] per duty regime of one experiment: λ = K_d k
-    S_cycle, the decay rate of the stiff mode that bounds explicit steps (DESIGN §4), by
+    S_cycle, the decay rate of the stiff mode that bounds explicit steps (design.md §4), by
     closed forms from the parameters (k of the unworn layer, in series with the backing
     for a double layer; S_cycle from the kinematics, or a load file's rotation), as
     `_wear._regime_rates` computes it from the load history, without evaluating the model."""

@@ -1,4 +1,4 @@
-"""User effects from files: `[model] effect_files = ["my_effects.py"]` (DESIGN §7).
+"""User effects from files: `[model] effect_files = ["my_effects.py"]` (design.md §7).
 
 A study lists Python files (paths relative to the study file); `load_study` loads them
 before it builds anything else, and every `jaxwear.Effect` subclass a file defines with a

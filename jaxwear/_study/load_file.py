@@ -1,4 +1,4 @@
-"""Your own joint: one period of its load and motion from a file (DESIGN §2, preset
+"""Your own joint: one period of its load and motion from a file (design.md §2, preset
 "load_history"), read, checked, and resampled onto the wear loop's steps.
 
 The file is what a multibody program (or a load cell and an encoder) gives:

@@ -77,7 +77,7 @@ _CYCLES = ("at least one whole revolution (one cycle's wear is the model's unit)
 
 # key -> Range. Study parameter keys by name; other study keys by section.key.
 RANGES: dict[str, Range | None] = {
-    # mechanism (DESIGN §1, Table 1)
+    # mechanism (design.md §1, Table 1)
     "crank_length_mm": Range(1.0, 1e4, _LENGTH),
     "coupler_length_mm": Range(1.0, 1e4, _LENGTH),
     "crank_mass_kg": Range(0.0, 1e4, _MASS),
@@ -88,7 +88,7 @@ RANGES: dict[str, Range | None] = {
     "gravity_m_per_s2": Range(-100.0, 100.0, "within 10 g"),
     "speed_rpm": Range(1e-3, 1e5, "from a revolution in 17 hours to 100 000 r/min (no crank "
                                   "mechanism runs outside that)"),
-    # joint (DESIGN §3, Tables 3 and 4)
+    # joint (design.md §3, Tables 3 and 4)
     "bore_diameter_mm": Range(0.5, 2000.0, "a journal bearing from 0.5 mm to 2 m"),
     "clearance_mm": Range(1e-4, 100.0, "from 0.1 µm (below that the surfaces' roughness is "
                                        "the gap) to 100 mm", lo_open=False),
@@ -101,10 +101,10 @@ RANGES: dict[str, Range | None] = {
     "backing_poisson_ratio": Range(0.0, 0.49, _POISSON),
     "pin_E_GPa": Range(1e-3, 1200.0, _MODULUS),
     "pin_poisson_ratio": Range(0.0, 0.5, "a Poisson ratio of a solid"),
-    # wear (DESIGN §4): specific wear rates of real pairs span ~1e-17..1e-12 1/Pa
+    # wear (design.md §4): specific wear rates of real pairs span ~1e-17..1e-12 1/Pa
     "K_d_per_Pa": Range(1e-20, 1e-9, "from far slower than any measured pair to 1 mm³/(N·m), "
                                      "faster than abrasion"),
-    # oscillating joint (DESIGN §2)
+    # oscillating joint (design.md §2)
     "load_N": Range(0.0, 1e8, "up to 10 000 t"),
     "load_scale": Range(0.0, 1e4, "a factor on the driver's load, from none to 10 000x "
                                   "(a load in kN under an N header is 1000x)", lo_open=True),
@@ -113,9 +113,9 @@ RANGES: dict[str, Range | None] = {
     "model.duty_cycle.amplitude_deg": Range(0.0, 180.0, "a swing of at most half a turn each "
                                                         "way", lo_open=True),
     "model.duty_cycle.duration_h": Range(0.0, 1e6, "up to 114 years", lo_open=True),
-    "model.scla_passes": Range(1, 100, "the SCLA converges in a few passes (DESIGN §1)"),
+    "model.scla_passes": Range(1, 100, "the SCLA converges in a few passes (design.md §1)"),
     "model.gamma0_deg": Range(-360.0, 360.0, "an angle within one turn either way"),
-    # numerics (DESIGN §3-4, §6)
+    # numerics (design.md §3-4, §6)
     "numerics.nodes": Range(8, 100_000, "from 8 nodes to 0.0036° apart, finer than any "
                                         "profilometer"),
     "numerics.steps_per_rev": Range(4, 100_000, "from 4 steps to 0.0036° of crank angle"),
@@ -125,13 +125,13 @@ RANGES: dict[str, Range | None] = {
         1e-6, 100.0, "below 1 pm the error target is under an atom's size and under what the "
                      "contact solve's 1e-9 relative residual leaves on µm depths (and the "
                      "steps grow like tol^(-1/2)); above 100 µm it is no target"),
-    # experiments (DESIGN §6)
+    # experiments (design.md §6)
     "experiment.revolutions": Range(1.0, 1e12, _CYCLES),
     "experiment.hours": Range(0.0, 1e6, "up to 114 years of running", lo_open=True),
     "experiment.cycles": Range(1.0, 1e12, "at least one whole period of the load file (one "
                                           "cycle's wear is the model's unit), at most 10¹²"),
     "experiment.angle_offset_deg": Range(-360.0, 360.0, "an angle within one turn either way"),
-    # fit (DESIGN §6)
+    # fit (design.md §6)
     "fit.clearance_tolerance_um": Range(0.0, math.inf, "a standard deviation (0 fixes, inf "
                                                        "frees)"),
     "fit.angle_tolerance_deg": Range(0.0, 180.0, "a standard deviation within half a turn"),

@@ -1,5 +1,5 @@
 """Spatial resolution chosen by the error, the way the wear integrator chooses its steps
-(DESIGN §6).
+(design.md §6).
 
 A study whose `[numerics]` gives neither `nodes` nor `steps_per_rev` runs at the coarsest
 level of `LEVELS` whose discretisation error is small enough, checked against the next

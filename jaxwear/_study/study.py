@@ -1,4 +1,4 @@
-"""Study files (TOML) and measurement files (CSV): DESIGN §6.
+"""Study files (TOML) and measurement files (CSV): design.md §6.
 
 Everything a user can get wrong is checked here, before any computation, and reported as an
 `InputError` naming the file, the key or line, and what was expected.
@@ -108,7 +108,7 @@ class Study:
     wear_tolerance_um: float = 0.002
     angle_tolerance_deg: float = 0.0
     noise_um: float | None = None  # [fit] noise_um: measurement noise σ if known
-    # nodes / steps_per_rev absent from [numerics]: chosen by the error (DESIGN §6)
+    # nodes / steps_per_rev absent from [numerics]: chosen by the error (design.md §6)
     auto_resolution: bool = False
     raw: dict = field(default_factory=dict, repr=False)
 
@@ -181,7 +181,7 @@ def _header(path: Path) -> list[str]:
 
 
 def read_profile(path: Path, angle_offset_deg: float = 0.0) -> Profile:
-    """A profile file (DESIGN §6, docs/measurements.md), one of:
+    """A profile file (design.md §6, docs/measurements.md), one of:
 
     - `angle_deg,depth_um[,revolutions]` (`depth_mm` may replace `depth_um`; `hours` may
       replace `revolutions`, for a study whose experiments run for hours);
@@ -281,7 +281,7 @@ def check_depth_scale(study_path: Path, where: str, data, params: Params) -> Non
 
 
 def read_history(path: Path) -> History:
-    """`hours,depth_mm` (maximum depth vs time, DESIGN §6); `depth_um` may replace
+    """`hours,depth_mm` (maximum depth vs time, design.md §6); `depth_um` may replace
     `depth_mm`."""
     header, a = _read_csv(path, ["hours", "depth_mm"], alternatives={"depth_mm": ["depth_um"]})
     for i, (t, d) in enumerate(a, start=2):
@@ -349,7 +349,7 @@ def _data_file(path: Path, where: str, name: str):
 
 
 def load_study(path) -> Study:
-    """Read and validate a study file (DESIGN §6). Raises `InputError` on bad input."""
+    """Read and validate a study file (design.md §6). Raises `InputError` on bad input."""
     path = Path(path)
     _exists(path, "study file")
     if path.is_dir():
@@ -429,7 +429,7 @@ def load_study(path) -> Study:
     if "nodes" in num:
         cfg_kw["nodes"] = int(_number(path, "numerics.nodes", num["nodes"], positive=True,
                                       integer=True))
-    # Resolution chosen by the error where neither is given (DESIGN §6); a study that gives
+    # Resolution chosen by the error where neither is given (design.md §6); a study that gives
     # one of them keeps the other's default, as given.
     auto = "nodes" not in num and "steps_per_rev" not in num
     if "steps_per_rev" in num:

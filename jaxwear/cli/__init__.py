@@ -1,5 +1,5 @@
 """Command line: `jaxwear simulate|calibrate|diagnose|synth|sweep|sensitivity|predict|design`
-(DESIGN §7).
+(design.md §7).
 
 Exit codes: 0 done, 2 bad input (one line naming the file, key, line or option), 1 anything
 else. Set JAXWEAR_DEBUG=1 to see tracebacks. Every verb takes the same path (`_pipeline`):

@@ -1,7 +1,7 @@
 """The argument parser of every verb: its errors are one line and exit 2, like bad input.
 
 argparse prints its usage text and exits 2 on its own; the command line's contract is one
-line naming the option and what was expected (DESIGN §7), so `Parser.error` raises
+line naming the option and what was expected (design.md §7), so `Parser.error` raises
 `UsageError` (an `InputError`) for `main` to print. argparse also reads a value that starts
 with '-' as an option unless it is a plain negative number (`-5`, `-.5`): a range such as
 `--clearance-mm -0.05:0.1:3` got "expected one argument". `join_negative_values` rewrites

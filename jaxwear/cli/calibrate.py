@@ -1,4 +1,4 @@
-"""`jaxwear calibrate STUDY.toml [--fit K_d,clearance] [--out DIR] [--json FILE]` (DESIGN §7).
+"""`jaxwear calibrate STUDY.toml [--fit K_d,clearance] [--out DIR] [--json FILE]` (design.md §7).
 
 Writes under DIR: `calibration.json` (the §7 document plus diagnostics), `fit_residuals.csv`
 (one row per measured point), `fitted_profiles.csv` (the fitted model at every node and

@@ -1,6 +1,6 @@
 """`jaxwear design STUDY.toml [--goal separate|parameters|forecast] [--between A,B]
 [--vary KEY=LO:HI[:N],...] [--budget N] [--for KEY,...] [--at X] [--train-until X]
-[--level 0.9] [--out DIR] [--json FILE]` (DESIGN §7).
+[--level 0.9] [--out DIR] [--json FILE]` (design.md §7).
 
 Ranks candidate next experiments for a goal from the study's fitted model(s)
 (`jaxwear._analyses.design`). Writes under DIR: `design.json` (the §7 document), `design.png` (the

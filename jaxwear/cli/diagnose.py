@@ -1,4 +1,4 @@
-"""`jaxwear diagnose STUDY.toml [--shape] [--out DIR] [--json FILE]` (DESIGN §7).
+"""`jaxwear diagnose STUDY.toml [--shape] [--out DIR] [--json FILE]` (design.md §7).
 
 Writes under DIR: `diagnosis.json` (the §7 document), `residuals.csv` (one row per measured
 point: measured, base model and the model after, in µm) and `report.html`; `--json FILE`

@@ -1,5 +1,5 @@
 """`jaxwear predict STUDY.toml --at LIST [--train-until X] [--level 0.9] [--limit-um D]
-[--method laplace|nuts|importance] [--out DIR] [--json FILE]` (DESIGN §7).
+[--method laplace|nuts|importance] [--out DIR] [--json FILE]` (design.md §7).
 
 Writes under DIR: `prediction.json` (the §7 document plus diagnostics), `predictions.csv`
 (one row per experiment and `--at` point, both bands), `forecast_curves.csv` (the forecast

@@ -33,7 +33,7 @@ def simulate_outputs(study: Study) -> list[str]:
 
 
 def load_file_names(study: Study, exp: Experiment) -> list[str]:
-    """The load files `simulate` writes for an experiment (DESIGN §2): `load_EXP.csv`, or
+    """The load files `simulate` writes for an experiment (design.md §2): `load_EXP.csv`, or
     one per duty block, `load_EXP_1.csv`, ..., for a duty cycle."""
     n = len(study.config.duty_cycle) if timed(study.config) else 1
     return [f"load_{exp.name}.csv"] if n == 1 else [f"load_{exp.name}_{k + 1}.csv"
@@ -68,7 +68,7 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
                 for e in st.experiments]
 
     # where the study leaves nodes and steps open, the coarsest level whose peak depths agree
-    # with the next finer level's within 0.1 % (DESIGN §6)
+    # with the next finer level's within 0.1 % (design.md §6)
     study, resolution = for_forward(study, peaks, log=progress)
     n = study.config.nodes
     angles = np.arange(n) * 360.0 / n

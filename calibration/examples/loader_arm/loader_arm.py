@@ -1,6 +1,6 @@
 """The boom pivot of a wheel loader: its load and motion from a small multibody computation.
 
-Writes the two load files of `study.toml` (the format of DESIGN §2, preset "load_history"):
+Writes the two load files of `study.toml` (the format of design.md §2, preset "load_history"):
 
 - `work.csv`: one 12 s load-and-carry work cycle: fill the bucket at the pile (the boom
   down at -30°), lift to +45° in 5 s, dump, lower empty in 3.5 s;

@@ -1,4 +1,4 @@
-"""Diagnosis: find the physics the base model is missing (DESIGN §5, §7 `diagnose`).
+"""Diagnosis: find the physics the base model is missing (design.md §5, §7 `diagnose`).
 
 The steps, each a function below:
 
@@ -32,7 +32,7 @@ The steps, each a function below:
    systematic remainder, pairs with it are tried; otherwise the verdict is `unexplained`
    and names nothing. Candidates within ln 20 of the winner that also fit to noise are
    reported as alternatives the data cannot tell apart.
-5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the DESIGN §7 JSON
+5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the design.md §7 JSON
    (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
 6. **The shape of the missing wear** (`_shape`; always with `shape=True`, else when the
    verdict is `unexplained`): a smooth correction along each state variable in two forms

@@ -1,4 +1,4 @@
-"""Frozen result types of a diagnosis and the DESIGN §7 JSON document."""
+"""Frozen result types of a diagnosis and the design.md §7 JSON document."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """Everything `diagnose` found; `to_json()` is the DESIGN §7 document."""
+    """Everything `diagnose` found; `to_json()` is the design.md §7 document."""
 
     study: Study
     model: Model
@@ -62,7 +62,7 @@ class Diagnosis:
     wall_s: float = 0.0
     log: list = field(default_factory=list)
     compare_fits: dict = field(default_factory=dict)
-    resolution: dict | None = None  # the spatial resolution used and its check (DESIGN §6)
+    resolution: dict | None = None  # the spatial resolution used and its check (design.md §6)
     shape: object = None  # _shape.ShapeResult on top of the base fit (--shape, unexplained)
     shape_after_effect: object = None  # the same on top of the effect found
     # what the answer cost: model evaluations (calibrate's path, then diagnose's own) and

@@ -1,5 +1,5 @@
 """The shape of the missing wear: a smooth correction of the local wear along the state
-variables, learned from the misfit through the wear loop (DESIGN §7, `--shape`).
+variables, learned from the misfit through the wear loop (design.md §7, `--shape`).
 
 Two forms (`effects.shape`): a **factor** exp(g(z)) of the local Archard rate, and a
 **deposit** e(z) ≥ 0 per step where the pin presses (extra wear not tied to sliding), each
@@ -25,7 +25,7 @@ them all. On the host, in the whitened system the fits see:
    a variable significant alone whose unique share is not is a stand-in for the carrier
    its fitted correction resembles most (speed and load turn rate both follow crank speed
    on the paper's rig).
-4. **The answer.** `best` is the significant variable that explains most (DESIGN §7; ties
+4. **The answer.** `best` is the significant variable that explains most (design.md §7; ties
    within ln 20 of AIC are named as alternatives), `form` its form. The correction of that
    form over the variables that carry the misfit is refitted through the wear loop with
    its true Jacobian by the least-squares core (penalty and, for a factor, zero sum as
@@ -646,7 +646,7 @@ def _map_u(model: Model, u_model, other: Model) -> np.ndarray:
 
 def choose_best(results):
     """(the best variable-form, the labels of its alternatives): the significant one that
-    explains most of the misfit (DESIGN §7), equal shares broken by the lower AIC; the
+    explains most of the misfit (design.md §7), equal shares broken by the lower AIC; the
     others whose AIC is within ln 20 of it (or lower) are alternatives the data cannot tell
     from it. A ranking by the data, never by the order the variables come in."""
     sig = [v for v in results if v.significant]

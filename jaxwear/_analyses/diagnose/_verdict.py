@@ -53,7 +53,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
 
     `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
     else estimated from the data. `shape`: always analyse the shape of the missing wear
-    (`_shape`); without it, only when the verdict is `unexplained` (DESIGN §7), unless
+    (`_shape`); without it, only when the verdict is `unexplained` (design.md §7), unless
     `auto_shape` is False (the verdict alone, e.g. a validation script's many studies: the
     shape never changes the verdict and costs more than it); `seed` of its null
     simulations. `figures`: None, or a function [ShapeResult | None] -> [{label: PNG bytes}]
@@ -83,7 +83,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     flags = []  # what the verdict rests on that a reader must know (the numerics changed)
     if study.auto_resolution or study.angle_tolerance_deg > 0:
         # the base model's fit by calibrate's path: the resolution it needs, checked at its
-        # answer (DESIGN §6), and the scans' registration where the study fits it; the
+        # answer (design.md §6), and the scans' registration where the study fits it; the
         # candidates are then compared at that answer's numerics: the Jacobian's level,
         # its rows corrected as the answer's are (defect correction to a finer level: the
         # same fixed correction) and that registration (held); the base fit starts from
@@ -331,7 +331,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
 
 
 def settle(base_systematic: bool, best, unresolved: bool) -> str:
-    """What the refits leave to decide (DESIGN §7): "examine" where the best usable refit
+    """What the refits leave to decide (design.md §7): "examine" where the best usable refit
     `best` (a `Candidate`, or None) has very strong evidence (its own tests then decide
     `effect_found` or not); "unexplained" where the base model's own tests reject without
     such a refit, or where the screen's promise is `unresolved` (candidates with very strong

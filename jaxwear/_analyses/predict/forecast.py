@@ -1,11 +1,11 @@
-"""Forecasts of wear and remaining life with stated uncertainty: `jaxwear.predict` (DESIGN §7).
+"""Forecasts of wear and remaining life with stated uncertainty: `jaxwear.predict` (design.md §7).
 
 The study is calibrated (as `calibrate` does, with its effects) on the measurements at or
 before `train_until`; the fitted model is then run to every forecast point, and its
 uncertainty is carried there.
 
 `laplace` (default): the fit's Gauss-Newton covariance C of the parameters u (the residual
-variance σ̂² of the data rows and the clearance prior's rows, DESIGN §6) is pushed through
+variance σ̂² of the data rows and the clearance prior's rows, design.md §6) is pushed through
 the model by the exact Jacobian g = ∂(max depth)/∂u at each forecast point (`jacfwd`
 through the wear loop): var_model = g C gᵀ. Two bands:
 - confidence band (where the model's depth is): depth ± q √var_model;
@@ -143,7 +143,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     - `n_dense`: points of the forecast grid (fan chart, life search); `life=False` skips
       the life estimate (and the forecast to 10x the last measured count).
 
-    **Returns:** a `PredictResult` (`.to_json()` is the DESIGN §7 document).
+    **Returns:** a `PredictResult` (`.to_json()` is the design.md §7 document).
     """
     at, limit_um = _check_args(study, at, train_until, level, limit_um, method, noise_um)
     unit = unit_of_study(study)

@@ -11,7 +11,7 @@ the posterior in u is unchanged. With the noise given (or no usable covariance) 
 is 1 (or L = I). Priors, from the study:
 - K_d: log-normal around the study's value, σ = ln 100 (positive by construction, broad);
 - fitted clearances: the study's Gaussian prior N(nominal, τ) (`[fit] clearance_tolerance_um`,
-  DESIGN §6), on the clearance itself (the log-Jacobian of c = c₀ e^u is added); τ = inf:
+  design.md §6), on the clearance itself (the log-Jacobian of c = c₀ e^u is added); τ = inf:
   flat in c > 0;
 - effect strengths: uniform between the effect's bounds; positive shape parameters
   (`log=True`, e.g. the running-in distance): log-uniform between the bounds;

@@ -1,4 +1,4 @@
-"""What `predict` returns: forecasts with their bands, lives, and the DESIGN §7 JSON."""
+"""What `predict` returns: forecasts with their bands, lives, and the design.md §7 JSON."""
 
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ class Curve:
 
 @dataclass(frozen=True)
 class PredictResult:
-    """Outcome of `predict`. `to_json()` gives the DESIGN §7 document plus diagnostics."""
+    """Outcome of `predict`. `to_json()` gives the design.md §7 document plus diagnostics."""
 
     level: float
     method: str

@@ -1,4 +1,4 @@
-"""Candidate effects (DESIGN §5): one small module each, registered by name.
+"""Candidate effects (design.md §5): one small module each, registered by name.
 
 `registered_effects()` are the parametric candidates (hooks into the wear loop);
 `STRUCTURAL_CANDIDATES` the model choices `unsymmetric` and `double_layer`. docs/effects.md

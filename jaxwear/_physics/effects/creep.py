@@ -1,4 +1,4 @@
-"""Creep (cold flow) of polymer layers (DESIGN §5)."""
+"""Creep (cold flow) of polymer layers (design.md §5)."""
 
 from jaxwear._physics.effects._base import Effect
 from jaxwear._physics.effects.parameter import EffectParameter

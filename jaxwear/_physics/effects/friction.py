@@ -1,4 +1,4 @@
-"""Coulomb friction in the contact (DESIGN §5)."""
+"""Coulomb friction in the contact (design.md §5)."""
 
 import jax.numpy as jnp
 

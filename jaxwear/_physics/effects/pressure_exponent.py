@@ -1,4 +1,4 @@
-"""Non-linear pressure dependence of wear (DESIGN §5)."""
+"""Non-linear pressure dependence of wear (design.md §5)."""
 
 from jaxwear._physics.effects._base import Effect, safe_power
 from jaxwear._physics.effects.parameter import EffectParameter

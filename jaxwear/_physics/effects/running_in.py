@@ -1,4 +1,4 @@
-"""Running-in: a fresh surface wears faster until asperities are levelled (DESIGN §5)."""
+"""Running-in: a fresh surface wears faster until asperities are levelled (design.md §5)."""
 
 import jax
 import jax.numpy as jnp

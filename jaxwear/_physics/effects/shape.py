@@ -1,5 +1,5 @@
 """A non-parametric correction of the local wear, in the two forms missing wear takes
-(DESIGN §7, `--shape`): a factor of the local Archard rate, or extra wear not tied to
+(design.md §7, `--shape`): a factor of the local Archard rate, or extra wear not tied to
 sliding deposited where the pin presses.
 
 - **factor**: the local rate K_d p_ij dS_i becomes K_d p_ij dS_i exp(Σ_v g_v(z_v,ij)), each

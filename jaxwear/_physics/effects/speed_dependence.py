@@ -1,4 +1,4 @@
-"""Speed-dependent wear coefficient (DESIGN §5)."""
+"""Speed-dependent wear coefficient (design.md §5)."""
 
 from jaxwear._physics.effects._base import Effect, safe_power
 from jaxwear._physics.effects.parameter import EffectParameter

@@ -1,4 +1,4 @@
-"""Structural candidates: model choices that a study can leave out (DESIGN §5).
+"""Structural candidates: model choices that a study can leave out (design.md §5).
 
 Unlike the effects of the registry, these change a static choice of the model rather than
 add a term to the wear rate, so they are not `Effect`s: a study switches them on with
@@ -11,7 +11,7 @@ add a term to the wear rate, so they are not `Effect`s: a study switches them on
 - `double_layer`: a single-layer study may be missing the compliance of what the wearing
   layer sits on (paper §4.1). Its strength is the backing's compliance per unit area,
   C_b = L_b / E_w,b, in µm of extra deflection per MPa of pressure; C_b = 0 is the single
-  layer exactly (1/k = (L - h)/E_w + C_b, DESIGN §3).
+  layer exactly (1/k = (L - h)/E_w + C_b, design.md §3).
 """
 
 from __future__ import annotations
