@@ -472,7 +472,7 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     errors, is the check (what a finer grid changes is mostly the residual, by the discretisation
     error; its change of the Jacobian moves the answer by that relative change times the
     residuals, in standard errors about the Jacobian's relative discretisation error,
-    which this check does not see: README, "Resolution chosen by the error"). Within
+    which this check does not see: docs/numerics.md, "Resolution chosen by the error"). Within
     `FIT_SE_TOL` (0.1): the answer stands, checked against that level. Else defect
     correction: the difference δ = rows_fine(û) − rows_coarse(û) is held as a fixed
     correction of the rows (`ResidualModel.defect_um`), the coarse model refitted from û

@@ -63,11 +63,11 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
     max |sum| stays within tol (½ + ½ N/N_total): half the tolerance may be spent at any
     time (the fast start of a stiff layer), the other half accrues with N. The final
     max |sum| is `error_estimate`; as the 3rd-order solution is propagated it bounds the
-    error from above in practice (measured: README, numerics). Stiff layers: the explicit
+    error from above in practice (measured: docs/numerics.md). Stiff layers: the explicit
     pair's stability limit (|λ ΔN| ≲ 2.5, λ = K_d k S_cycle) bounds the steps; linearly
     implicit W-methods (ROS2 with a diagonal Jacobian; ROS34PW2 and extrapolated linearly
     implicit Euler with the diagonal-plus-rank-two Winkler Jacobian) were measured and
-    rejected: README, Numerics, "Stiff layers".
+    rejected: docs/numerics.md, "Stiff layers".
     One scan iteration is one attempted step (a static number, under the same two-level
     checkpointing as eq 23); attempts after the end skip all work. Step sizes are held
     fixed under differentiation (gradients of the solution on the chosen steps; they

@@ -33,7 +33,7 @@ wear updates, `nodes = 100000000` for arrays of steps × nodes floats far beyond
   a contact solve), times (1 + tangents) for a forward-mode Jacobian with `tangents`
   columns, plus the host-side schedule of the paper integrator (~160 bytes per update).
 
-Limits (raise them for a bigger machine or a GPU; document in README):
+Limits (raise them for a bigger machine or a GPU; document in docs/reference/cli.md):
 `JAXWEAR_MAX_WORK` contact node-steps per evaluation (default 1e11, about an hour on a CPU),
 `JAXWEAR_MAX_MEMORY_GB` (default 80 % of the physical memory).
 """
