@@ -31,7 +31,7 @@ Vehtari et al., eq. 6), and R-hat between the `chains` independent batches (each
 to equal weights, ArviZ's rank-normalised split R-hat). Overall: k̂ per batch and the
 weights' ESS = 1/Σw².
 
-When to use which (docs/guide/predict.md, Methods): `importance` when the Laplace fit is close to the
+When to use which (docs/guide/predict.md): `importance` when the Laplace fit is close to the
 posterior (k̂ ≤ 0.7: the usual case with informative data, and minutes where NUTS takes
 tens); `nuts` where k̂ says it is not (a posterior with a long tail or a curved valley, e.g.
 the noise level estimated from three rows).
