@@ -100,12 +100,12 @@ def parse_hidden(items) -> dict:
             eff = keys[name]
             v, spec = _number(it, val), _parameters(eff)[name]
             if not (spec.lower <= v <= spec.upper):
-                raise InputError(f"--hidden {it}: {name} must lie in "
+                raise InputError(f"<<hidden>> {it}: {name} must lie in "
                                  f"[{spec.lower:g}, {spec.upper:g}]")
             out.setdefault(eff, {})[name] = v
             continue
         if name not in known:
-            raise InputError(f"--hidden: unknown effect {name!r}; expected one of {known} "
+            raise InputError(f"<<hidden>>: unknown effect {name!r}; expected one of {known} "
                              f"(EFFECT[=STRENGTH]) or a parameter KEY=VALUE")
         params = out.setdefault(name, {})
         strength = [k for k, s in _parameters(name).items() if not s.log]
@@ -115,12 +115,12 @@ def parse_hidden(items) -> dict:
         if val:
             v = _number(it, val)
             if not (spec.lower <= v <= spec.upper):
-                raise InputError(f"--hidden {it}: {strength[0]} must lie in "
+                raise InputError(f"<<hidden>> {it}: {strength[0]} must lie in "
                                  f"[{spec.lower:g}, {spec.upper:g}]")
             params[strength[0]] = v
         else:
             if spec.realistic is None:
-                raise InputError(f"--hidden {name}: no realistic strength is declared; give "
+                raise InputError(f"<<hidden>> {name}: no realistic strength is declared; give "
                                  f"one as {name}=VALUE")
             params.setdefault(strength[0], spec.realistic)
     for name, params in out.items():  # an effect named only by a shape key: realistic strength
@@ -134,9 +134,9 @@ def _number(item, text):
     try:
         v = float(text)
     except ValueError:
-        raise InputError(f"--hidden {item}: {text!r} is not a number") from None
+        raise InputError(f"<<hidden>> {item}: {text!r} is not a number") from None
     if not math.isfinite(v):
-        raise InputError(f"--hidden {item}: the strength must be finite")
+        raise InputError(f"<<hidden>> {item}: the strength must be finite")
     return v
 
 
@@ -239,9 +239,9 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     """
 
     if not (noise_um >= 0 and math.isfinite(noise_um)):
-        raise InputError(f"--noise-um must be >= 0, got {noise_um}")
+        raise InputError(f"<<noise_um>> must be >= 0, got {noise_um}")
     if not math.isfinite(angle_offset_deg):
-        raise InputError(f"--angle-offset-deg must be finite, got {angle_offset_deg}")
+        raise InputError(f"<<angle_offset_deg>> must be finite, got {angle_offset_deg}")
     if int(refine) < 1 or int(refine_updates) < 1:
         raise InputError("refine and refine_updates must be whole numbers >= 1")
     base = _conditions(conditions, numerics)  # first: its effect files name effects
@@ -257,10 +257,10 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     if "unsymmetric" in hid:  # the study states the traditional contact it is missing
         written_cfg = written_cfg.replace(contact="symmetric")
     if "double_layer" in hid and written_cfg.double_layer:
-        raise InputError("--hidden double_layer: the conditions already have a double layer")
+        raise InputError("<<hidden>> double_layer: the conditions already have a double layer")
     for name in hid:
         if name in written_cfg.effects:
-            raise InputError(f"--hidden {name}: the conditions already switch it on")
+            raise InputError(f"<<hidden>> {name}: the conditions already switch it on")
     planned = _with_placeholder_data(replace(base, config=written_cfg), angle_step_deg)
     # The truth at finer numerics: real parts are not discretised at the study's grid.
     fine_cfg = written_cfg.replace(nodes=written_cfg.nodes * int(refine),
@@ -303,7 +303,7 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
             if key in model.index:
                 u[model.index[key]] = model.u_of(key, v, u)
             else:
-                raise InputError(f"--hidden {eff}: {key} is not a parameter of the study's "
+                raise InputError(f"<<hidden>> {eff}: {key} is not a parameter of the study's "
                                  f"candidates")
         for key, spec in _parameters(eff).items():
             params.setdefault(key, float(truth_model.values(u)[model.index[key]]))

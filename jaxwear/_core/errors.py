@@ -1,11 +1,25 @@
 """Errors that jaxwear reports to users (the CLI turns them into one line and an exit code)."""
 
+import re
+
 
 class InputError(ValueError):
-    """Bad input: a study file, data file, key or value. The CLI exits with code 2.
+    """Bad input: a study file, data file, key, value or argument. The CLI exits with code 2.
 
-    The message names the file, the key or line, and what was expected.
+    The message names the file, the key or line, or the argument, and what was expected.
+    An argument of a library call is marked in the message as `<<name>>`: `str()` gives
+    the Python name (`train_until`), and the command line words the same message with its
+    option (`--train-until`, `worded`), so that one check serves both.
     """
+
+    def __init__(self, message: str = ""):
+        self.template = str(message)
+        super().__init__(self.worded({}))
+
+    def worded(self, flags: dict) -> str:
+        """The message with each `<<name>>` as `flags[name]` (unknown names as they are)."""
+        return re.sub(r"<<(\w+)>>", lambda m: flags.get(m.group(1), m.group(1)),
+                      self.template)
 
 
 class WornThroughError(RuntimeError):

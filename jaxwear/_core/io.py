@@ -56,28 +56,28 @@ class OutputDir:
                  json_file=None):
         # An empty name is no folder: Path("") is ".", so `--out ""` (an unset shell
         # variable) wrote every output into the current folder without a word.
-        for flag, value in (("--out", root), ("--json", json_file)):
+        for flag, value in (("<<out>>", root), ("<<json_file>>", json_file)):
             if value is not None and not str(value).strip():
                 raise InputError(f"{flag} {str(value)!r}: an empty name; give a "
-                                 + ("folder (`.` for the current one)" if flag == "--out"
+                                 + ("folder (`.` for the current one)" if flag == "<<out>>"
                                     else "file name") + " or leave the option out")
         self.root = Path(root)
         self._inputs = {_key(Path(p)) for p in inputs}
         self.json_file = Path(json_file) if json_file is not None else None
-        _no_link_loop(self.root, "--out")
+        _no_link_loop(self.root, "<<out>>")
         if self.root.exists() and not self.root.is_dir():
-            raise InputError(f"{self.root}: --out must be a folder, and this is a file"
+            raise InputError(f"{self.root}: <<out>> must be a folder, and this is a file"
                              + (" (an input of this run)" if self._is_input(self.root) else ""))
         for name in planned:
-            self._check(self.root / name, "--out")
+            self._check(self.root / name, "<<out>>")
         if self.json_file is not None:
-            self._check(self.json_file, "--json")
+            self._check(self.json_file, "<<json_file>>")
         # Each folder is created and written to now (a probe file, removed at once): an
         # unwritable output (permissions, a read-only mount, /proc, a path under a file)
         # was found only when the results were written, after the whole computation.
-        _writable_folder(self.root, "--out")
+        _writable_folder(self.root, "<<out>>")
         if self.json_file is not None:
-            _writable_folder(self.json_file.parent, "--json")
+            _writable_folder(self.json_file.parent, "<<json_file>>")
 
     def _is_input(self, p: Path) -> bool:
         return _key(p) in self._inputs or ("path", p.resolve()) in self._inputs
@@ -94,12 +94,12 @@ class OutputDir:
 
     def path(self, name: str) -> Path:
         """`root/name`, refused if it is an input file."""
-        return self._check(self.root / name, "--out")
+        return self._check(self.root / name, "<<out>>")
 
     def _target(self, name_or_path) -> Path:
         p = Path(name_or_path)
         if p.is_absolute() or p.parent != Path("."):
-            return self._check(p, "--json")
+            return self._check(p, "<<json_file>>")
         return self.path(str(p))
 
     def write_text(self, name: str, text: str) -> Path:

@@ -33,10 +33,10 @@ def installed(name: str) -> bool:
         return False
 
 
-def check_method_packages(method: str, where: str = "--method") -> None:
+def check_method_packages(method: str, where: str = "<<method>>") -> None:
     """`InputError` naming the missing packages of `method` and the install command."""
     missing = [n for n in METHOD_PACKAGES.get(method, ()) if not installed(n)]
     if missing:
         raise InputError(f"{where} {method} needs the optional package"
                          f"{'s' if len(missing) > 1 else ''} {', '.join(missing)}, not "
-                         f"installed; install them with: {INSTALL} (or use --method laplace)")
+                         f"installed; install them with: {INSTALL} (or use <<method>> laplace)")

@@ -255,7 +255,8 @@ def parse_fit(study, fit) -> list[str]:
     for it in items:
         key = ALIASES.get(it, it)
         if key not in PARAMETER_KEYS and key not in specs and key != "angle_offset_deg":
-            raise InputError(f"--fit: unknown parameter {it!r}; expected K_d, clearance or a "
+            raise InputError(f"<<fit_spec>>: unknown parameter {it!r}; expected K_d, clearance "
+                             f"or a "
                              f"study key such as spring_N_per_m")
         keys.append(key)
     for eff in study.config.effects:

@@ -8,6 +8,7 @@ parse, load the study, check the outputs, estimate the work, run.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 from pathlib import Path
@@ -79,7 +80,8 @@ def _run(argv) -> int:
         if interrupted():  # a Ctrl-C whose exception was dropped (a gc callback ate it)
             raise KeyboardInterrupt
     except InputError as e:
-        print(f"jaxwear: error: {_one_line(e)}", file=sys.stderr)
+        # the library names its arguments; the command line words them as its options
+        print(f"jaxwear: error: {_one_line(e.worded(option_words()))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # one line, exit 1 (`jaxwear._core.interrupt`)
         print(MESSAGE, file=sys.stderr)
@@ -98,8 +100,24 @@ def _run(argv) -> int:
     return 0
 
 
-def _one_line(e: BaseException) -> str:
+def _one_line(e) -> str:
     return " ".join(str(e).splitlines())
+
+
+# Library arguments whose option has another name (the rest: `train_until` -> --train-until)
+_RENAMED = {"fit_spec": "--fit", "json_file": "--json", "for_keys": "--for"}
+
+
+@functools.cache
+def option_words() -> dict:
+    """Python argument name -> the option that sets it, over every verb (argparse's dest)."""
+    words = dict(_RENAMED)
+    for action in build_parser()._actions:
+        for sub in getattr(action, "choices", None) or {}:
+            for a in action.choices[sub]._actions:
+                if a.option_strings:
+                    words.setdefault(a.dest, max(a.option_strings, key=len))
+    return words
 
 
 __all__ = ["build_parser", "main"]

@@ -84,28 +84,28 @@ def parse_vary(text: str | None, study: Study) -> dict:
         key, eq, val = item.partition("=")
         key = key.strip()
         if not eq or not key or not val.strip():
-            raise InputError(f"--vary {item!r}: expected KEY=LO:HI[:N] (e.g. "
+            raise InputError(f"<<vary>> {item!r}: expected KEY=LO:HI[:N] (e.g. "
                              f"speed_rpm=100:300:5)")
         if key not in allowed:
-            raise InputError(f"--vary: unknown key {key!r} for this study; expected one of "
+            raise InputError(f"<<vary>>: unknown key {key!r} for this study; expected one of "
                              f"{', '.join(allowed)}")
         v = val.strip()
         if v.count(":") == 1:
             v += ":5"
-        vals = parse_range(f"--vary {key}", v)
+        vals = parse_range(f"<<vary>> {key}", v)
         if key in out:
-            raise InputError(f"--vary: {key} given twice")
-        where = f"--vary {key}"
+            raise InputError(f"<<vary>>: {key} given twice")
+        where = f"<<vary>> {key}"
         rng_key = ("experiment." + key) if key in ("revolutions", "hours") else key
         for x in (float(np.min(vals)), float(np.max(vals))):
             check_value(where, rng_key, x, preset=study.preset, name=where)
         if key == "clearance_mm":
             radius_mm = float(study.params().bore_radius) * 1e3
             if np.max(vals) >= radius_mm:
-                raise InputError(f"--vary clearance_mm: values must be below the bore radius "
+                raise InputError(f"<<vary>> clearance_mm: values must be below the bore radius "
                                  f"{radius_mm:g} mm")
         if key in ("revolutions", "hours", "speed_rpm", "load_scale") and np.min(vals) <= 0:
-            raise InputError(f"--vary {key}: values must be > 0")
+            raise InputError(f"<<vary>> {key}: values must be > 0")
         out[key] = np.unique(vals)
     return out
 

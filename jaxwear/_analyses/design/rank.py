@@ -196,20 +196,20 @@ def design(study: Study, *, goal: str = "parameters", between=None, vary=None,
     """
     t_start = time.perf_counter()
     if goal not in GOALS:
-        raise InputError(f"--goal: expected one of {', '.join(GOALS)}, got {goal!r}")
+        raise InputError(f"<<goal>>: expected one of {', '.join(GOALS)}, got {goal!r}")
     if int(budget) < 1:
-        raise InputError(f"--budget: expected a whole number >= 1, got {budget}")
+        raise InputError(f"<<budget>>: expected a whole number >= 1, got {budget}")
     study = training_study(study, train_until)
     is_timed = timed(study.config)
     plan = plan_candidates(study, vary or {})
     if budget > plan.size:
-        raise InputError(f"--budget {budget}: only {plan.size} candidates; vary more values")
+        raise InputError(f"<<budget>> {budget}: only {plan.size} candidates; vary more values")
     keys = study_fit_keys(study)
     between = list(between or [])
     if goal == "separate":
         between = check_between(study, between)
     elif between:
-        raise InputError("--between: only with --goal separate")
+        raise InputError("<<between>>: only with <<goal>> separate")
     if goal == "forecast" and at is None:
         e0 = study.experiments[0]
         last = max(e0.snapshot_points or [e0.hours or e0.revolutions or 1.0])
@@ -262,7 +262,8 @@ def _one_model(study, result, keys, plan, goal, budget, for_keys, target, level,
     if for_keys:
         for k in for_keys:
             if k not in runs.names:
-                raise InputError(f"--for: {k!r} is not a fitted shared parameter of the study; "
+                raise InputError(f"<<for_keys>>: {k!r} is not a fitted shared parameter of the "
+                                 f"study; "
                                  f"expected one of {', '.join(runs.names)}")
             for_idx.append(list(runs.names).index(k))
     G = result.problem.packing.value_jacobian(result.u)
@@ -321,14 +322,14 @@ def check_between(study: Study, between: list) -> list:
     yet switched on. `InputError` naming --between otherwise."""
     known = list(registered_effects())
     if len(between) != 2 or between[0] == between[1]:
-        raise InputError(f"--between: expected two different explanations A,B (effects such "
+        raise InputError(f"<<between>>: expected two different explanations A,B (effects such "
                          f"as {', '.join(known[:3])}, or base), got {','.join(between) or '-'}")
     for b in between:
         if b != "base" and b not in known:
-            raise InputError(f"--between: unknown explanation {b!r}; expected base or one of "
+            raise InputError(f"<<between>>: unknown explanation {b!r}; expected base or one of "
                              f"{', '.join(known)}")
         if b in study.config.effects:
-            raise InputError(f"--between: {b} is already switched on in the study; name "
+            raise InputError(f"<<between>>: {b} is already switched on in the study; name "
                              f"effects it lacks (or base)")
     return list(between)
 

@@ -82,9 +82,9 @@ def run_candidates(study: Study, result: FitResult, keys: list[str], runs: list,
     seconds = time.perf_counter() - t0
     if not np.isfinite(float(err)) or not np.all(np.isfinite(Js)):
         raise InputError("design: a candidate run did not complete (integration or contact "
-                         "failed); narrow --vary")
+                         "failed); narrow <<vary>>")
     if float(worn) >= 0:
-        raise InputError("design: a candidate wears through the layer; narrow --vary "
+        raise InputError("design: a candidate wears through the layer; narrow <<vary>> "
                          "(shorter runs or lower speeds)")
     # candidate u (start = fitted values, u = 0) → the fit's u of the same parameters
     names = tuple(model.packing.names)

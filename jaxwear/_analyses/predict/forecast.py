@@ -100,24 +100,24 @@ METHODS = ("laplace", "nuts", "importance")
 
 def _check_args(study, at, train_until, level, limit_um, method, noise_um):
     if method not in METHODS:
-        raise InputError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+        raise InputError(f"<<method>> must be one of {', '.join(METHODS)}, got {method!r}")
     check_method_packages(method)
     if not (isinstance(level, (int, float)) and 0 < level < 1):
-        raise InputError(f"--level must be in (0, 1), got {level!r}")
+        raise InputError(f"<<level>> must be in (0, 1), got {level!r}")
     at = [float(a) for a in (at if np.ndim(at) else [at])]
     if not at or not all(math.isfinite(a) and a > 0 for a in at):
-        raise InputError(f"--at must be a list of counts > 0 ({unit_of_study(study)}), "
+        raise InputError(f"<<at>> must be a list of counts > 0 ({unit_of_study(study)}), "
                          f"got {at}")
     if train_until is not None and not (math.isfinite(train_until) and train_until > 0):
-        raise InputError(f"--train-until must be > 0, got {train_until}")
+        raise InputError(f"<<train_until>> must be > 0, got {train_until}")
     layer_um = min(float(study.params(e).layer_thickness) for e in study.experiments) * 1e6
     if limit_um is None:
         limit_um = layer_um
     if not (math.isfinite(limit_um) and 0 < limit_um <= layer_um * (1 + 1e-12)):
-        raise InputError(f"--limit-um must be in (0, {layer_um:g}] (the layer thickness), "
+        raise InputError(f"<<limit_um>> must be in (0, {layer_um:g}] (the layer thickness), "
                          f"got {limit_um}")
     if noise_um is not None and not (math.isfinite(noise_um) and noise_um > 0):
-        raise InputError(f"--noise-um must be > 0, got {noise_um}")
+        raise InputError(f"<<noise_um>> must be > 0, got {noise_um}")
     return sorted(set(at)), float(limit_um)
 
 
@@ -155,7 +155,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     train = training_study(study, train_until)
     problem = build_problem(train, keys)
     # known before any evaluation: σ̂ needs more training rows than fitted parameters
-    check_noise_determined(problem, noise_um, hint="--noise-um (or [fit] noise_um)")
+    check_noise_determined(problem, noise_um, hint="<<noise_um>> (or [fit] noise_um)")
     # the forecast's points are known before the fit: the training problem is laid out to
     # hold them (and the life's refinements), so the forecast runs in the fit's compiled
     # function

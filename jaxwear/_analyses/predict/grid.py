@@ -47,7 +47,7 @@ def training_study(study: Study, train_until: float | None) -> Study:
                            depth=hist.depth[keep]) if keep.any() else None
         exps.append(replace(e, profile=prof, history=hist))
     if all(e.profile is None and e.history is None for e in exps):
-        raise InputError(f"--train-until {train_until:g}: no measurement of {study.path} is "
+        raise InputError(f"<<train_until>> {train_until:g}: no measurement of {study.path} is "
                          f"at or before it (unit: {unit_of_study(study)})")
     return study.with_experiments(exps)
 

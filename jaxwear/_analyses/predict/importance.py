@@ -413,10 +413,10 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
                   f"support (drawn from there); estimated run time {est / 60:.1f} min "
                   f"({n} draws per round, {n_pred} forecasts, {par} threads)")
     if est > 60 * max_minutes:
-        raise InputError(f"--max-minutes: importance sampling would take about "
+        raise InputError(f"<<max_minutes>>: importance sampling would take about "
                          f"{est / 60:.0f} min ({n} log densities of {t_eval:.2g} s) > the "
-                         f"limit of {max_minutes:g} min; raise --max-minutes, lower "
-                         f"--draws/--chains, or use --method laplace")
+                         f"limit of {max_minutes:g} min; raise <<max_minutes>>, lower "
+                         f"<<draws>>/<<chains>>, or use <<method>> laplace")
 
     def evaluate(xs):
         with ThreadPoolExecutor(max_workers=par) as pool:

@@ -351,11 +351,11 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
                   f"{t_fc * 1e3:.0f} ms; estimated run time {est / 60:.1f} min "
                   f"({n_grad} gradients, {n_pred} forecasts)")
     if est > 60 * max_minutes:
-        raise InputError(f"--max-minutes: NUTS would take about {est / 60:.0f} min "
+        raise InputError(f"<<max_minutes>>: NUTS would take about {est / 60:.0f} min "
                          f"({chains} chains x {warmup + draws} steps x ~{LEAPFROG_GUESS} "
                          f"gradients of {t_grad:.2g} s) > the limit of {max_minutes:g} min; "
-                         f"raise --max-minutes, lower --draws/--warmup/--chains, or use "
-                         f"--method laplace")
+                         f"raise <<max_minutes>>, lower <<draws>>/<<warmup>>/<<chains>>, or use "
+                         f"<<method>> laplace")
     kernel = NUTS(potential_fn=potential, dense_mass=True, target_accept_prob=0.85,
                   forward_mode_differentiation=forward_mode, max_tree_depth=8,
                   inverse_mass_matrix=_start_inverse_mass(z0, problem.n_data - p),
