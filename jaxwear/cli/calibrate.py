@@ -19,13 +19,8 @@ import time
 import numpy as np
 
 from jaxwear._core.errors import InputError
-from jaxwear._inference.calibrate import (
-    FitResult,
-    build_problem,
-    fit_study,
-    study_fit_keys,
-    unit_of,
-)
+from jaxwear._inference.calibrate import build_problem, fit_study, study_fit_keys, unit_of
+from jaxwear._inference.result import FitResult
 from jaxwear._physics.config import timed
 from jaxwear._report.figures import plt, thinned, thinned_label
 from jaxwear._study.outputs import per_experiment

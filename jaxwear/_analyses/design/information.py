@@ -9,7 +9,7 @@ import numpy as np
 
 from jaxwear._analyses.design.plan import MAX_SCANS, Plan
 from jaxwear._analyses.design.runs import Runs
-from jaxwear._inference.calibrate import FitResult
+from jaxwear._inference.result import FitResult
 from jaxwear._study.study import Study
 
 

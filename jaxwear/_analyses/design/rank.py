@@ -83,8 +83,9 @@ from jaxwear._analyses.design.runs import (
 from jaxwear._analyses.predict.grid import training_study
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
-from jaxwear._inference.calibrate import FitResult, fit_study
+from jaxwear._inference.calibrate import fit_study
 from jaxwear._inference.packing import study_fit_keys
+from jaxwear._inference.result import FitResult
 from jaxwear._physics.config import timed
 from jaxwear._physics.effects import registered_effects
 from jaxwear._study.budget import estimate_work

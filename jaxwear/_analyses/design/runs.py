@@ -15,8 +15,8 @@ import numpy as np
 from jaxwear._analyses.design.plan import DEFAULT_SCAN_STEP_DEG, NUISANCE, _placeholder
 from jaxwear._core.errors import InputError
 from jaxwear._inference.attempts import enough_attempts
-from jaxwear._inference.calibrate import FitResult
 from jaxwear._inference.residual import build_model
+from jaxwear._inference.result import FitResult
 from jaxwear._study.study import Study
 
 

@@ -12,8 +12,8 @@ from jaxwear._analyses.diagnose._model import Model
 from jaxwear._core.log import log as _log
 from jaxwear._inference import lsq
 from jaxwear._inference.attempts import attempts_needed, needs_more_attempts, work_failure
-from jaxwear._inference.calibrate import value_errors
 from jaxwear._inference.evaluation import Evaluation, unusable_point
+from jaxwear._inference.result import value_errors
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from scipy import stats
 from jaxwear._analyses.predict.grid import _last_count, measured_max
 from jaxwear._analyses.predict.life import LIFE_HORIZON, life_of
 from jaxwear._analyses.predict.result import Curve, Prediction, PredictResult, _jf
-from jaxwear._inference.calibrate import FitResult
+from jaxwear._inference.result import FitResult
 
 
 def draw_quantile(y, q: float):

@@ -67,7 +67,6 @@ from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
 from jaxwear._core.optional import check_method_packages
 from jaxwear._inference.calibrate import (
-    FitResult,
     build_problem,
     check_noise_determined,
     fit,
@@ -76,6 +75,7 @@ from jaxwear._inference.calibrate import (
 )
 from jaxwear._inference.evaluation import forward_run
 from jaxwear._inference.residual import traces, traces_since
+from jaxwear._inference.result import FitResult
 from jaxwear._study import resolution as _resolution
 from jaxwear._study.outside import OUTSIDE, forecast_flags
 from jaxwear._study.resolution import at_level, at_stable_update
