@@ -34,7 +34,14 @@ sg = lax.stop_gradient
 
 
 class ContactSolution(eqx.Module):
-    """Pressure field and pin offsets for every step of a cycle."""
+    """Pressure field and pin offsets for every step of a cycle.
+
+    - `pressure` (steps, nodes): p_ij [Pa];
+    - `offset` (steps, 2): the pin centre's offset e_i in the bushing frame [m];
+    - `residual` (steps,): relative force residual |Σ_j p_j A_j n_j - W| / |W| (0 where
+      W = 0; below 1e-9 when solved);
+    - `iterations`: Newton iterations used (the largest over the steps).
+    """
 
     pressure: StepNodeArray  # p_ij [Pa]
     offset: Float[Array, "steps 2"]  # e_i, bushing frame [m]

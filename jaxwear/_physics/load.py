@@ -20,9 +20,16 @@ from jaxwear._physics.params import Params
 
 
 class LoadHistory(eqx.Module):
-    """Per-step load and motion of one cycle, for each regime.
+    """Per-step load and motion of one cycle, for each regime (a duty block, or the one
+    cycle of a crank). Arrays (regimes, steps) unless said:
 
-    Shapes `(regimes, steps)`; `period` is `(regimes,)`.
+    - `load`: |W| [N]; `angle`: θ_W, the load's direction in the bushing frame [rad];
+    - `slide`: dS_i = R_p |Δφ_i| [m]; `dt`: Δt_i [s]; `sense`: sign of the pin's rotation
+      relative to the bushing (±1);
+    - `period` (regimes,): the cycle's duration [s];
+    - `gamma_change`: the SCLA's last-pass |Δγ| [rad] (0 for other algorithms);
+    - `fx`, `fy`: the joint force's components in the ground frame [N];
+    - `shape_pre`: the shape correction's constant parts (None without one).
     """
 
     load: Float[Array, "regimes steps"]  # |W| [N]

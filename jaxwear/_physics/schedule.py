@@ -96,9 +96,12 @@ class Schedule(eqx.Module):
 
 
 def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> Schedule:
-    """Schedule for consecutive `segments` [(regime, cycles)], snapshots at cumulative
-    cycle counts `snapshots` (each ≤ total, in any order, repeats allowed: the wear loop
-    returns them in the order asked), at most `M` cycles per update.
+    """Schedule of the paper's fixed-step loop (eq 23) for consecutive `segments`
+    [(regime, cycles)], with snapshots at cumulative cycle counts `snapshots` [cycles:
+    revolutions of a crank, swings of an oscillating joint] (each ≤ the total, in any
+    order, repeats allowed: the wear loop returns them in the order asked), at most `M`
+    cycles per update. `pad_to`: pad with no-op updates to this length (shared
+    compilations).
     """
     if not (M > 0):
         raise InputError(f"revolutions_per_update must be > 0, got {M}")

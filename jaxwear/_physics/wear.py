@@ -40,7 +40,14 @@ from jaxwear._physics.schedule import Schedule, bucket, crank_segments, duty_seg
 def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | None = None
               ) -> WearResult:
     """Run the wear loop over `schedule` (pure, jit-able, differentiable in `p` and `h0`):
-    the adaptive Runge-Kutta integrator for adaptive schedules, eq 23 otherwise."""
+    the adaptive Runge-Kutta integrator for adaptive schedules, eq 23 otherwise.
+
+    **Arguments:** `p` the joint's parameters (SI); `cfg` the static choices (nodes N,
+    steps per cycle, contact, effects); `schedule` from `build_schedule` or
+    `make_schedule`; `h0` (N,) the initial wear depth [m] (default zeros: a new bore).
+
+    **Returns:** a `WearResult` (depths [m], snapshots, sliding [m], worn volume [m³],
+    the integrator's error estimate [m] and step counts)."""
     p = pack_shape(p, cfg.shape)  # one array of coefficients through the loops, not ~140
     if schedule.adaptive:
         return _adaptive_loop(p, cfg, schedule, h0)
