@@ -47,6 +47,15 @@ def thinned_label(label: str, n: int, max_points: int = PLOT_POINTS) -> str:
     return f"{label} ({n} rows: lowest and highest of {max_points // 2} bins)"
 
 
+def finish(fig, ax, path) -> None:
+    """Grid, legend and layout of a one-axes figure, written to `path` and closed."""
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
+    plt().close(fig)
+
+
 def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None,
                  frame="from B→D, counter-clockwise"):
     """Final (and snapshot) wear profiles vs bushing angle, with measured points if any;
@@ -66,11 +75,7 @@ def plot_profile(path, name, angle_deg, depth_um, measured=None, snapshots=None,
     ax.set_xlim(0, 360)
     ax.set_xticks(range(0, 361, 45))
     ax.set_title(f"{name}: wear profile")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, path)
-    pl.close(fig)
+    finish(fig, ax, path)
 
 
 def plot_load(path, name, fx, fy, angle_rad):
@@ -120,11 +125,7 @@ def plot_history(path, name, hours, depth_mm, measured=None):
     ax.set_xlabel("time [h]")
     ax.set_ylabel("maximum wear depth [mm]")
     ax.set_title(f"{name}: depth vs time")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    save_figure(fig, path)
-    pl.close(fig)
+    finish(fig, ax, path)
 
 
 def sweep_heatmap(path, title, label, res, z):

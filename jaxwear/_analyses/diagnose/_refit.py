@@ -41,6 +41,22 @@ def _start_for(model: Model, fit: Fit, scr: Screen | None) -> np.ndarray:
     return u
 
 
+def _rescaled_to_data(mdl: Model, u0, kd: int | None):
+    """The model at u0 and, where K_d is fitted (its column `kd`), at u0 with K_d scaled by
+    the least-squares factor that brings the rows to the data (wear is linear in K_d to
+    first order: one evaluation instead of the core's first steps). Returns (u, its
+    evaluation)."""
+    ev0 = mdl.evaluate(u0)
+    if kd is not None and ev0.usable:
+        d = ev0.pred
+        a = float(d @ mdl.measured) / max(float(d @ d), 1e-300)
+        if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
+            u0 = np.array(u0, np.float64)
+            u0[kd] += math.log(a)
+            ev0 = mdl.evaluate(u0)
+    return u0, ev0
+
+
 def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) -> Fit:
     contact = "unsymmetric" if "unsymmetric" in groups else None
     mdl = by_contact(contact)
@@ -51,14 +67,8 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) 
     # worse than the fit we come from, start from that fit instead (strength off): a
     # refit can then only improve on it.
     u0 = _start_for(mdl, from_fit, scr)
-    ev0 = mdl.evaluate(u0)
     kd = mdl.index.get("K_d_per_Pa")
-    if kd is not None and mask[kd] and ev0.usable:
-        d = ev0.pred
-        a = float(d @ mdl.measured) / max(float(d @ d), 1e-300)
-        if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
-            u0[kd] += math.log(a)
-            ev0 = mdl.evaluate(u0)
+    u0, ev0 = _rescaled_to_data(mdl, u0, kd if kd is not None and mask[kd] else None)
     same = contact == from_fit.contact
     back = np.asarray(from_fit.ev.u, np.float64)
     if not ev0.usable or (same and objective(ev0, noise) > objective(from_fit.ev, noise)):
@@ -81,13 +91,7 @@ def _refit(by_contact, from_fit: Fit, groups, scr, noise, verbose, nu=math.inf) 
         u0 = np.zeros_like(back)
         if kd is not None:
             u0[kd] = back[kd]
-        ev0 = mdl.evaluate(u0)
-        if kd is not None and mask[kd] and ev0.usable:
-            d = ev0.pred
-            a = float(d @ mdl.measured) / max(float(d @ d), 1e-300)
-            if a > 0 and math.isfinite(a) and abs(math.log(a)) > 0.02:
-                u0[kd] += math.log(a)
-                ev0 = mdl.evaluate(u0)
+        u0, ev0 = _rescaled_to_data(mdl, u0, kd if kd is not None and mask[kd] else None)
     f = fit_masked(mdl, mask, u0, noise_um=noise, noise_dof=nu, label=label,
                    groups=tuple(groups), ev0=ev0, max_evaluations=REFIT_MAX_EVALUATIONS,
                    verbose=verbose)
