@@ -843,7 +843,7 @@ def test_a_dropped_ctrl_c_still_ends_the_run(tmp_path, monkeypatch, capsys, then
     replaces its file, and the run ends with the one line and exit 1."""
     import signal
 
-    import jaxwear._analyses.simulate as sim
+    import jaxwear.cli.simulate as sim
 
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
