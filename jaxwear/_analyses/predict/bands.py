@@ -4,6 +4,7 @@ draws, and the `PredictResult` with its tables."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
@@ -12,6 +13,7 @@ from jaxwear._analyses.predict.grid import _last_count, measured_max
 from jaxwear._analyses.predict.life import LIFE_HORIZON, life_of
 from jaxwear._analyses.predict.result import Curve, Prediction, PredictResult, _jf
 from jaxwear._inference.result import FitResult
+from jaxwear._study.study import Study
 
 
 def draw_quantile(y, q: float):
@@ -70,9 +72,50 @@ def _param_table(result: FitResult, cov, q, null_dirs):
     return out
 
 
-def _assemble(study, train, at, points, limit_um, level, method, unit, train_until, result,
-              cov, null_dirs, noise, noise_given, dof, q, flags, snaps, J, draws, extra,
-              life=True):
+@dataclass(frozen=True)
+class Asked:
+    """What a forecast was asked: the `study` and its `train`ing part (measurements up to
+    `train_until`, in `unit`: "rev" or "h"), the points `at`, the depth limit `limit_um`
+    [µm] (None: no life), the band's `level`, the `method` and whether to look for the
+    `life`."""
+
+    study: Study
+    train: Study
+    at: list
+    limit_um: float | None
+    level: float
+    method: str
+    unit: str
+    train_until: float | None
+    life: bool = True
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """What the training fit gives a band: the fit's `result`, the covariance `cov` of its
+    free parameters with its undetermined directions `null_dirs`, the noise σ `noise`
+    [µm] (`noise_given`: stated, not estimated) with its degrees of freedom `dof`, and the
+    band's quantile `q` (Student-t at `dof`)."""
+
+    result: FitResult
+    cov: object
+    null_dirs: object
+    noise: float
+    noise_given: bool
+    dof: float
+    q: float
+
+
+def _assemble(asked: Asked, fitted: Fitted, points, flags, snaps, J, draws, extra):
+    """The `PredictResult`: each experiment's curve and band at `points` from the Laplace
+    linearisation (`snaps` (E, S, N) [µm] and their Jacobian `J`) or from posterior
+    `draws`, lives, the parameter table and `flags`; `extra` goes to its JSON."""
+    study, train, at, limit_um, level, method, unit, train_until, life = (
+        asked.study, asked.train, asked.at, asked.limit_um, asked.level, asked.method,
+        asked.unit, asked.train_until, asked.life)
+    result, cov, null_dirs, noise, noise_given, dof, q = (
+        fitted.result, fitted.cov, fitted.null_dirs, fitted.noise, fitted.noise_given,
+        fitted.dof, fitted.q)
     preds, lives, curves, profiles, measured = [], [], {}, {}, {}
     trained_on = []
     alpha = (1 - level) / 2

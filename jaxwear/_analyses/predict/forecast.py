@@ -42,7 +42,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from jaxwear._analyses.predict.bands import _assemble, t_quantile
+from jaxwear._analyses.predict.bands import Asked, Fitted, _assemble, t_quantile
 from jaxwear._analyses.predict.grid import (
     LAPLACE_STOP_LAYERS,
     forecast_layout,
@@ -226,9 +226,10 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         return fp, ff
 
     def assemble(points, flags, snaps, J, draws, extra):
-        return _assemble(study, train, at, points, limit_um, level, method, unit, train_until,
-                         result, cov, null_dirs, noise, result.noise_given, dof, q,
-                         list(flags), snaps, J, draws, extra, life)
+        return _assemble(Asked(study, train, at, limit_um, level, method, unit, train_until,
+                               life),
+                         Fitted(result, cov, null_dirs, noise, result.noise_given, dof, q),
+                         points, list(flags), snaps, J, draws, extra)
 
     def laplace(points, rnd):
         """The linearised (Laplace) result with the forecast at `points` (round `rnd` of the
