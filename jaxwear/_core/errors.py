@@ -22,6 +22,12 @@ class InputError(ValueError):
                       self.template)
 
 
+class ModelFailure(RuntimeError):
+    """The model or a method could not give an answer for valid inputs: a contact solve or
+    a sampler that did not converge, an integration out of attempts. Exit 1 from the
+    command line, with the message alone (it says what failed and what may avoid it)."""
+
+
 class WornThroughError(RuntimeError):
     """The bushing layer was worn through (h_j ≥ L) during a simulation."""
 

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import InputError, ModelFailure
 from jaxwear._physics.effects._base import file_effects
 from jaxwear._physics.mechanism import forces_from_kinematics, kinematics_by_hand
 from jaxwear._physics.params import PARAMETER_KEYS, key_to_si
@@ -215,7 +215,7 @@ def contact_failure(what: str, p, cfg, residual: float, peak_load: float) -> Exc
     if mine:  # a user's hook (NaN at a strength its load-time check did not try) first
         head = (f"{head}, with effect(s) from files switched on: {', '.join(mine)}; check "
                 f"their hooks for NaN or inf at the strengths the fit tried")
-    return RuntimeError(f"{head} (layer strain ~{strain:.2g}, within the model's range "
+    return ModelFailure(f"{head} (layer strain ~{strain:.2g}, within the model's range "
                         f"{STRAIN_LIMIT:g}): a failure of the solver, not of the input; the "
                         f"contact is driven by {keys}: a value nearer the paper's, or other "
                         f"numerics.nodes, may avoid it (please report the study)")

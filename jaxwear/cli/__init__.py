@@ -15,7 +15,13 @@ from pathlib import Path
 
 import jax
 
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import (
+    FitError,
+    InputError,
+    ModelFailure,
+    TrialFailed,
+    WornThroughError,
+)
 from jaxwear._core.interrupt import EXIT_CODE, MESSAGE, interrupted, release, restore
 from jaxwear._core.xla_flags import apply as configure_xla
 from jaxwear._study.effect_files import effect_file_frame
@@ -94,10 +100,18 @@ def _run(argv) -> int:
             raise
 
         where = effect_file_frame(e)  # an effect from a file that failed inside a run
-        print(f"jaxwear: {where + ': ' if where else ''}{type(e).__name__}: {_one_line(e)}",
-              file=sys.stderr)
+        # jaxwear's own failures say what happened in words; anything else is a fault of
+        # the program, said as one (the exception's name is for the bug report)
+        what = (_one_line(e) if isinstance(e, OWN_FAILURES) else
+                f"internal error ({type(e).__name__}: {_one_line(e)}); please report it "
+                f"with the study (JAXWEAR_DEBUG=1 shows the traceback)")
+        print(f"jaxwear: {where + ': ' if where else ''}{what}", file=sys.stderr)
         return 1
     return 0
+
+
+# failures of a run that jaxwear names itself (exit 1, the message alone)
+OWN_FAILURES = (FitError, ModelFailure, TrialFailed, WornThroughError)
 
 
 def _one_line(e) -> str:

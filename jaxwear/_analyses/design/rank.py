@@ -81,7 +81,7 @@ from jaxwear._analyses.design.runs import (
     shared_keys,
 )
 from jaxwear._analyses.predict.grid import training_study
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import InputError, ModelFailure
 from jaxwear._core.log import log as _log
 from jaxwear._inference.calibrate import fit_study
 from jaxwear._inference.packing import study_fit_keys
@@ -149,7 +149,7 @@ def _fit(study, keys, verbose, what, flags):
     except InputError:
         raise
     except Exception as e:  # the fit itself failed: nothing to rank from
-        raise RuntimeError(f"design: the fit of {what} failed: {e}") from e
+        raise ModelFailure(f"design: the fit of {what} failed: {e}") from e
     return study, result
 
 

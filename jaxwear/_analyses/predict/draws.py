@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
+from jaxwear._core.errors import ModelFailure
 from jaxwear._core.log import log as _log
 from jaxwear._inference.evaluation import forward_run
 
@@ -31,7 +32,7 @@ def run_forward(fp, u, what: str = "a posterior draw's forecast"):
     first = fp.schedule.attempts
     f = forward_run(fp, u, doublings=3, worn_ok=True)
     if not math.isfinite(f.error_um):
-        raise RuntimeError(f"predict: {what} ran out of integration attempts: "
+        raise ModelFailure(f"predict: {what} ran out of integration attempts: "
                            f"{f.model.schedule.attempts} attempted steps "
                            f"({f.model.schedule.attempts / max(first, 1):g}x the first "
                            f"estimate, {first}) did not reach its end")

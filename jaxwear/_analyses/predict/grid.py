@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._analyses.predict.life import LIFE_HORIZON, LIFE_REFINE_POINTS, LIFE_ROOM_ROUNDS
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import InputError, ModelFailure
 from jaxwear._inference.evaluation import evaluate, integration_report
 from jaxwear._inference.residual import Layout, experiment_schedules
 from jaxwear._physics.config import timed
@@ -169,7 +169,7 @@ def forecast_problem(train: Study, base, points, layout: Layout | None = None):
         t = train.experiments[e].snapshot_points[s]
         j = int(np.argmin(np.abs(np.asarray(points[e]) - t)))
         if not math.isclose(float(points[e][j]), float(t), rel_tol=1e-9, abs_tol=1e-9):
-            raise RuntimeError(f"forecast points of experiment {e} miss the training point "
+            raise ModelFailure(f"forecast points of experiment {e} miss the training point "
                                f"{t:g}")
         new[i] = j
     data = replace(d, snap=jnp.asarray(new, jnp.int32))

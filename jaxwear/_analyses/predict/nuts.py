@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._analyses.predict.draws import DrawForecasts, run_forward
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import InputError, ModelFailure
 from jaxwear._core.log import log as _log
 from jaxwear._inference.attempts import enough_attempts as _enough_attempts
 from jaxwear._inference.residual import TRACES
@@ -257,7 +257,7 @@ def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None,
             break
         problem = _more_attempts(problem, 2)
     if not finite:
-        raise RuntimeError("predict/nuts: the log density is not finite at the fitted "
+        raise ModelFailure("predict/nuts: the log density is not finite at the fitted "
                            "parameters; the sampler cannot start there")
     return problem, white, logp, z_fit
 
