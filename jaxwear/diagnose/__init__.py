@@ -24,11 +24,15 @@ The steps, each a function below:
    prediction error before and after (`loo`: one Gauss-Newton step from the full fit).
    A candidate is named when its evidence is very strong (> ln 150) and its residuals pass
    the tests of step 2; when the best explains over half the misfit but leaves a
-   systematic remainder, pairs with it are tried; otherwise the verdict is `unexplained`
-   and names nothing. Candidates within ln 20 of the winner that also fit to noise are
-   reported as alternatives the data cannot tell apart.
-5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the DESIGN §7 JSON
-   (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
+   systematic remainder, pairs with it are tried; a best candidate (or pair) that lowers
+   the misfit with very strong evidence but whose own combined test still rejects makes
+   the verdict `partly_explained` (named as partial, never as the missing effect; the
+   sentence never says "at the noise level": `_verdict.verdict_status`,
+   `_text.noise_claim`); otherwise the verdict is `unexplained` and names nothing.
+   Candidates within ln 20 of the winner that also fit to noise are reported as
+   alternatives the data cannot tell apart.
+5. **Verdict** (`adequate` / `effect_found` / `partly_explained` / `unexplained`) in the
+   DESIGN §7 JSON (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
 6. **The shape of the missing wear** (`_shape`; always with `shape=True`, else when the
    verdict is `unexplained`): a smooth correction along each state variable in two forms
    (a factor exp(g(z)) of the local rate, or a deposit e(z) ≥ 0 where the pin presses),
