@@ -304,7 +304,7 @@ def _cycle_states(p, cfg, hist, regime, h, sliding):
     _, _, sol = cycle_increment(p, cfg, hist, regime, h, sliding)
     slide, dt = hist.slide[regime], hist.dt[regime]
     z = state_variables(sol.pressure, slide, dt, sliding, hist.angle[regime],
-                        hist.load[regime])
+                        hist.load[regime], h)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]
     return {k: jnp.broadcast_to(v, sol.pressure.shape) for k, v in z.items()}, rate
 
@@ -349,8 +349,8 @@ def state_knots(model: Model, fit: Fit):
                 w = np.asarray(rate).ravel()
                 dt = np.broadcast_to(np.asarray(hist.dt[r])[:, None], rate.shape).ravel()
                 for k in samples:
-                    if k == "sliding_distance_m":
-                        continue  # its own samples, below
+                    if k in ("sliding_distance_m", "worn_depth_um"):
+                        continue  # their own samples, below
                     samples[k][0].append(np.asarray(z[k]).ravel())
                     samples[k][1].append(w)
                     samples[k][2].append(dt)
@@ -358,6 +358,15 @@ def state_knots(model: Model, fit: Fit):
         for i in (1, 2):
             samples["sliding_distance_m"][i].append(
                 np.full(64, max(float(snaps[e, -1].max()), 1e-12)))
+        # the depth worn: every node on its way from 0 to its final depth (16 fractions),
+        # weighted by the node's wear (the cycles' samples above would put half the
+        # weight at the unworn start's 0)
+        last = np.clip(snaps[e, -1], 0.0, None)
+        frac = np.linspace(0.0, 1.0, 16)[:, None]
+        samples["worn_depth_um"][0].append((frac * last[None, :]).ravel())
+        for i in (1, 2):
+            samples["worn_depth_um"][i].append(
+                np.broadcast_to(last[None, :] + 1e-12, (16, len(last))).ravel())
         if e == deepest:
             z0, _ = _cycle_states(p, cfg, hist, 0, jnp.zeros(snaps.shape[2]),
                                   jnp.asarray(0.0))
