@@ -159,6 +159,12 @@ class ShapeResult:
     design: object = field(default=None, repr=False)  # `Design`, for a later analysis
     pending: object = field(default=None, repr=False)  # the refit still to run (`defer`)
     pngs: dict = field(default_factory=dict, repr=False)  # figures drawn beforehand
+    # the linearised system the variables were tested on (whitened, nuisance projected
+    # off): {"blocks": {label: (A, S, Z, cols, var)}, "rho": misfit}, for the law search's
+    # pre-screen (`_law`)
+    linear: dict = field(default_factory=dict, repr=False)
+    law: object = None  # `_law.LawResult`: the law found from the shape, or None
+
 
     def finished(self) -> ShapeResult:
         """This result with its refit run (itself if none is pending)."""
@@ -190,7 +196,8 @@ class ShapeResult:
                 "alpha": self.alpha, "noise_um": _num(self.noise_um),
                 "rmse_before_um": _num(self.rmse_before_um),
                 "model_evaluations": self.evaluations, "refit_status": self.status,
-                "numerical_error": self.numerical, "summary": self.sentence}
+                "numerical_error": self.numerical, "summary": self.sentence,
+                **({"law": self.law.to_json()} if self.law is not None else {})}
 
     def variable(self, name: str, form: str | None = None) -> VariableShape:
         form = form or self.form or "factor"
@@ -609,7 +616,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                            rmse_after, evaluations, status, sentence, load,
                            np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
                            exp_name, tuple(alternatives), forms, tuple(carriers), correction,
-                           ww, num_info, design=design_out)
+                           ww, num_info, design=design_out,
+                           linear={"blocks": blocks, "rho": rho})
 
     def finish() -> ShapeResult:
         """The refit through the loop and the when/where map (the costly part)."""

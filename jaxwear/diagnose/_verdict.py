@@ -35,7 +35,7 @@ COMPARABLE = 0.5
 
 def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
              noise_um: float | None = None, shape: bool = False, seed: int = 0,
-             auto_shape: bool = True, figures: bool = False) -> Diagnosis:
+             auto_shape: bool = True, figures: bool = False, law: bool = True) -> Diagnosis:
     """Diagnose a study (module docstring). Progress on stderr when `verbose`.
 
     `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
@@ -44,7 +44,9 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     `auto_shape` is False (the verdict alone, e.g. a validation script's many studies: the
     shape never changes the verdict and costs more than it); `seed` of its null
     simulations. `figures`: draw the shape's variable figures (PNG, `ShapeResult.pngs`)
-    while its refit runs, for the caller to write (the CLI's `--out`).
+    while its refit runs, for the caller to write (the CLI's `--out`). `law`: where the
+    shape finds a significant variable, search the grammar of laws for the one that
+    explains it (`_law.search`, `ShapeResult.law`; issue 43).
     """
     if noise_um is None:
         noise_um = study.noise_um
@@ -266,8 +268,16 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             shp = replace(shp, pngs=pngs)
             if after is not None:
                 after = replace(after, pngs=pngs_after)
+        if law and shp.best is not None and shp.linear:
+            from ._law import search
+
+            # the law of the grammar that explains the base model's misfit (the study as
+            # written: with a library effect that only approximates, the law replaces it)
+            shp = replace(shp, law=search(model, base, shp.linear, noise, nu,
+                                          verbose=verbose))
         diag = replace(diag, shape=shp, shape_after_effect=after)
-        summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else []))
+        summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else [])
+                           + ([shp.law.sentence] if shp.law is not None else []))
     own = Model.evaluations - evals0
     cost = {"model_evaluations": calibrate_evals + own,
             "calibrate_path_evaluations": calibrate_evals, "diagnose_evaluations": own,
