@@ -169,3 +169,22 @@ def test_law_fit_through_the_loop_recovers_a_threshold(threshold_study):
     assert unit == "MPa" and 0 < se < 0.1 * true, (p0, se, f.status)
     assert abs(p0 - true) < 3 * se + 0.1, (p0, se, f.status)
     assert f.rmse < 1.1 * 0.3 < base.rmse, (f.rmse, base.rmse)
+
+
+def test_shape_law_json_is_the_design_contract():
+    """DESIGN §7: `shape.law` = {"formula", "file", "effect", "constants": {NAME: {value,
+    stderr, unit}}, "rmse_um", "loo_rmse_um"}; the sentence gives the formula and the RMSE
+    it reaches against the noise."""
+    from jaxwear.diagnose._law import LawFit, LawResult, law_sentence
+
+    law = LawSpec("factor", (Term("step", "pressure_MPa", 1.0, x0=1.5, w=0.05),), 1.2)
+    fit = LawFit(law, 0.31, 0.32, 50.0, "converged", 4,
+                 constants(law, {"law_gain": 0.1, "law_x0_1": 0.02, "law_w_1": 0.01}), 9.0)
+    res = LawResult(fit, (fit,), 191, 0.30, 0.39, 0.40, 12.0)
+    doc = res.to_json()
+    assert {"formula", "file", "effect", "constants", "rmse_um", "loo_rmse_um"} <= set(doc)
+    assert doc["constants"]["p0"] == {"value": 1.5, "stderr": 0.02, "unit": "MPa"}
+    assert doc["constants"]["p_width"]["value"] == pytest.approx(0.05)
+    assert doc["effect"] == "found_law" and doc["rmse_um"] == 0.31
+    text = law_sentence(res)
+    assert formula(law) in text and "0.310" in text and "+3.3%" in text

@@ -3,7 +3,8 @@
 Writes under DIR: `diagnosis.json` (the §7 document), `residuals.csv` (one row per measured
 point: measured, base model and the model after, in µm) and `report.html`; `--json FILE`
 the document too. With the shape analysis (`--shape`, or an unexplained verdict):
-`shape_<variable>.png` per state variable (and `shape_after_effect_<variable>.png`).
+`shape_<variable>.png` per state variable (and `shape_after_effect_<variable>.png`),
+`missing_wear.py` and, where the law search found one, `law.py` (DESIGN §7 `shape.law`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 
 from .._config import TIMED_DRIVERS
 from .._errors import InputError
+from ..diagnose._law_file import EFFECT_NAME, law_file_source
 from ._pipeline import Verb, fit_columns
 
 DIAGNOSE_OUTPUTS = ("diagnosis.json", "residuals.csv", "report.html")
@@ -101,8 +103,6 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
         law = getattr(res, "law", None)
         if key == "shape" and law is not None and law.best is not None:
             # the law found from the shape, beside missing_wear.py (DESIGN §7 shape.law)
-            from ..diagnose._law_file import EFFECT_NAME, law_file_source
-
             b = law.best
             out.write_text("law.py", law_file_source(
                 b.law, b.constants, study_path=str(diag.study.path), rmse_um=b.rmse_um,

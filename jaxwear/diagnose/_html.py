@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from .._report import PLOT_POINTS, plt, thinned, thinned_label
+from ._law_html import law_section
 
 
 def _png(fig) -> str:
@@ -370,4 +371,6 @@ def _shape_section(title: str, res, saved: dict) -> list[str]:
         out.append(_img(_written(saved["when_where"]) if "when_where" in saved
                         else _png(when_where_figure(res)),
                         "when in the cycle the missing wear is made and where it lands"))
+    if getattr(res, "law", None) is not None:
+        out += law_section(res, _table)
     return out

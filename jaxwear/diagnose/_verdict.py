@@ -20,6 +20,7 @@ from ._evidence import (
     loo,
 )
 from ._fit import _log, fit_masked
+from ._law import search
 from ._model import Model, objective
 from ._refit import _check_derivatives, _noise, _refit, _second_stage, _tests_for
 from ._result import Candidate, Diagnosis
@@ -269,8 +270,6 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             if after is not None:
                 after = replace(after, pngs=pngs_after)
         if law and shp.best is not None and shp.linear:
-            from ._law import search
-
             # the law of the grammar that explains the base model's misfit (the study as
             # written: with a library effect that only approximates, the law replaces it)
             shp = replace(shp, law=search(model, base, shp.linear, noise, nu,

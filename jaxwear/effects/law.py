@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._base import Effect, EffectParameter, register_effect, safe_power, unregister_effect
 from .shape import DEPOSIT_UNIT_M, VARIABLES, state_variables, swept_kernel
@@ -291,8 +292,6 @@ def formula(law: LawSpec) -> str:
 def law_phi_numpy(law: LawSpec, z: dict):
     """Φ of `law` at the states `z` ({variable: array}) with numpy: the formula as written
     (`formula`), for checks independent of the traced selectors."""
-    import numpy as np
-
     out = 1.0
     for t in law.terms:
         x = np.asarray(z[t.variable], float) / t.ref
