@@ -39,6 +39,12 @@ The steps, each a function below:
    alone and jointly, against a null that counts noise, correlated noise and the model's
    own numerical error; the best refitted through the loop, when in the cycle and where
    on the bore it is made (`_shape_map`), and an effect file (`_effect_file`).
+7. **The law** (`_law`, where the shape finds a significant variable): a small grammar of
+   physical laws over the state variables (`effects.law`: power, hinge, smooth step,
+   exponential and products of two, in both forms), pre-screened on the shape's
+   linearised columns, the leading ones fitted through the wear loop by the one
+   least-squares core, ranked by the left-out-experiment error and BIC; `law.py`
+   (`_law_file`) is the best as an effect file.
 
 Why one extended model: compiling the wear loop costs far more than evaluating it, so the
 base model, every candidate and every pair of candidates are evaluated by the same
