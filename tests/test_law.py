@@ -188,3 +188,21 @@ def test_shape_law_json_is_the_design_contract():
     assert doc["effect"] == "found_law" and doc["rmse_um"] == 0.31
     text = law_sentence(res)
     assert formula(law) in text and "0.310" in text and "+3.3%" in text
+
+
+def test_a_product_starts_from_the_single_law_fitted_before_it():
+    """The product's first term is the single law as fitted along the same variable, its
+    strength that law's over the second term's mean over its range (by hand: a power
+    x^1 on a uniform grid of t whose z runs 0.1..0.3 over a reference 0.2 has mean 1)."""
+    from jaxwear.diagnose._law import LawFit, from_fitted
+
+    single = LawSpec("factor", (Term("power", "pressure_MPa", 2.0, a=1.7),), 0.9)
+    fitted = [LawFit(single, 0.31, 0.33, 10.0, "converged", 5, {}, 1.0)]
+    var = ShapeVariable("sliding_speed_m_per_s", 10, tuple(np.linspace(0.1, 0.3, 33)),
+                        "factor")
+    t2 = Term("power", "sliding_speed_m_per_s", 0.2, a=1.0)
+    prod = LawSpec("factor", (Term("power", "pressure_MPa", 2.0, a=0.5), t2), 0.1)
+    out = from_fitted(prod, fitted, {"blocks": {"sliding_speed_m_per_s": (
+        None, None, None, None, var)}})
+    assert out.terms[0] == single.terms[0] and out.terms[1] == t2
+    assert out.strength == pytest.approx(0.9, rel=1e-6)

@@ -294,6 +294,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 # most tie with it (each fit costs ~10 runs of the wear loop)
                 _log(verbose, f"    {law.label}: not fitted (a law already fits to noise)")
                 continue
+            law = from_fitted(law, fitted, linear)
             found, f, lm = fit_law(model, fit, law, noise_um, nu,
                                    max_evaluations=max_evaluations, verbose=verbose)
             if f.status == "unusable" or f.values is None:
@@ -314,6 +315,31 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     res = LawResult(best, tuple(ranked), len(screened), float(noise_um), fit.rmse, lb,
                     time.perf_counter() - t0)
     return dataclasses.replace(res, sentence=law_sentence(res))
+
+
+def from_fitted(law: LawSpec, fitted, linear: dict) -> LawSpec:
+    """A product's start from the single law fitted before it along its first variable:
+    that term as fitted, the strength divided by the second term's wear-weighted mean
+    over its range (so that the product starts near the single law's answer, which it
+    nests, instead of at the pre-screen's linearised constants: on the generator's
+    pv_tanh law the product from the pre-screen ran out of its budget at an RMSE above the
+    single law's)."""
+    if len(law.terms) < 2:
+        return law
+    first = next((f.law for f in fitted if len(f.law.terms) == 1 and f.law.form == law.form
+                  and f.law.terms[0].variable == law.terms[0].variable), None)
+    if first is None:
+        return law
+    t2 = law.terms[1]
+    label = t2.variable if law.form == "factor" else f"deposit:{t2.variable}"
+    block = linear.get("blocks", {}).get(label)
+    mean = 1.0
+    if block is not None:
+        var = block[4]
+        z = var.at_coordinate(np.linspace(0.0, 1.0, GRID))
+        phi = law_phi_numpy(LawSpec(law.form, (t2,)), {t2.variable: z})
+        mean = float(np.mean(phi)) if np.all(np.isfinite(phi)) else 1.0
+    return LawSpec(law.form, (first.terms[0], t2), first.strength / max(mean, 1e-3))
 
 
 def rank(fitted) -> list:
