@@ -206,3 +206,19 @@ def test_a_product_starts_from_the_single_law_fitted_before_it():
         None, None, None, None, var)}})
     assert out.terms[0] == single.terms[0] and out.terms[1] == t2
     assert out.strength == pytest.approx(0.9, rel=1e-6)
+
+
+def test_the_shapes_variable_leads_and_the_prescreens_own_choice_follows():
+    """With the shape's (form, variable) preferred, its best law comes first, then its
+    product with the best other variable, then the pre-screen's own best where it differs."""
+    def law(var, kind="power"):
+        return LawSpec("factor", (Term(kind, var, 1.0),), 0.5)
+
+    screened = [(90.0, law("load_N", "hinge")), (50.0, law("sliding_speed_m_per_s", "step")),
+                (40.0, law("pressure_MPa")), (30.0, law("sliding_speed_m_per_s"))]
+    out = [x[1] for x in candidates(screened, prefer=("factor", "sliding_speed_m_per_s"))]
+    assert [t.terms[0].kind for t in out] == ["step", "step", "hinge"]
+    assert [t.variable for t in out[1].terms] == ["sliding_speed_m_per_s", "load_N"]
+    assert out[2].terms[0].variable == "load_N" and len(out) == 3
+    # the shape and the pre-screen agree: two candidates
+    assert len(candidates(screened, prefer=("factor", "load_N"))) == 2
