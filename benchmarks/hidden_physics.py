@@ -55,7 +55,12 @@ import numpy_reference as ref  # noqa: E402
 
 TWO_PI = 2.0 * math.pi
 DEG = math.pi / 180.0
-LAWS = ("impact", "threshold", "two_variable", "null")
+LAWS = ("impact", "threshold", "two_variable", "null", "pv_tanh", "worn_soft",
+        "running_pressure", "impact_load")
+# laws whose structure neither jaxwear's shape basis nor its law grammar contains exactly
+# (issue 43 item 5): two variables at once, the surface's own state, an event's size
+# depending on two quantities
+FACTOR_LAWS = ("threshold", "two_variable", "pv_tanh", "worn_soft", "running_pressure")
 
 
 class BadInput(ValueError):
@@ -78,6 +83,18 @@ class Law:
     - `two_variable`: K_d → K_d (1 + a S((p v - PV0)/(w PV0))), v the sliding speed, a =
       `strength`, PV0 = `pv_MPa_m_per_s`, w = `pv_width`.
     - `null`: nothing.
+    - `pv_tanh`: K_d → K_d (1 + a (p/p1) tanh(v/v1)), a = `strength`, p1 = `pv_p_MPa`,
+      v1 = `pv_v_m_per_s`: a rate factor of two variables at once (a product, and tanh is
+      not in jaxwear's grammar).
+    - `worn_soft`: K_d → K_d (1 + a h²/(h² + h1²)), h the depth already worn at the node,
+      h1 = `soft_depth_um`: a softer sublayer under the surface (a rate depending on the
+      surface's own state, by a Hill function, not in the grammar).
+    - `running_pressure`: K_d → K_d (1 + a (p/p1)² / (1 + S/S1)), S the sliding distance,
+      p1 = `rp_p_MPa`, S1 = `rp_distance_m`: running-in that is stronger at high pressure
+      (two variables, a hyperbolic decay).
+    - `impact_load`: `impact` whose size at each event is also ∝ tanh(|W|/W1), W1 =
+      `impact_load_N`: an event's size depending on two quantities at the event (the turn
+      rate and the load).
     """
 
     name: str = "null"
@@ -90,6 +107,12 @@ class Law:
     threshold_width: float = 0.03
     pv_MPa_m_per_s: float = 0.08
     pv_width: float = 0.05
+    pv_p_MPa: float = 1.5
+    pv_v_m_per_s: float = 0.02
+    soft_depth_um: float = 3.0
+    rp_p_MPa: float = 1.5
+    rp_distance_m: float = 20.0
+    impact_load_N: float = 40.0
 
     def __post_init__(self):
         if self.name not in LAWS:
@@ -100,26 +123,42 @@ class Law:
         if self.strength < 0:
             raise BadInput(f"--strength must be >= 0, got {self.strength:g}")
         positive = ("turn_reference_deg_per_s", "impact_exponent", "impact_width_deg",
-                    "threshold_MPa", "threshold_width", "pv_MPa_m_per_s", "pv_width")
+                    "threshold_MPa", "threshold_width", "pv_MPa_m_per_s", "pv_width",
+                    "pv_p_MPa", "pv_v_m_per_s", "soft_depth_um", "rp_p_MPa",
+                    "rp_distance_m", "impact_load_N")
         for k in positive:
             if not getattr(self, k) > 0:
                 raise BadInput(f"law constant {k} must be > 0, got {getattr(self, k):g}")
         if self.turn_threshold_deg_per_s < 0:
             raise BadInput("turn_threshold_deg_per_s must be >= 0")
 
-    def rate_factor(self, pressure, speed):
-        """Factor of the local Archard rate, (steps, nodes) from p [Pa] (steps, nodes) and v
-        [m/s] (steps,); None for laws that leave the rate alone."""
-        if self.strength == 0 or self.name not in ("threshold", "two_variable"):
+    def rate_factor(self, pressure, speed, depth=None, sliding=0.0):
+        """Factor of the local Archard rate, (steps, nodes) from p [Pa] (steps, nodes), v
+        [m/s] (steps,), the worn profile h [m] (nodes,) the revolution wears on and the
+        sliding distance S [m] at its start; None for laws that leave the rate alone."""
+        if self.strength == 0 or self.name not in FACTOR_LAWS:
             return None
+        p_mpa = pressure * 1e-6
         if self.name == "threshold":
-            x = (pressure * 1e-6 / self.threshold_MPa - 1.0) / self.threshold_width
-        else:
-            x = (pressure * 1e-6 * speed[:, None] / self.pv_MPa_m_per_s - 1.0) / self.pv_width
+            x = (p_mpa / self.threshold_MPa - 1.0) / self.threshold_width
+        elif self.name == "two_variable":
+            x = (p_mpa * speed[:, None] / self.pv_MPa_m_per_s - 1.0) / self.pv_width
+        elif self.name == "pv_tanh":
+            return 1.0 + self.strength * (p_mpa / self.pv_p_MPa) * np.tanh(
+                speed[:, None] / self.pv_v_m_per_s)
+        elif self.name == "worn_soft":
+            h2 = (np.zeros(pressure.shape[1]) if depth is None else depth * 1e6) ** 2
+            return np.broadcast_to(1.0 + self.strength * h2 / (h2 + self.soft_depth_um ** 2),
+                                   pressure.shape)
+        else:  # running_pressure
+            return 1.0 + self.strength * (p_mpa / self.rp_p_MPa) ** 2 / (
+                1.0 + sliding / self.rp_distance_m)
         return 1.0 + self.strength * _logistic(x)
 
 
-DEFAULT_STRENGTH = {"impact": 0.05, "threshold": 1.0, "two_variable": 1.0, "null": 0.0}
+DEFAULT_STRENGTH = {"impact": 0.05, "threshold": 1.0, "two_variable": 1.0, "null": 0.0,
+                    "pv_tanh": 1.0, "worn_soft": 1.5, "running_pressure": 2.0,
+                    "impact_load": 0.16}
 
 
 def _logistic(x):
@@ -309,13 +348,21 @@ def impact_deposit(law: Law, cond: Condition, clearance: float, nodes: int,
                    sweep_deg: float) -> np.ndarray:
     """Depth [m] that the `impact` law deposits per revolution at each node (N,). It does
     not depend on the wear: a revolution's impacts are one fixed vector per experiment."""
-    if law.name != "impact" or law.strength == 0:
+    if law.name not in ("impact", "impact_load") or law.strength == 0:
         return np.zeros(nodes)
     dt, rate, where = resolved_sweep(cond, clearance, sweep_deg)
     over = np.maximum(rate - law.turn_threshold_deg_per_s * DEG, 0.0)
     # per radian of sweep beyond ω0 at ω_ref: C (ω - ω0) ((ω - ω0)/ω_ref)^(q-1) dt
     weight = over * (over / (law.turn_reference_deg_per_s * DEG)) ** (law.impact_exponent - 1)
     weight = law.strength * 1e-9 * weight * dt
+    if law.name == "impact_load":
+        # the load at each resolved interval: by the direction's own sampling (the
+        # interval's midpoint in crank angle, from its time and the crank speed)
+        omega = TWO_PI * cond.speed_rpm / 60.0
+        phi_mid = np.cumsum(dt * omega) - 0.5 * dt * omega
+        force, _, _ = load_at(phi_mid, omega, clearance, cond.spring_N_per_m,
+                              cond.crank_length_mm * 1e-3)
+        weight = weight * np.tanh(np.hypot(force[:, 0], force[:, 1]) / law.impact_load_N)
     keep = weight > 0
     theta = TWO_PI * np.arange(nodes) / nodes
     gap = np.angle(np.exp(1j * (theta[None, :] - where[keep, None])))
@@ -458,7 +505,7 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
             k = 1.0 / ((ref.LAYER - h) / ref.E_W + backing)
             p, e = contact_batch(normals, clearance + h, k, area, cyc.load, e)
             rate = K_d * p * cyc.slide[:, None]  # eq 21 per step and node
-            factor = law.rate_factor(p, cyc.speed)
+            factor = law.rate_factor(p, cyc.speed, h, done * float(cyc.slide.sum()))
             base = rate.sum(axis=0)
             dh = base if factor is None else (rate * factor).sum(axis=0)
             dh = dh + deposit

@@ -33,7 +33,8 @@ _K = {"pressure_MPa": tuple(np.linspace(0.1, 4.0, 33)),
       "sliding_distance_m": tuple(np.linspace(0.0, 200.0, 33)),
       "load_turn_rate_deg_per_s": tuple(np.geomspace(1.0, 1e4, 33)),
       "load_turn_deg_per_deg": tuple(np.geomspace(1e-3, 10.0, 33)),
-      "load_N": tuple(np.linspace(0.0, 300.0, 33))}
+      "load_N": tuple(np.linspace(0.0, 300.0, 33)),
+      "worn_depth_um": tuple(np.linspace(0.0, 20.0, 33))}
 KNOTS = {"factor": _K, "deposit": _K}
 
 
@@ -106,6 +107,43 @@ def test_state_variables_by_hand():
     # per degree of the cycle: two steps are 90° of it, whatever the speed
     np.testing.assert_allclose(np.asarray(z["load_turn_deg_per_deg"])[:, 0], w * 1.0 / 90.0)
     assert set(z) == set(VARIABLES)
+    # the surface's own state: the profile the cycle wears on, per node, in µm; unworn
+    # without one
+    np.testing.assert_allclose(np.asarray(z["worn_depth_um"]), 0.0)
+    h = jnp.asarray([0.0, 1e-6, 2.5e-6, 4e-6])
+    zw = state_variables(pressure, slide, dt, 3.0, angle, load, h)
+    np.testing.assert_allclose(np.asarray(zw["worn_depth_um"]), [[0.0, 1.0, 2.5, 4.0]])
+
+
+def test_a_user_law_sees_the_depth_already_worn():
+    """`RateContext.worn_depth` is the profile the cycle wears on: an effect whose rate
+    doubles per µm worn (a soft sublayer) multiplies each node's Archard rate by exactly
+    1 + h_j/1 µm (one cycle's rates with and without it, same contact solution)."""
+    from jaxwear._physics.config import ModelConfig
+    from jaxwear._physics.cycle import cycle_rates, run_history
+    from jaxwear.effects import Effect, EffectParameter, register_effect, unregister_effect
+
+    class _Soft(Effect):
+        name = "soft_sublayer_test"
+        parameters = {"soft_gain": EffectParameter(1.0, 1.0, 0.0, 0.0, 5.0, "g [-]")}
+
+        def local_rate(self, p, rate, ctx):
+            return rate * (1 + p.effect_params["soft_gain"] * ctx.worn_depth[None, :] / 1e-6)
+
+    try:
+        register_effect(_Soft())
+        p = jw.preset("rig", soft_gain=1.0)
+        cfg = ModelConfig(nodes=16, steps_per_rev=24)
+        hist = run_history(p, cfg)
+        h = jnp.linspace(0.0, 3e-6, 16)
+        base = cycle_rates(p, cfg, hist, 0, h, jnp.asarray(0.0))[0]
+        soft = cycle_rates(p, cfg.replace(effects=("soft_sublayer_test",)), hist, 0, h,
+                           jnp.asarray(0.0))[0]
+    finally:
+        unregister_effect("soft_sublayer_test")
+    assert float(jnp.max(base)) > 0
+    np.testing.assert_allclose(np.asarray(soft), np.asarray(base) * (1 + np.asarray(h) / 1e-6),
+                               rtol=1e-12)
 
 
 def test_swept_kernel_spreads_a_step_along_the_arc_the_load_turns_through():
@@ -272,10 +310,14 @@ def test_correction_gradient_matches_central_differences(shaped):
     ev = m.evaluate(u)
     assert float(ev.worn) < 0, "the test point must not wear through"
     for name in ("shape_pressure_MPa_05", "shape_cycle_phase_deg_03",
+                 "shape_worn_depth_um_02",
                  "deposit_load_turn_rate_deg_per_s_06", "deposit_cycle_phase_deg_02"):
         i = m.index[name]
         # a step 3 % of the deposit's own size left O(h²) errors of 5e-5: 3e-4 of it
-        h = 1e-6 if name.startswith("deposit") else 1e-4
+        # the worn depth feeds back on the rate through the quantile coordinate, which is
+        # piecewise linear in z: a step of 1e-4 crossed its kinks (3e-4 off), 1e-5 not
+        h = (1e-6 if name.startswith("deposit") else 1e-5 if "worn_depth" in name
+             else 1e-4)
         up, um = u.copy(), u.copy()
         up[i] += h
         um[i] -= h

@@ -82,12 +82,12 @@ def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, slidi
                         friction=friction, iterations=cfg.newton_iterations, start=start)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
     if effects:
-        ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load)
+        ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load, h)
         for eff in effects:
             rate = eff.local_rate(p, rate, ctx)
     if cfg.shape is not None:
         g, deposit = shape_terms(cfg.shape, p, sol.pressure, slide, dt, sliding, angle, load,
-                                 hist.shape_pre, regime)
+                                 hist.shape_pre, regime, h)
         rate = rate * jnp.exp(g)
         if deposit is not None:
             rate = rate + deposit

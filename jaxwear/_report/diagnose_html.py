@@ -12,6 +12,7 @@ import numpy as np
 from jaxwear._analyses.diagnose._evidence import rmse_per_experiment, where_it_fails
 from jaxwear._analyses.diagnose._shape_text import p_text
 from jaxwear._report.figures import PLOT_POINTS, plt, thinned, thinned_label
+from jaxwear._report.law_html import law_section
 from jaxwear._report.shape_plot import shape_figure, when_where_figure
 
 
@@ -239,6 +240,8 @@ def report_html(diag, doc: dict, saved: dict | None = None) -> str:
     v = doc["verdict"]
     status = {"adequate": "Adequate: the base model fits to noise level",
               "effect_found": f"Missing effect found: {' + '.join(v['effects'])}",
+              "partly_explained": "Partly explained: library candidates only approximate "
+                                  f"the misfit ({' + '.join(v['partial'])})",
               "unexplained": "Unexplained systematic misfit"}[v["status"]]
     figs = [("Per-experiment RMSE before and after (dashed: noise level)", _fig_rmse(diag)),
             ("Measured data and the two models", _fig_profiles(diag)),
@@ -290,7 +293,7 @@ def report_html(diag, doc: dict, saved: dict | None = None) -> str:
         "td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}"
         "figure{margin:1em 0}img{max-width:100%}figcaption{font-size:0.85em;color:#555}"
         ".verdict{padding:1em;border-left:6px solid #2a7;background:#f4faf6}"
-        ".unexplained{border-color:#c52;background:#fbf4f1}"
+        ".unexplained,.partly_explained{border-color:#c52;background:#fbf4f1}"
         ".adequate{border-color:#27a;background:#f1f6fb}</style></head><body>",
         f"<h1>Diagnosis of {html.escape(str(diag.study.path))}</h1>",
         f"<div class='verdict {v['status']}'><h2>{html.escape(status)}</h2>"
@@ -366,4 +369,6 @@ def _shape_section(title: str, res, saved: dict) -> list[str]:
         out.append(_img(_written(saved["when_where"]) if "when_where" in saved
                         else _png(when_where_figure(res)),
                         "when in the cycle the missing wear is made and where it lands"))
+    if getattr(res, "law", None) is not None:
+        out += law_section(res, _table)
     return out

@@ -9,6 +9,7 @@ from jaxwear._physics.effects.shape import DEPOSIT_VARIABLES, VARIABLES
 from jaxwear._report.diagnose_html import report_html
 from jaxwear._report.effect_file import effect_file_source
 from jaxwear._report.figures import plt
+from jaxwear._report.law_file import EFFECT_NAME, law_file_source
 from jaxwear._report.shape_plot import file_stem, shape_figure, when_where_figure
 from jaxwear._study.outputs import open_outputs
 
@@ -26,7 +27,7 @@ def shape_outputs() -> tuple[str, ...]:
     for prefix in ("shape", "shape_after_effect"):
         out += [prefix + file_stem(lab).removeprefix("shape") + ".png" for lab in labels]
         out.append(f"{prefix}_when_where.png")
-    return tuple(out) + ("missing_wear.py", "missing_wear_after_effect.py")
+    return tuple(out) + ("missing_wear.py", "missing_wear_after_effect.py", "law.py")
 
 
 def open_diagnose_outputs(study, out_dir, json_file=None):
@@ -88,6 +89,14 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
             name = "missing_wear.py" if key == "shape" else "missing_wear_after_effect.py"
             out.write_text(name, effect_file_source(res, str(diag.study.path)))
             doc[key]["effect_file"] = name
+        law = getattr(res, "law", None)
+        if key == "shape" and law is not None and law.best is not None:
+            # the law found from the shape, beside missing_wear.py (design.md §7 shape.law)
+            b = law.best
+            out.write_text("law.py", law_file_source(
+                b.law, b.constants, study_path=str(diag.study.path), rmse_um=b.rmse_um,
+                loo_rmse_um=b.loo_rmse_um, noise_um=law.noise_um))
+            doc[key]["law"].update(file="law.py", effect=EFFECT_NAME)
     out.write_json("diagnosis.json", doc)
     header, rows = residual_table(diag)
     out.write_csv("residuals.csv", header, rows)

@@ -84,7 +84,7 @@ class MissingWear(jw.Effect):
 
     def local_rate(self, p, rate, ctx):
         z = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
-                            ctx.load_angle, ctx.load)
+                            ctx.load_angle, ctx.load, ctx.worn_depth)
         z = {{k: jnp.broadcast_to(v, ctx.pressure.shape) for k, v in z.items()}}
         gain = p.effect_params["missing_wear_gain"]
         if FORM == "factor":

@@ -15,13 +15,7 @@ from pathlib import Path
 
 import jax
 
-from jaxwear._core.errors import (
-    FitError,
-    InputError,
-    ModelFailure,
-    TrialFailed,
-    WornThroughError,
-)
+from jaxwear._core.errors import FitError, InputError, ModelFailure, TrialFailed, WornThroughError
 from jaxwear._core.interrupt import EXIT_CODE, MESSAGE, interrupted, release, restore
 from jaxwear._core.xla_flags import apply as configure_xla
 from jaxwear._study.effect_files import effect_file_frame

@@ -3,7 +3,8 @@
 Writes under DIR: `diagnosis.json` (the §7 document), `residuals.csv` (one row per measured
 point: measured, base model and the model after, in µm) and `report.html`; `--json FILE`
 the document too. With the shape analysis (`--shape`, or an unexplained verdict):
-`shape_<variable>.png` per state variable (and `shape_after_effect_<variable>.png`).
+`shape_<variable>.png` per state variable (and `shape_after_effect_<variable>.png`),
+`missing_wear.py` and, where the law search found one, `law.py` (design.md §7 `shape.law`).
 """
 
 from __future__ import annotations

@@ -29,17 +29,27 @@ The steps, each a function below:
    prediction error before and after (`loo`: one Gauss-Newton step from the full fit).
    A candidate is named when its evidence is very strong (> ln 150) and its residuals pass
    the tests of step 2; when the best explains over half the misfit but leaves a
-   systematic remainder, pairs with it are tried; otherwise the verdict is `unexplained`
-   and names nothing. Candidates within ln 20 of the winner that also fit to noise are
-   reported as alternatives the data cannot tell apart.
-5. **Verdict** (`adequate` / `effect_found` / `unexplained`) in the design.md §7 JSON
-   (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
+   systematic remainder, pairs with it are tried; a best candidate (or pair) that lowers
+   the misfit with very strong evidence but whose own combined test still rejects makes
+   the verdict `partly_explained` (named as partial, never as the missing effect; the
+   sentence never says "at the noise level": `_verdict.verdict_status`,
+   `_text.noise_claim`); otherwise the verdict is `unexplained` and names nothing.
+   Candidates within ln 20 of the winner that also fit to noise are reported as
+   alternatives the data cannot tell apart.
+5. **Verdict** (`adequate` / `effect_found` / `partly_explained` / `unexplained`) in the
+   design.md §7 JSON (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
 6. **The shape of the missing wear** (`_shape`; always with `shape=True`, else when the
    verdict is `unexplained`): a smooth correction along each state variable in two forms
    (a factor exp(g(z)) of the local rate, or a deposit e(z) ≥ 0 where the pin presses),
    alone and jointly, against a null that counts noise, correlated noise and the model's
    own numerical error; the best refitted through the loop, when in the cycle and where
    on the bore it is made (`_shape_map`), and an effect file (`_effect_file`).
+7. **The law** (`_law`, where the shape finds a significant variable): a small grammar of
+   physical laws over the state variables (`effects.law`: power, hinge, smooth step,
+   exponential and products of two, in both forms), pre-screened on the shape's
+   linearised columns, the leading ones fitted through the wear loop by the one
+   least-squares core, ranked by the left-out-experiment error and BIC; `law.py`
+   (`_law_file`) is the best as an effect file.
 
 Why one extended model: compiling the wear loop costs far more than evaluating it, so the
 base model, every candidate and every pair of candidates are evaluated by the same

@@ -52,7 +52,7 @@ class Diagnosis:
     candidates: list  # Candidate, best first
     status: str
     effects: list  # names explaining the misfit (effect_found), else []
-    partial: list  # names that explain part of it (unexplained)
+    partial: list  # names that explain part of it (partly_explained)
     alternatives: list  # candidates the data cannot tell apart from the winner
     final: Fit  # the model after (the winner, or the base)
     final_tests: Tests

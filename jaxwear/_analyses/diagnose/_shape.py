@@ -172,6 +172,12 @@ class ShapeResult:
     design: object = field(default=None, repr=False)  # `Design`, for a later analysis
     pending: object = field(default=None, repr=False)  # the refit still to run (`defer`)
     pngs: dict = field(default_factory=dict, repr=False)  # figures drawn beforehand
+    # the linearised system the variables were tested on (whitened, nuisance projected
+    # off): {"blocks": {label: (A, S, Z, cols, var)}, "rho": misfit}, for the law search's
+    # pre-screen (`_law`)
+    linear: dict = field(default_factory=dict, repr=False)
+    law: object = None  # `_law.LawResult`: the law found from the shape, or None
+
 
     def finished(self) -> ShapeResult:
         """This result with its refit run (itself if none is pending)."""
@@ -203,7 +209,8 @@ class ShapeResult:
                 "alpha": self.alpha, "noise_um": _num(self.noise_um),
                 "rmse_before_um": _num(self.rmse_before_um),
                 "model_evaluations": self.evaluations, "refit_status": self.status,
-                "numerical_error": self.numerical, "summary": self.sentence}
+                "numerical_error": self.numerical, "summary": self.sentence,
+                **({"law": self.law.to_json()} if self.law is not None else {})}
 
     def variable(self, name: str, form: str | None = None) -> VariableShape:
         form = form or self.form or "factor"
@@ -308,7 +315,7 @@ def _cycle_states(p, cfg, hist, regime, h, sliding):
     _, _, sol = cycle_increment(p, cfg, hist, regime, h, sliding)
     slide, dt = hist.slide[regime], hist.dt[regime]
     z = state_variables(sol.pressure, slide, dt, sliding, hist.angle[regime],
-                        hist.load[regime])
+                        hist.load[regime], h)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]
     return {k: jnp.broadcast_to(v, sol.pressure.shape) for k, v in z.items()}, rate
 
@@ -353,8 +360,8 @@ def state_knots(model: Model, fit: Fit):
                 w = np.asarray(rate).ravel()
                 dt = np.broadcast_to(np.asarray(hist.dt[r])[:, None], rate.shape).ravel()
                 for k in samples:
-                    if k == "sliding_distance_m":
-                        continue  # its own samples, below
+                    if k in ("sliding_distance_m", "worn_depth_um"):
+                        continue  # their own samples, below
                     samples[k][0].append(np.asarray(z[k]).ravel())
                     samples[k][1].append(w)
                     samples[k][2].append(dt)
@@ -362,6 +369,15 @@ def state_knots(model: Model, fit: Fit):
         for i in (1, 2):
             samples["sliding_distance_m"][i].append(
                 np.full(64, max(float(snaps[e, -1].max()), 1e-12)))
+        # the depth worn: every node on its way from 0 to its final depth (16 fractions),
+        # weighted by the node's wear (the cycles' samples above would put half the
+        # weight at the unworn start's 0)
+        last = np.clip(snaps[e, -1], 0.0, None)
+        frac = np.linspace(0.0, 1.0, 16)[:, None]
+        samples["worn_depth_um"][0].append((frac * last[None, :]).ravel())
+        for i in (1, 2):
+            samples["worn_depth_um"][i].append(
+                np.broadcast_to(last[None, :] + 1e-12, (16, len(last))).ravel())
         if e == deepest:
             z0, _ = _cycle_states(p, cfg, hist, 0, jnp.zeros(snaps.shape[2]),
                                   jnp.asarray(0.0))
@@ -593,7 +609,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                            rmse_after, evaluations, status, sentence, load,
                            np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
                            exp_name, tuple(alternatives), forms, tuple(carriers), correction,
-                           ww, num_info, design=design_out)
+                           ww, num_info, design=design_out,
+                           linear={"blocks": blocks, "rho": rho})
 
     def finish() -> ShapeResult:
         """The refit through the loop and the when/where map (the costly part)."""

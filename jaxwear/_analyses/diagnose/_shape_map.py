@@ -138,7 +138,7 @@ def _jit_maps(ext, u, deepest, h):
         d = (corrected - own) * 1e6 * PER_CYCLES
         n = d.shape[1]
         z = state_variables(sol.pressure, hist.slide[0], hist.dt[0], S, hist.angle[0],
-                            hist.load[0])
+                            hist.load[0], h)
         marg = (jnp.sum(d, axis=1) * (2 * jnp.pi / n), jnp.sum(d, axis=0))
         return marg, (d, hist.load[0], z["load_turn_rate_deg_per_s"][:, 0])
 

@@ -15,10 +15,12 @@ LABELS = {"cycle_phase_deg": "cycle phases", "pressure_MPa": "contact pressures"
           "sliding_speed_m_per_s": "sliding speeds", "sliding_distance_m": "sliding distances",
           "load_turn_rate_deg_per_s": "load turn rates",
           "load_turn_deg_per_deg": "load turns per degree of the cycle",
-          "load_N": "joint loads", "bore_angle_deg": "bore angles"}
+          "load_N": "joint loads", "bore_angle_deg": "bore angles",
+          "worn_depth_um": "depths already worn"}
 LABEL = {"pressure_MPa": "contact pressure", "sliding_speed_m_per_s": "sliding speed",
          "sliding_distance_m": "sliding distance", "load_turn_rate_deg_per_s": "load turn rate",
-         "load_turn_deg_per_deg": "load turn per degree of the cycle", "load_N": "joint load"}
+         "load_turn_deg_per_deg": "load turn per degree of the cycle", "load_N": "joint load",
+         "worn_depth_um": "depth already worn"}
 FORM_WORDS = {"factor": "more of the wear Archard already makes there (a factor of the "
                         "local rate)",
               "deposit": "extra wear not tied to sliding, made where the pin presses (as "

@@ -9,6 +9,7 @@ import numpy as np
 from jaxwear._analyses.diagnose._evidence import derived, where_it_fails
 from jaxwear._analyses.diagnose._fit import Fit
 from jaxwear._analyses.diagnose._result import Diagnosis, _mean_sq
+from jaxwear._analyses.diagnose._stats import ALPHA
 from jaxwear._inference.calibrate import unit_of
 from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect
 
@@ -117,6 +118,39 @@ def _remedy(diag: Diagnosis) -> str:
     return f"lower numerics.wear_tolerance_um ({st.wear_tolerance_um:g} µm) and rerun"
 
 
+def p_text(p: float) -> str:
+    """A p-value in words that never rounds a small one to "0.00" (2 significant digits)."""
+    return f"{p:.2g}" if p >= 0.01 else f"{p:.1e}"
+
+
+def noise_claim(tests) -> str:
+    """What the misfit left by a fit is, in words, by its own combined test (`Tests`): "at
+    the noise level" only where that test accepts at α; where it rejects, the opposite.
+    The one place a verdict sentence says "noise level" of a fit with an effect (issue 43:
+    a sentence said "at the noise level (p = 0.00)")."""
+
+    if not tests.systematic:
+        return (f"at the noise level (combined test p = {p_text(tests.p_min)} ≥ α = "
+                f"{ALPHA:g})")
+    return (f"still above the noise: its combined test rejects (p = {p_text(tests.p_min)} "
+            f"< α = {ALPHA:g})")
+
+
+def _partly_text(diag: Diagnosis) -> str:
+    """`partly_explained`: the best library fit lowers the misfit but its test rejects."""
+    name = diag.partial[0] if diag.partial else diag.final.label
+    c = next((c for c in diag.candidates if c.effect == name), None)
+    fit = c.fit if c is not None and c.fit is not None else diag.final
+    tests = c.tests if c is not None and c.tests is not None else diag.final_tests
+    strength = _strength_text(diag, fit, name) if name in diag.model.candidates else ""
+    return (f" The best library candidate, {name}" + (f" ({strength})" if strength else "")
+            + f", lowers the RMSE from {diag.base.rmse:.3f} to {fit.rmse:.3f} µm, "
+            f"{noise_claim(tests)}, and no pair of candidates passes it: the missing physics "
+            f"is only approximated by the library (partly explained), so no effect is named "
+            f"as missing. See the shape of the missing wear on top of {name} for what is "
+            f"left.")
+
+
 def _verdict_text(diag: Diagnosis) -> str:
     t = diag.base_tests
     noise = diag.noise_um
@@ -145,8 +179,8 @@ def _verdict_text(diag: Diagnosis) -> str:
                      f"{names} over the base model is very strong (ln Bayes factor "
                      f"{lead.evidence:.1f} > ln 150, BIC with the noise level unknown).")
         text = (f"{head} The misfit is systematic, and the missing {verb} {names} "
-                f"({strength}). With it the RMSE falls to {f.rmse:.3f} µm, at the noise "
-                f"level (p = {diag.final_tests.p_min:.2f})"
+                f"({strength}). With it the RMSE falls to {f.rmse:.3f} µm, "
+                f"{noise_claim(diag.final_tests)}"
                 + (f", and the left-out-experiment prediction error from {lb:.3f} to "
                    f"{la:.3f} µm" if lb is not None and la is not None else "")
                 + f". What pointed to it: {sig}"
@@ -183,6 +217,8 @@ def _verdict_text(diag: Diagnosis) -> str:
                 f"the missing effect, if any, is not determined"
                 + (f": {_remedy(diag)}." if diag.failed else "."))
     text = f"{head} The misfit is systematic ({sig})."
+    if diag.status == "partly_explained":
+        return text + _partly_text(diag)
     if diag.partial:
         c = next(c for c in diag.candidates if c.effect == diag.partial[0])
         text += (f" The best candidate, {c.effect} ({_strength_text(diag, c.fit, c.effect)}),"

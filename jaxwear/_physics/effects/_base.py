@@ -43,7 +43,9 @@ class RateContext(eqx.Module):
     `sliding_distance` S at the start of the block [m]; `load_angle` θ_W (steps,) [rad],
     the direction of the joint load in the bushing frame (its turn rate marks impacts at
     force reversals; `effects.shape.state_variables` computes it and the others); `load`
-    |W_i| (steps,) [N]. Extra wear not tied to sliding (a deposit where the pin presses)
+    |W_i| (steps,) [N]; `worn_depth` h_j (nodes,) [m], the profile this cycle wears on
+    (the depth already worn at each node: the surface's own state, `worn_depth_um` of
+    `state_variables`). Extra wear not tied to sliding (a deposit where the pin presses)
     is added to the rate with `effects.shape.swept_kernel(load_angle, nodes)`.
     """
 
@@ -53,6 +55,7 @@ class RateContext(eqx.Module):
     sliding_distance: object
     load_angle: object = None
     load: object = None
+    worn_depth: object = None
 
 
 class Effect(eqx.Module):

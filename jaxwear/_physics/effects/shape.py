@@ -29,6 +29,7 @@ State variables (`VARIABLES`), per step i of a cycle and node j of the bore:
 | `load_turn_deg_per_deg` | deg/deg | the same per degree of cycle (kinematic: not ∝ speed) |
 | `load_N` | N | the joint load magnitude |W_i| |
 | `bore_angle_deg` | deg | node angle on the bore, 360 j / nodes |
+| `worn_depth_um` | µm | the depth already worn at node j (the surface's own state, DESIGN §7) |
 
 The two angles are periodic: their basis is cubic B-splines on the circle. The others use
 cubic B-splines uniform in the wear-weighted quantile of z (`ShapeVariable`, the quantiles
@@ -58,6 +59,10 @@ VARIABLES: dict[str, tuple[str, bool, bool]] = {
     "load_turn_deg_per_deg": ("deg/deg", False, True),
     "load_N": ("N", False, True),
     "bore_angle_deg": ("deg", True, False),
+    # the surface's own state: the frozen profile h_j of the cycle (issue 43 item 1); a
+    # rate that depends on how worn the layer already is (a harder or softer sublayer,
+    # debris in a deep scar) is a function of it, not of the time in the test
+    "worn_depth_um": ("µm", False, False),
 }
 FORMS = ("factor", "deposit")
 # deposits come from events in the cycle (when, how hard, how fast the load turns), not
@@ -175,12 +180,13 @@ def _wrap(a, xp=jnp):
     return xp.mod(a + xp.pi, 2 * xp.pi) - xp.pi
 
 
-def state_variables(pressure, slide, dt, sliding, angle, load=None, xp=jnp):
+def state_variables(pressure, slide, dt, sliding, angle, load=None, worn=None, xp=jnp):
     """Every variable of `VARIABLES` for one cycle, each broadcastable to (steps, nodes).
 
     `pressure` (steps, nodes) [Pa]; `slide` dS_i (steps,) [m]; `dt` (steps,) [s];
     `sliding` S [m] (scalar); `angle` θ_W (steps,) [rad]; `load` |W_i| (steps,) [N]
-    (None: `load_N` is absent)."""
+    (None: `load_N` is absent); `worn` h_j (nodes,) [m], the profile the cycle wears on
+    (`RateContext.worn_depth`; None: zero, the unworn surface)."""
     steps, nodes = pressure.shape
     phase = xp.arange(steps) * (360.0 / steps)
     speed = slide / xp.where(dt > 0, dt, 1.0)
@@ -199,6 +205,8 @@ def state_variables(pressure, slide, dt, sliding, angle, load=None, xp=jnp):
     }
     if load is not None:
         out["load_N"] = load[:, None]
+    out["worn_depth_um"] = (xp.zeros((1, nodes)) if worn is None
+                            else xp.asarray(worn)[None, :] * 1e6)
     return out
 
 
@@ -296,10 +304,11 @@ def pack(p, shape: ShapeBasis | None):
 
 
 def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
-                pre: dict | None = None, regime=None):
+                pre: dict | None = None, regime=None, worn=None):
     """(Σ_v g_v(z_v) (steps, nodes), the deposit Σ_v e_v(z_v) κ (steps, nodes) [m] or None)
     with the coefficients from `p.effect_params` under `ShapeVariable.keys()`; `pre`
-    (`precompute`) and the `regime` index give the constant parts."""
+    (`precompute`) and the `regime` index give the constant parts; `worn` h_j (nodes,)
+    [m] the profile (`worn_depth_um`)."""
     z = None
     g = jnp.zeros(pressure.shape)
     e = jnp.zeros(pressure.shape)
@@ -315,7 +324,7 @@ def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
             term = pre[var.keys()[0]][regime] @ coef
         else:
             if z is None:
-                z = state_variables(pressure, slide, dt, sliding, angle, load)
+                z = state_variables(pressure, slide, dt, sliding, angle, load, worn)
             term = basis_dot(var, z[var.name], coef)
         term = jnp.broadcast_to(term, pressure.shape)
         if var.form == "factor":

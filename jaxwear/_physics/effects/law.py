@@ -1,0 +1,307 @@
+"""A small grammar of physical wear laws over the state variables (issue 43 item 2), as one
+effect whose structure is data: the law search (`diagnose._law`) fits every candidate of
+the grammar with one compiled model.
+
+A law is one or two terms φ over state variables z (`effects.shape.state_variables`),
+each on the normalised x = z / z_s (z_s > 0, a fixed reference of the variable: the
+wear-weighted median of the states met in the data):
+
+| kind | φ(x) | constants |
+|---|---|---|
+| `power` | x^a | a |
+| `hinge` | max(x − x0, 0)^a (a ≥ 0.5) | x0, a |
+| `step` | 1 / (1 + exp(−(x − x0)/w)) | x0, w > 0 |
+| `exp` | exp(b (x − 1)) | b |
+
+Φ = φ1(x1) · φ2(x2) (φ2 ≡ 1 for a law of one term), in the two forms of the shape
+(DESIGN §7):
+
+- **factor**: the local rate K_d p_ij dS_i (1 + A Φ), A ≥ 0: more of the wear Archard
+  already makes where Φ is large (a pressure threshold, a PV limit, a softer sublayer);
+- **deposit**: + D · 1 nm·rad · Φ κ_ij per step, D ≥ 0, κ the kernel of where the pin
+  presses (`effects.shape.swept_kernel`): extra wear not tied to sliding (impacts,
+  fretting, cold flow), Φ over the variables of events in the cycle.
+
+A = D = 0 is the model as written (nesting). Why one effect with the kinds, variables and
+references as held parameters (`LawSpec.held`): they are values in the parameters, not
+structure, so every candidate runs on the program compiled once (a compilation of the wear
+loop costs more than a fit's evaluations); only the continuous constants are fitted.
+
+`LawSpec` is one candidate: its study parameters, free keys, formula and constants in the
+variables' units. `LAW_SEARCH` is registered only while a search runs (`searching`): it is
+not a library candidate (`diagnose` never screens it), and its 17 parameters stay out of
+every other model's parameters.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxwear._physics.effects._base import Effect, register_effect, safe_power, unregister_effect
+from jaxwear._physics.effects.parameter import EffectParameter
+from jaxwear._physics.effects.shape import DEPOSIT_UNIT_M, VARIABLES, state_variables, swept_kernel
+
+LAW_EFFECT = "law_search"
+# the variables a law may depend on (the periodic angles are where and when, not states a
+# material law depends on); index = position
+LAW_VARIABLES = ("pressure_MPa", "sliding_speed_m_per_s", "sliding_distance_m",
+                 "load_turn_rate_deg_per_s", "load_turn_deg_per_deg", "load_N",
+                 "worn_depth_um")
+# a deposit is made per step by an event of the cycle: its variables are per step
+DEPOSIT_LAW_VARIABLES = ("sliding_speed_m_per_s", "sliding_distance_m",
+                         "load_turn_rate_deg_per_s", "load_turn_deg_per_deg", "load_N")
+KINDS = ("none", "power", "hinge", "step", "exp")
+# the fitted constants of each kind (term k's keys are `law_<c>_<k>`)
+KIND_CONSTANTS = {"none": (), "power": ("a",), "hinge": ("x0", "a"), "step": ("x0", "w"),
+                  "exp": ("b",)}
+HINGE_MIN_EXPONENT = 0.5  # a hinge's slope at its threshold stays finite
+POWER_FLOOR = 1e-3  # x below it read as it (a power law of a state that starts at 0)
+
+
+def _p(default, off, lower, upper, doc, *, log=False, scale=1.0):
+    return EffectParameter(1.0, default, off, lower, upper, doc, log=log, scale=scale)
+
+
+def _parameters() -> dict:
+    out = {
+        "law_gain": _p(0.0, 0.0, 0.0, 1e6, "A: strength of the factor law [-]", scale=0.1),
+        "law_deposit": _p(0.0, 0.0, 0.0, 1e6, "D: strength of the deposit law [nm·rad per "
+                          "step]", scale=1e-3),
+        "law_form": _p(0.0, 0.0, 0.0, 1.0, "form: 0 factor, 1 deposit (held)"),
+    }
+    for k in (1, 2):
+        out.update({
+            f"law_a_{k}": _p(1.0, 1.0, -3.0, 6.0, f"a{k}: exponent [-]", scale=0.1),
+            f"law_x0_{k}": _p(1.0, 1.0, -5.0, 50.0, f"x0{k}: threshold or centre, in "
+                              f"units of the reference [-]", scale=0.05),
+            f"law_w_{k}": _p(0.1, 0.1, 1e-3, 10.0, f"w{k}: width of the step, in units of "
+                             f"the reference [-]", log=True, scale=0.1),
+            f"law_b_{k}": _p(0.0, 0.0, -50.0, 50.0, f"b{k}: rate of the exponential per "
+                             f"reference [-]", scale=0.1),
+            f"law_var_{k}": _p(0.0, 0.0, 0.0, len(LAW_VARIABLES) - 1.0,
+                               f"variable of term {k} (index, held)"),
+            f"law_kind_{k}": _p(0.0, 0.0, 0.0, len(KINDS) - 1.0,
+                                f"kind of term {k} (index, held)"),
+            f"law_ref_{k}": _p(1.0, 1.0, 1e-300, 1e300, f"z_s of term {k}: the reference "
+                               f"(held, the variable's unit)"),
+        })
+    return out
+
+
+def law_term(kind, x, a, x0, w, b):
+    """φ(x) of `kind` (index into `KINDS`, traced) at x (...): every kind computed, one
+    selected (all finite, so the unselected ones' gradients are zero, never NaN)."""
+    power = safe_power(jnp.maximum(x, POWER_FLOOR), a)
+    hinge = safe_power(jnp.maximum(x - x0, 0.0), jnp.maximum(a, HINGE_MIN_EXPONENT))
+    step = jax.nn.sigmoid((x - x0) / w)
+    expo = jnp.exp(jnp.clip(b * (x - 1.0), -50.0, 50.0))
+    k = jnp.round(kind)
+    return jnp.select([k == 1, k == 2, k == 3, k == 4], [power, hinge, step, expo], 1.0)
+
+
+def law_phi(e: dict, z: dict, shape) -> jax.Array:
+    """Φ = φ1 φ2 (steps, nodes) from the law's parameters `e` and the states `z`."""
+    Z = jnp.stack([jnp.broadcast_to(z[n], shape) for n in LAW_VARIABLES])
+    phi = jnp.ones(shape)
+    for k in (1, 2):
+        idx = jnp.clip(jnp.round(e[f"law_var_{k}"]).astype(jnp.int32), 0,
+                       len(LAW_VARIABLES) - 1)
+        x = jnp.take(Z, idx, axis=0) / e[f"law_ref_{k}"]
+        phi = phi * law_term(e[f"law_kind_{k}"], x, e[f"law_a_{k}"], e[f"law_x0_{k}"],
+                             e[f"law_w_{k}"], e[f"law_b_{k}"])
+    return phi
+
+
+class LawSearch(Effect):
+    """The grammar's law with its structure as held parameters (module docstring)."""
+
+    name = LAW_EFFECT
+    parameters = _parameters()
+    signature = "a law of the grammar (diagnose's law search)"
+
+    def local_rate(self, p, rate, ctx):
+        e = p.effect_params
+        shape = ctx.pressure.shape
+        z = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
+                            ctx.load_angle, ctx.load, ctx.worn_depth)
+        phi = law_phi(e, z, shape)
+        out = rate * (1.0 + e["law_gain"] * phi)
+        # the deposit's kernel only where the form is the deposit (a held value: both
+        # branches compiled once, one run)
+        return out + jax.lax.cond(
+            e["law_form"] > 0.5,
+            lambda: DEPOSIT_UNIT_M * e["law_deposit"] * phi
+            * swept_kernel(ctx.load_angle, shape[1]),
+            lambda: jnp.zeros(shape))
+
+
+LAW_SEARCH = LawSearch()
+
+
+@contextlib.contextmanager
+def searching():
+    """`LAW_SEARCH` registered for the duration (module docstring: never a candidate)."""
+    register_effect(LAW_SEARCH)
+    try:
+        yield LAW_SEARCH
+    finally:
+        unregister_effect(LAW_EFFECT)
+
+
+@dataclass(frozen=True)
+class Term:
+    """One term: its kind, variable, reference z_s (the variable's unit) and constants
+    (normalised: x0, w in units of z_s)."""
+
+    kind: str
+    variable: str
+    ref: float
+    a: float = 1.0
+    x0: float = 1.0
+    w: float = 0.1
+    b: float = 0.0
+
+    @property
+    def unit(self) -> str:
+        return VARIABLES[self.variable][0]
+
+
+@dataclass(frozen=True)
+class LawSpec:
+    """A candidate law: its form, one or two terms and its strength (A for a factor, D
+    for a deposit)."""
+
+    form: str
+    terms: tuple
+    strength: float = 0.0
+
+    @property
+    def strength_key(self) -> str:
+        return "law_gain" if self.form == "factor" else "law_deposit"
+
+    def free_keys(self) -> tuple:
+        """The fitted constants: the strength and each term's (`KIND_CONSTANTS`)."""
+        keys = [self.strength_key]
+        for k, t in enumerate(self.terms, 1):
+            keys += [f"law_{c}_{k}" for c in KIND_CONSTANTS[t.kind]]
+        return tuple(keys)
+
+    def values(self) -> dict:
+        """Every parameter of `LAW_SEARCH` for this law (study keys, their units)."""
+        out = {"law_gain": 0.0, "law_deposit": 0.0,
+               "law_form": 0.0 if self.form == "factor" else 1.0}
+        out[self.strength_key] = float(self.strength)
+        for k in (1, 2):
+            t = self.terms[k - 1] if k <= len(self.terms) else Term("none", LAW_VARIABLES[0],
+                                                                     1.0)
+            out.update({f"law_a_{k}": t.a, f"law_x0_{k}": t.x0, f"law_w_{k}": t.w,
+                        f"law_b_{k}": t.b,
+                        f"law_var_{k}": float(LAW_VARIABLES.index(t.variable)),
+                        f"law_kind_{k}": float(KINDS.index(t.kind)), f"law_ref_{k}": t.ref})
+        return out
+
+    def with_values(self, values: dict) -> LawSpec:
+        """This law with its fitted constants from `values` (study keys)."""
+        terms = []
+        for k, t in enumerate(self.terms, 1):
+            kw = {c: float(values.get(f"law_{c}_{k}", getattr(t, c)))
+                  for c in ("a", "x0", "w", "b")}
+            terms.append(Term(t.kind, t.variable, t.ref, **kw))
+        return LawSpec(self.form, tuple(terms),
+                       float(values.get(self.strength_key, self.strength)))
+
+    @property
+    def label(self) -> str:
+        return f"{self.form}: " + " · ".join(f"{t.kind}({t.variable})" for t in self.terms)
+
+
+# symbols of the variables in formulas and constant names (ASCII: they name study keys)
+SYMBOLS = {"pressure_MPa": "p", "sliding_speed_m_per_s": "v", "sliding_distance_m": "S",
+           "load_turn_rate_deg_per_s": "omega", "load_turn_deg_per_deg": "turn",
+           "load_N": "W", "worn_depth_um": "h"}
+
+
+def constants(law: LawSpec, se: dict | None = None) -> dict:
+    """{NAME: (value, stderr, unit)}: the law's constants in the variables' units (the
+    normalised ones times z_s; delta method for the errors), the strength first and each
+    reference as a fixed constant (stderr 0: chosen, not fitted). `se`: standard errors
+    of the study keys (absent: NaN)."""
+    se = se or {}
+
+    def s(key, factor=1.0):
+        v = se.get(key, math.nan)
+        return abs(factor) * v if v is not None and math.isfinite(v) else math.nan
+
+    out = {}
+    if law.form == "factor":
+        out["A"] = (law.strength, s("law_gain"), "-")
+    else:
+        out["D"] = (law.strength, s("law_deposit"), "nm·rad per step")
+    for k, t in enumerate(law.terms, 1):
+        sym = f"{SYMBOLS[t.variable]}"
+        u = t.unit
+        if t.kind in ("power", "hinge", "exp"):
+            out[f"{sym}_ref"] = (t.ref, 0.0, u)
+        if t.kind == "power":
+            out[f"a{k}"] = (t.a, s(f"law_a_{k}"), "-")
+        elif t.kind == "hinge":
+            out[f"{sym}0"] = (t.x0 * t.ref, s(f"law_x0_{k}", t.ref), u)
+            out[f"a{k}"] = (max(t.a, HINGE_MIN_EXPONENT), s(f"law_a_{k}"), "-")
+        elif t.kind == "step":
+            out[f"{sym}0"] = (t.x0 * t.ref, s(f"law_x0_{k}", t.ref), u)
+            # w is fitted in log space: its stderr from the caller is already the value's
+            out[f"{sym}_width"] = (t.w * t.ref, s(f"law_w_{k}", t.ref), u)
+        elif t.kind == "exp":
+            # exp(b (z/z_s − 1)) = exp((z − z_s)/z0), z0 = z_s / b
+            flat = abs(t.b) < 1e-12  # a flat exponential: its scale beyond any range
+            z0 = 1e12 * t.ref if flat else t.ref / t.b
+            out[f"{sym}_e"] = (z0, math.nan if flat else s(f"law_b_{k}", t.ref / t.b ** 2),
+                               u)
+    return out
+
+
+def term_formula(t: Term, k: int) -> str:
+    """φ_k in the variable's own symbols and named constants (`constants`)."""
+    z = SYMBOLS[t.variable]
+    if t.kind == "power":
+        return f"({z}/{z}_ref)^a{k}"
+    if t.kind == "hinge":
+        return f"(max({z} − {z}0, 0)/{z}_ref)^a{k}"
+    if t.kind == "step":
+        return f"1/(1 + exp(−({z} − {z}0)/{z}_width))"
+    if t.kind == "exp":
+        return f"exp(({z} − {z}_ref)/{z}_e)"
+    return "1"
+
+
+def formula(law: LawSpec) -> str:
+    """The law in words: the local rate with its constants named (`constants`)."""
+    phi = " · ".join(term_formula(t, k) for k, t in enumerate(law.terms, 1))
+    where = ", ".join(f"{SYMBOLS[t.variable]} = {t.variable}" for t in law.terms)
+    if law.form == "factor":
+        return f"rate = K_d p dS · (1 + A · {phi})   [{where}]"
+    return (f"rate = K_d p dS + D · 1 nm·rad · {phi} · κ (where the pin presses)   "
+            f"[{where}]")
+
+
+def law_phi_numpy(law: LawSpec, z: dict):
+    """Φ of `law` at the states `z` ({variable: array}) with numpy: the formula as written
+    (`formula`), for checks independent of the traced selectors."""
+    out = 1.0
+    for t in law.terms:
+        x = np.asarray(z[t.variable], float) / t.ref
+        if t.kind == "power":
+            out = out * np.maximum(x, POWER_FLOOR) ** t.a
+        elif t.kind == "hinge":
+            out = out * np.maximum(x - t.x0, 0.0) ** max(t.a, HINGE_MIN_EXPONENT)
+        elif t.kind == "step":
+            out = out / (1.0 + np.exp(-(x - t.x0) / t.w))
+        elif t.kind == "exp":
+            out = out * np.exp(np.clip(t.b * (x - 1.0), -50.0, 50.0))
+    return out

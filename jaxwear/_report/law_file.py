@@ -1,0 +1,153 @@
+"""`law.py`: the law found from the shape (`_law`) as an effect file (DESIGN §7 `shape.law`).
+
+Self-contained like `missing_wear.py`: the formula in its docstring, each fitted constant
+a parameter of the effect (its key names its unit, its default the fitted value, its
+standard error in the docstring), the references z_s as named module constants, and a
+local rate of a few lines of jax.numpy that computes the formula as written (no held
+selectors: `effects.law.LAW_SEARCH` is the search's device, not the user's file). Text
+only: the CLI writes it.
+"""
+
+from __future__ import annotations
+
+import math
+
+from jaxwear._physics.effects.law import SYMBOLS, LawSpec, formula, term_formula
+
+EFFECT_NAME = "found_law"
+_UNIT_KEY = {"-": "", "MPa": "_MPa", "m/s": "_m_per_s", "m": "_m", "deg/s": "_deg_per_s",
+             "deg/deg": "_deg_per_deg", "N": "_N", "µm": "_um",
+             "nm·rad per step": "_nm_rad_per_step"}
+
+
+def parameter_key(name: str, unit: str) -> str:
+    """The study key of a constant: `found_law_<NAME>` and its unit (DESIGN §6: the key
+    names its unit)."""
+    return f"{EFFECT_NAME}_{name}{_UNIT_KEY.get(unit, '')}"
+
+
+def _term_code(law: LawSpec, k: int, keys: dict) -> str:
+    """φ_k as jax.numpy over `z` and the parameters `e` (the formula of `term_formula`)."""
+    t = law.terms[k - 1]
+    z = f'z["{t.variable}"]'
+    sym = SYMBOLS[t.variable]
+    ref = f"{sym.upper()}_REF"
+
+    def e(name):
+        return f'e["{keys[name]}"]'
+
+    if t.kind == "power":
+        return f"safe_power(jnp.maximum({z} / {ref}, {POWER_FLOOR}), {e(f'a{k}')})"
+    if t.kind == "hinge":
+        return (f"safe_power(jnp.maximum(({z} - {e(sym + '0')}) / {ref}, 0.0), "
+                f"jnp.maximum({e(f'a{k}')}, {HINGE_MIN}))")
+    if t.kind == "step":
+        return f"jax.nn.sigmoid(({z} - {e(sym + '0')}) / {e(sym + '_width')})"
+    if t.kind == "exp":
+        return f"jnp.exp(jnp.clip(({z} - {ref}) / {e(sym + '_e')}, -50.0, 50.0))"
+    return "1.0"
+
+
+POWER_FLOOR = 1e-3  # as `effects.law.POWER_FLOOR`
+HINGE_MIN = 0.5  # as `effects.law.HINGE_MIN_EXPONENT`
+
+
+def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: float,
+                    loo_rmse_um: float | None, noise_um: float) -> str:
+    """The text of `law.py` for a fitted `law` and its `consts` ({NAME: (value, stderr,
+    unit)}, `effects.law.constants`)."""
+    fitted = {n: c for n, c in consts.items() if not n.endswith("_ref")}
+    refs = {n: c for n, c in consts.items() if n.endswith("_ref")}
+    keys = {n: parameter_key(n, u) for n, (_, _, u) in fitted.items()}
+    lines_c = []
+    for n, (v, s, u) in consts.items():
+        err = f" ± {s:.3g}" if s is not None and math.isfinite(s) and s > 0 else ""
+        what = "reference, fixed" if n in refs else f"key {keys[n]}"
+        lines_c.append(f"    {n} = {v:.6g}{err} {'' if u == '-' else u}  ({what})")
+    params = []
+    strength = "A" if law.form == "factor" else "D"
+    for n, (v, s, u) in fitted.items():
+        sd = s if s is not None and math.isfinite(s) and s > 0 else max(0.1 * abs(v), 1e-3)
+        if n == strength:
+            lo, hi, off = 0.0, max(100.0 * abs(v), 1.0), 0.0
+        elif n.startswith("a"):
+            lo, hi, off = (HINGE_MIN if "hinge" in _kind_of(law, n) else -3.0), 6.0, v
+        else:
+            span = max(50.0 * abs(v), 50.0 * sd, 1e-9)
+            lo, hi, off = v - span, v + span, v
+            if n.endswith("_width") or n.endswith("_e"):
+                lo, hi = (min(v / 1e3, v * 1e3), max(v / 1e3, v * 1e3)) if v != 0 else (
+                    -span, span)
+        lo, hi = min(lo, v), max(hi, v)
+        doc = f"{n}: {'strength' if n == strength else 'constant'} of the law [{u}]"
+        params.append(f'        "{keys[n]}": jw.EffectParameter(\n'
+                      f'            1.0, {v!r}, {off!r}, {lo!r}, {hi!r},\n'
+                      f'            "{doc}", scale={sd!r}),')
+    ref_lines = [f"{SYMBOLS[t.variable].upper()}_REF = {t.ref!r}  # z_s of "
+                 f"{t.variable} [{t.unit}]" for t in law.terms if t.kind in
+                 ("power", "hinge", "exp")]
+    phi = " * ".join(_term_code(law, k, keys) for k in range(1, len(law.terms) + 1))
+    if law.form == "factor":
+        ret = f'return rate * (1.0 + e["{keys["A"]}"] * phi)'
+    else:
+        ret = (f'return rate + e["{keys["D"]}"] * DEPOSIT_UNIT_M * phi * swept_kernel(\n'
+               f'            ctx.load_angle, ctx.pressure.shape[1])')
+    loo = f"{loo_rmse_um:.4f}" if loo_rmse_um is not None else "-"
+    terms = "; ".join(f"φ{k} = {term_formula(t, k)}" for k, t in enumerate(law.terms, 1))
+    return f'''"""{EFFECT_NAME}: the wear law that `jaxwear diagnose --shape` found (issue 43).
+
+Study: {study_path}
+
+    {formula(law)}
+    ({terms})
+
+Constants (fitted through the wear loop with K_d and the clearances; value ± standard error):
+{chr(10).join(lines_c)}
+
+Fitted: RMSE {rmse_um:.4f} µm, on left-out experiments {loo} µm; noise {noise_um:.4f} µm.
+
+Load it in a study:
+
+    [model]
+    effect_files = ["law.py"]    # path relative to the study file
+    effects = ["{EFFECT_NAME}"]
+
+Its strength {strength} (key {keys[strength]}) is 0 off and the fitted value by default; the
+other constants are parameters too (defaults: the fitted values), which calibrate can refit
+(--fit K_d,clearance,{keys[strength]},...). In Python: `jw.register_effect(FoundLaw())`.
+"""
+
+import jax
+import jax.numpy as jnp
+
+import jaxwear as jw
+from jaxwear.effects import safe_power
+from jaxwear._physics.effects.shape import state_variables, swept_kernel
+
+DEPOSIT_UNIT_M = 1e-9  # D = 1 is 1 nm·rad of depth per step (volume D R_b B)
+{chr(10).join(ref_lines)}
+
+
+class FoundLaw(jw.Effect):
+    name = "{EFFECT_NAME}"
+    parameters = {{
+{chr(10).join(params)}
+    }}
+    signature = {("the law found by diagnose --shape: " + law.label)!r}
+
+    def local_rate(self, p, rate, ctx):
+        e = p.effect_params
+        z = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
+                            ctx.load_angle, ctx.load, ctx.worn_depth)
+        z = {{k: jnp.broadcast_to(v, ctx.pressure.shape) for k, v in z.items()}}
+        phi = {phi}
+        {ret}
+'''
+
+
+def _kind_of(law: LawSpec, name: str) -> str:
+    """The kind of the term an exponent `a<k>` belongs to."""
+    try:
+        return law.terms[int(name[1:]) - 1].kind
+    except (ValueError, IndexError):
+        return ""
