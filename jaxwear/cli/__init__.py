@@ -95,8 +95,10 @@ def _run(argv) -> int:
 
         where = effect_file_frame(e)  # an effect from a file that failed inside a run
         # jaxwear's own failures say what happened in words; anything else is a fault of
-        # the program, said as one (the exception's name is for the bug report)
+        # the program, said as one (the exception's name is for the bug report); an
+        # exception raised in a user's effect file is that file's, named where it was
         what = (_one_line(e) if isinstance(e, OWN_FAILURES) else
+                f"{type(e).__name__}: {_one_line(e)}" if where else
                 f"internal error ({type(e).__name__}: {_one_line(e)}); please report it "
                 f"with the study (JAXWEAR_DEBUG=1 shows the traceback)")
         print(f"jaxwear: {where + ': ' if where else ''}{what}", file=sys.stderr)
