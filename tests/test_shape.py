@@ -16,7 +16,8 @@ import pytest
 import jaxwear as jw
 from jaxwear._analyses.diagnose import Model
 from jaxwear._analyses.diagnose import _shape_linear as lin
-from jaxwear._analyses.diagnose._shape import choose_best, make_basis
+from jaxwear._analyses.diagnose._shape import choose_best
+from jaxwear._analyses.diagnose._shape_design import make_basis
 from jaxwear._physics.effects.shape import (
     DEPOSIT_VARIABLES,
     VARIABLES,

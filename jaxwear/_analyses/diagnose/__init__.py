@@ -80,7 +80,8 @@ from jaxwear._analyses.diagnose._fit import Fit, fit_masked
 from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._analyses.diagnose._result import METHOD_NOTE, Candidate, Diagnosis
 from jaxwear._analyses.diagnose._screen import SHAPE_GRID, Screen, screen
-from jaxwear._analyses.diagnose._shape import ShapeResult, VariableShape, shape_analysis
+from jaxwear._analyses.diagnose._shape import shape_analysis
+from jaxwear._analyses.diagnose._shape_result import ShapeResult, VariableShape
 from jaxwear._analyses.diagnose._shape_text import threshold
 from jaxwear._analyses.diagnose._stats import (
     ALPHA,

@@ -29,7 +29,8 @@ from jaxwear._analyses.diagnose._refit import (
 )
 from jaxwear._analyses.diagnose._result import Candidate, Diagnosis
 from jaxwear._analyses.diagnose._screen import screen
-from jaxwear._analyses.diagnose._shape import Background, at_answer, prepare_design, shape_analysis
+from jaxwear._analyses.diagnose._shape import shape_analysis
+from jaxwear._analyses.diagnose._shape_design import Background, at_answer, prepare_design
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs
 from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._core.errors import InputError

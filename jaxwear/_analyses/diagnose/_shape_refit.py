@@ -1,0 +1,142 @@
+"""The shape's correction refitted through the wear loop on its carrying variables (the
+one least-squares core), and the correction as data for the effect file."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from jaxwear._analyses.diagnose import _shape_linear as lin
+from jaxwear._analyses.diagnose._fit import _log
+from jaxwear._analyses.diagnose._model import Model
+from jaxwear._analyses.diagnose._shape_design import (
+    FACTOR_SD,
+    MAX_CARRIERS,
+    REFIT_EVALUATIONS,
+    Background,
+    _map_u,
+)
+from jaxwear._analyses.diagnose._shape_map import compile_maps
+from jaxwear._inference import lsq
+from jaxwear._physics.effects.shape import ShapeBasis
+
+
+def _carriers(results, top) -> tuple:
+    """The variables of the refitted correction: the best, then the others of its form
+    that carry the misfit jointly (at most `MAX_CARRIERS`), by unique share."""
+    others = sorted([v for v in results if v.form == top.form and v.carries
+                     and v.name != top.name], key=lambda v: -v.unique_fraction)
+    return tuple([top.name] + [v.name for v in others][:MAX_CARRIERS - 1])
+
+
+def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
+           sigma, Jw, rho_full, verbose, deepest: int):
+    """The correction of `form` along the `carriers`, refitted with the fit's own
+    parameters through the wear loop by the one least-squares core, with its true Jacobian
+    (a model with those columns only), the roughness penalty (at the linearised λ) and, for
+    a factor, the zero sum of each variable's coefficients and N(0, FACTOR_SD²) on each as
+    prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
+    answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
+    None)."""
+
+    labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
+    vars_ = [blocks[lab][4] for lab in labels]
+    # the fit's own candidate groups only (the design may carry more, held at off)
+    cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_)))
+    # the when/where map of this model compiles in the background while the refit runs
+
+    maps = Background(compile_maps, cm, deepest)
+    u0 = _map_u(smodel, u, cm)
+    # the joint linearised start over the carriers (their GCV penalty)
+    A, S = lin.block_penalty([blocks[lab][:2] for lab in labels])
+    pf = lin.penalised_fit(A, S, rho, n_res, math.inf, None, 0)
+    lam = pf.lam
+    a = lin.nonnegative_fit(A, S, rho, lam) if form == "deposit" else pf.a
+    k = 0
+    shift = rho_full.copy()
+    for lab in labels:
+        _, _, Z, cols_v, var = blocks[lab]
+        m = Z.shape[1]
+        c = Z @ a[k:k + m]
+        k += m
+        for key, val in zip(var.keys(), c):
+            u0[cm.index[key]] = val
+        shift = shift - Jw[:, cols_v] @ c
+    # the fit's own parameters move with the correction (K_d takes its level): their
+    # least-squares step on what the correction leaves
+    if free_base:
+        Xb = Jw[:, free_base]
+        du = np.linalg.lstsq(Xb, shift, rcond=None)[0]
+        for i, d in zip(free_base, du):
+            u0[cm.index[smodel.names[i]]] += d
+    cols = [cm.index[key] for var in vars_ for key in var.keys()]
+    free = np.zeros(len(cm.names), bool)
+    base_names = [smodel.names[i] for i in free_base]
+    free[[cm.index[nm] for nm in base_names]] = True
+    free[cols] = True
+    lo, hi = cm.bounds_u()
+    D = [np.linalg.cholesky(v.roughness() + 1e-12 * np.eye(v.size)).T for v in vars_]
+
+    def evaluate(v):
+        e = cm.evaluate(v)
+        pt = e.point()
+        rows, J = [], []
+        k = 0
+        for var, Dv in zip(vars_, D):
+            idx = [cm.index[key] for key in var.keys()]
+            c = v[idx]
+            w = math.sqrt(lam)
+            r = w * (Dv @ c)
+            Jr = np.zeros((len(r), len(v)))
+            Jr[:, idx] = w * Dv
+            rows.append(r), J.append(Jr)
+            if var.form == "factor":  # a level shift of g is K_d's, not the correction's
+                r1 = np.array([np.sum(c) / (0.01 * var.size)])
+                J1 = np.zeros((1, len(v)))
+                J1[0, idx] = 1.0 / (0.01 * var.size)
+                rows.append(r1), J.append(J1)
+                # g = ln of the rate factor, N(0, FACTOR_SD²) per coefficient
+                rows.append(c / FACTOR_SD)
+                J2 = np.zeros((len(c), len(v)))
+                J2[np.arange(len(c)), idx] = 1.0 / FACTOR_SD
+                J.append(J2)
+            k += 1
+        return replace(pt, r_prior=np.concatenate([pt.r_prior, *rows]),
+                       J_prior=np.vstack([pt.J_prior, *J]))
+
+    log = (lambda m: _log(True, m)) if verbose else None
+    _log(verbose, f"    refit of the {form} correction along {', '.join(carriers)} through the "
+                  f"loop (true Jacobian)")
+    out = lsq.solve(evaluate, np.clip(u0, lo, hi), free=free, lower=lo, upper=hi,
+                    noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
+                    project=cm.packing.project, label=f"    shape {form}", log=log)
+    maps.result()
+    r = out.point.r
+    snaps = getattr(out.point.extra, "snaps", None)
+    if snaps is not None and not np.array_equal(np.asarray(out.point.u), np.asarray(out.u)):
+        snaps = None
+    return (float(np.sqrt(np.mean(r ** 2))), out.status, cm, out.u, _full_cov(out, free),
+            snaps)
+
+
+def _full_cov(out: lsq.Outcome, free) -> np.ndarray:
+    """The covariance of all of u (P, P), zero on held columns."""
+    P = len(free)
+    C = np.zeros((P, P))
+    idx = np.flatnonzero(free)
+    cov = out.errors.cov if out.errors is not None else out.cov.cov
+    C[np.ix_(idx, idx)] = np.where(np.isfinite(cov), cov, 0.0)
+    return C
+
+
+def _correction(cm: Model, u, carriers, form) -> dict:
+    """The refitted correction as data (for the effect file): per variable its form,
+    size, knots and coefficients."""
+    out = {"form": form, "variables": []}
+    for var in cm.ext.cfg.shape.variables:
+        out["variables"].append({"name": var.name, "form": var.form, "size": var.size,
+                                 "knots": list(var.knots),
+                                 "coefficients": [float(u[cm.index[k]]) for k in var.keys()]})
+    return out
