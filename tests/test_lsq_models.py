@@ -119,7 +119,8 @@ def test_noise_refusal_before_any_evaluation_in_predict(monkeypatch, tmp_path):
     (root / "boom.csv").write_text((src.parent / "boom.csv").read_text())
     study = load_study(root / "study.toml")
     _no_evaluation(monkeypatch)
-    with pytest.raises(InputError, match=r"do not determine the noise level.*--noise-um"):
+    # (jw.predict names its argument noise_um; the command line says --noise-um)
+    with pytest.raises(InputError, match=r"do not determine the noise level.*noise_um"):
         jw.predict(study, [20.0, 25.0], train_until=15.0)
 
 
