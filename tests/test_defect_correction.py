@@ -100,6 +100,14 @@ def test_one_jacobian_compile_and_the_answer_at_the_finer_level(study, auto):
     assert (res["nodes"], res["steps_per_rev"]) == LEVELS[1]
     assert res["defect_corrections"] >= 1
     assert res["correction_step_standard_errors"] <= _resolution.FIT_SE_TOL
+    # one line says the answer needed the finest level, how far the coarser one was (its
+    # first check, before the corrections: over the tolerance) and what the level cost
+    (flag,) = [f for f in auto.flags if f.startswith("resolution: the fit needed the finest")]
+    assert "64 x 72" in flag and "at 32 x 36 the answer was" in flag, flag
+    away = float(flag.split("the answer was ")[1].split(" standard errors")[0])
+    assert away > _resolution.FIT_SE_TOL, flag
+    runs = int(flag.split("; ")[1].split(" forward run")[0])
+    assert 1 <= runs <= auto.forward_runs, flag
     assert compiles["jacobian"] == 1, compiles  # one Jacobian, the coarse level's
     assert auto.compiles == compiles
     assert auto.forward_runs >= 2 and auto.to_json()["compiles"] == sum(compiles.values())

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import replace
 
 import jax
@@ -262,11 +263,17 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     spent = result.iterations  # every evaluation of the answer, the first fit's on
     forward = 0  # of them, forward runs
     report = None
+    t_start = time.perf_counter()
+    finest_s, finest_runs = 0.0, 0  # forward runs at the finest level, and their time
     for i in range(1, len(levels)):
         fine = build_problem(res.at_level(base, levels[i]), keys, start, layout=layout)
         ratio, tries, still = math.inf, 0, False
         while True:
+            t0 = time.perf_counter()
             f = forward_run(fine, result.u)
+            if i + 1 == len(levels):
+                finest_s += time.perf_counter() - t0
+                finest_runs += 1
             fine = f.model
             spent, forward = spent + 1, forward + 1
             if not f.usable:
@@ -280,6 +287,8 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
             ratio = lsq.step_in_standard_errors(pt, result.error_scale_um, lo, hi,
                                                 relative_to=ev.point())[0]
             ok = ratio <= res.FIT_SE_TOL
+            if tries == 0:
+                first = ratio  # this level's check before any correction to it
             _log(verbose, f"  resolution: a Gauss-Newton step with the rows of "
                           f"{_lv(levels[i])} (forward run) moves the answer at "
                           f"{_lv(levels[at])} by {ratio:.2g} standard errors"
@@ -323,9 +332,16 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
             report = res.report(levels[i], None, kind="fit", value=ratio, ok=False)
             break
         if i + 1 == len(levels):
-            result.flags.append(f"resolution: the fit needed the finest level "
-                                f"{_lv(levels[i])}, which is not checked against a finer "
-                                f"one")
+            # one line on why and what it cost: a model whose rows still move between the
+            # two finest levels has wear made by what a coarser cycle does not resolve
+            # (fast events: a load that swings round at the force reversals, an impact)
+            result.flags.append(
+                f"resolution: the fit needed the finest level {_lv(levels[i])}, which is "
+                f"not checked against a finer one: at {_lv(levels[i - 1])} the answer was "
+                f"{first:.2g} standard errors away (wear made by something the coarser "
+                f"cycle does not resolve, e.g. fast events at the force reversals); "
+                f"{finest_runs} forward run(s) there took {finest_s:.0f} s of the "
+                f"{time.perf_counter() - t_start:.0f} s the resolution checks took")
             report = res.report(levels[i], None, kind="fit", value=None, ok=False)
     report.update(res.correction_report(levels[0], levels[at] if at else None, corrections,
                                         correction_step))
