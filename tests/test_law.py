@@ -191,21 +191,43 @@ def test_shape_law_json_is_the_design_contract():
 
 
 def test_a_product_starts_from_the_single_law_fitted_before_it():
-    """The product's first term is the single law as fitted along the same variable, its
-    strength that law's over the second term's mean over its range (by hand: a power
-    x^1 on a uniform grid of t whose z runs 0.1..0.3 over a reference 0.2 has mean 1)."""
+    """The product's first term is the single law as fitted along the same variable. A
+    second term that can be 1 everywhere (a power of exponent 0) starts so, with the single
+    law's strength: the product is then the single law exactly (checked on Φ itself). A
+    step's strength is the single law's over the step's mean over the range (by hand: a
+    step at x0 = -4 references, width 0.1, is 1 to 1e-17 over z = 0.1..0.3)."""
     from jaxwear._analyses.diagnose._law import LawFit, from_fitted
 
     single = LawSpec("factor", (Term("power", "pressure_MPa", 2.0, a=1.7),), 0.9)
     fitted = [LawFit(single, 0.31, 0.33, 10.0, "converged", 5, {}, 1.0)]
     var = ShapeVariable("sliding_speed_m_per_s", 10, tuple(np.linspace(0.1, 0.3, 33)),
                         "factor")
+    linear = {"blocks": {"sliding_speed_m_per_s": (None, None, None, None, var)}}
     t2 = Term("power", "sliding_speed_m_per_s", 0.2, a=1.0)
     prod = LawSpec("factor", (Term("power", "pressure_MPa", 2.0, a=0.5), t2), 0.1)
-    out = from_fitted(prod, fitted, {"blocks": {"sliding_speed_m_per_s": (
-        None, None, None, None, var)}})
-    assert out.terms[0] == single.terms[0] and out.terms[1] == t2
-    assert out.strength == pytest.approx(0.9, rel=1e-6)
+    out = from_fitted(prod, fitted, linear)
+    assert out.terms[0] == single.terms[0] and out.terms[1].a == 0.0
+    assert out.strength == pytest.approx(0.9, rel=1e-12)
+    z = {"pressure_MPa": np.linspace(0.2, 4.0, 50), "sliding_speed_m_per_s":
+         np.linspace(0.01, 0.08, 50)}
+    np.testing.assert_allclose(law_phi_numpy(out, z), law_phi_numpy(single, z), rtol=1e-12)
+    step = Term("step", "sliding_speed_m_per_s", 0.2, x0=-4.0, w=0.1)
+    out = from_fitted(LawSpec("factor", (single.terms[0], step), 0.1), fitted, linear)
+    assert out.terms[1] == step and out.strength == pytest.approx(0.9, rel=1e-9)
+
+
+def test_a_deposit_law_is_referred_to_where_the_shape_puts_it():
+    """A deposit's laws take the shape's peak as their reference (a factor's keep the
+    wear-weighted median): the strength is then the deposit at its events."""
+    from jaxwear._analyses.diagnose._law import reference, single_laws
+
+    var = ShapeVariable("load_turn_rate_deg_per_s", 10, tuple(np.geomspace(1.0, 3e4, 33)),
+                        "deposit")
+    dep = single_laws(var, "deposit", peak=2.2e4)
+    assert dep and all(law.terms[0].ref == 2.2e4 for law in dep)
+    fac = single_laws(var, "factor", peak=2.2e4)
+    assert all(law.terms[0].ref == reference(var) != 2.2e4 for law in fac)
+    assert all(law.terms[0].ref == reference(var) for law in single_laws(var, "deposit"))
 
 
 def test_the_shapes_variable_leads_and_the_prescreens_own_choice_follows():

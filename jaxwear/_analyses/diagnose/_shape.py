@@ -235,7 +235,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                            np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
                            exp_name, tuple(alternatives), forms, tuple(carriers), correction,
                            ww, num_info, design=design_out,
-                           linear={"blocks": blocks, "rho": rho})
+                           linear={"blocks": blocks, "rho": rho,
+                                   "peaks": {v.label: v.peak_at for v in results}})
 
     def finish() -> ShapeResult:
         """The refit through the loop and the when/where map (the costly part)."""
