@@ -25,7 +25,7 @@ from jaxwear._physics.effects.law import (
     law_phi_numpy,
     searching,
 )
-from jaxwear._physics.effects.shape import ShapeVariable, state_variables
+from jaxwear._physics.effects.shape import ShapeVariable, state_variables, swept_kernel
 from jaxwear._report.law_file import law_file_source
 from jaxwear.effects import load_effect_file, unregister_effect
 
@@ -86,6 +86,14 @@ def test_law_file_round_trips_and_both_give_the_formula(tmp_path, law):
         assert np.ptp(phi) > 0.1  # the law varies over the cycle: the check can fail
     else:
         assert np.all(mine >= rate0 - 1e-30) and np.sum(mine - rate0) > 0
+        # the kernel the loop hands the hook once per run (`ctx.swept`) is the kernel of
+        # this cycle's load directions, computed directly
+        z = state_variables(sol.pressure, hist.slide[0], hist.dt[0], jnp.asarray(40.0),
+                            hist.angle[0], hist.load[0], h)
+        z = {k: np.broadcast_to(np.asarray(v), rate0.shape) for k, v in z.items()}
+        kern = np.asarray(swept_kernel(hist.angle[0], cfg.nodes))
+        want = rate0 + 1e-9 * law.strength * law_phi_numpy(law, z) * kern
+        np.testing.assert_allclose(mine, want, rtol=1e-10, atol=1e-30)
 
 
 def _variable(name, lo, hi):

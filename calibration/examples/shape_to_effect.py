@@ -50,13 +50,15 @@ class ImpactWear(jw.Effect):
         1e-9, 0.0, 0.0, 0.0, 1e4, "C: depth x arc per radian of load sweep beyond OMEGA0 "
         "[nm·rad/rad]", scale=0.01)}}
     signature = "extra wear at the force reversals, where the load swings round fast"
+    uses_swept_kernel = True  # ctx.swept: the deposit's kernel, computed once per run
 
     def local_rate(self, p, rate, ctx):
         w = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
                             ctx.load_angle)["load_turn_rate_deg_per_s"][:, 0]
         swept = jnp.radians(jnp.maximum(w - OMEGA0, 0.0)) * ctx.dt  # rad beyond OMEGA0
         e = p.effect_params["impact_wear_nm"] * swept  # [m·rad] per step
-        return rate + e[:, None] * swept_kernel(ctx.load_angle, ctx.pressure.shape[1])
+        kernel = ctx.swept  # swept_kernel(ctx.load_angle, nodes), once per run
+        return rate + e[:, None] * kernel
 '''
 # -------------------------------------------------------------------------------------------
 

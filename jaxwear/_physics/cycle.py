@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -14,7 +15,7 @@ from jaxwear._core.types import Array, Float, NodeArray, Scalar
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.contact import solve_contact, stiffness_per_area
 from jaxwear._physics.effects import RateContext, get_effect
-from jaxwear._physics.effects.shape import precompute, shape_terms
+from jaxwear._physics.effects.shape import precompute, shape_terms, swept_kernel
 from jaxwear._physics.load import LoadHistory, load_history
 from jaxwear._physics.params import Params
 
@@ -60,6 +61,9 @@ def run_history(p: Params, cfg: ModelConfig) -> LoadHistory:
     hist = load_history(p, cfg)
     if cfg.shape is not None:
         hist = dataclasses.replace(hist, shape_pre=precompute(cfg.shape, hist, cfg.nodes))
+    if any(getattr(get_effect(n), "uses_swept_kernel", False) for n in cfg.effects):
+        hist = dataclasses.replace(hist, swept=jax.vmap(
+            lambda a: swept_kernel(a, cfg.nodes))(hist.angle))
     return hist
 
 
@@ -82,7 +86,8 @@ def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, slidi
                         friction=friction, iterations=cfg.newton_iterations, start=start)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
     if effects:
-        ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load, h)
+        ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load, h,
+                          None if hist.swept is None else hist.swept[regime])
         for eff in effects:
             rate = eff.local_rate(p, rate, ctx)
     if cfg.shape is not None:

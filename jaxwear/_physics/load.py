@@ -29,7 +29,9 @@ class LoadHistory(eqx.Module):
     - `period` (regimes,): the cycle's duration [s];
     - `gamma_change`: the SCLA's last-pass |Δγ| [rad] (0 for other algorithms);
     - `fx`, `fy`: the joint force's components in the ground frame [N];
-    - `shape_pre`: the shape correction's constant parts (None without one).
+    - `shape_pre`: the shape correction's constant parts (None without one);
+    - `swept` (regimes, steps, nodes) [1/rad]: the deposit's kernel
+      (`effects.shape.swept_kernel`), where an effect declares `uses_swept_kernel`.
     """
 
     load: Float[Array, "regimes steps"]  # |W| [N]
@@ -42,6 +44,7 @@ class LoadHistory(eqx.Module):
     fx: Float[Array, "regimes steps"]  # joint force components, ground frame [N]
     fy: Float[Array, "regimes steps"]
     shape_pre: object = None  # the shape correction's constant parts (`effects.shape`)
+    swept: object = None  # (regimes, steps, nodes) swept kernel, where an effect uses it
 
 
 def _crank_slider(p: Params, cfg: ModelConfig) -> LoadHistory:

@@ -38,7 +38,7 @@ In Python: `import jaxwear as jw; jw.register_effect(MissingWear())` before load
 import jax.numpy as jnp
 
 import jaxwear as jw
-from jaxwear._physics.effects.shape import state_variables, swept_kernel
+from jaxwear.effects import state_variables, swept_kernel
 
 FORM = {form!r}  # "factor": rate x exp(gain g(z)); "deposit": rate + gain e(z) kernel
 DEPOSIT_UNIT_M = 1e-9  # e = 1 is 1 nm·rad of depth per step (volume e R_b B)
@@ -81,6 +81,7 @@ class MissingWear(jw.Effect):
         1.0, 1.0, 0.0, 0.0, 10.0, "gain of the fitted correction: 0 off, 1 as fitted [-]",
         scale=0.1, realistic=1.0)}}
     signature = {signature!r}
+    uses_swept_kernel = FORM == "deposit"  # its kernel computed once per run: ctx.swept
 
     def local_rate(self, p, rate, ctx):
         z = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
@@ -90,7 +91,8 @@ class MissingWear(jw.Effect):
         if FORM == "factor":
             return rate * jnp.exp(gain * correction(z))
         e = jnp.maximum(correction(z), 0.0)  # a deposit is never negative
-        kernel = swept_kernel(ctx.load_angle, ctx.pressure.shape[1])  # at the load direction
+        kernel = (swept_kernel(ctx.load_angle, ctx.pressure.shape[1]) if ctx.swept is None
+                  else ctx.swept)  # at the load direction
         return rate + gain * DEPOSIT_UNIT_M * e * kernel
 '''
 

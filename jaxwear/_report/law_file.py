@@ -90,8 +90,9 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
     if law.form == "factor":
         ret = f'return rate * (1.0 + e["{keys["A"]}"] * phi)'
     else:
-        ret = (f'return rate + e["{keys["D"]}"] * DEPOSIT_UNIT_M * phi * swept_kernel(\n'
-               f'            ctx.load_angle, ctx.pressure.shape[1])')
+        ret = (f'kernel = (swept_kernel(ctx.load_angle, ctx.pressure.shape[1]) if ctx.swept '
+               f'is None\n                  else ctx.swept)\n'
+               f'        return rate + e["{keys["D"]}"] * DEPOSIT_UNIT_M * phi * kernel')
     loo = f"{loo_rmse_um:.4f}" if loo_rmse_um is not None else "-"
     terms = "; ".join(f"φ{k} = {term_formula(t, k)}" for k, t in enumerate(law.terms, 1))
     return f'''"""{EFFECT_NAME}: the wear law that `jaxwear diagnose --shape` found (issue 43).
@@ -121,8 +122,7 @@ import jax
 import jax.numpy as jnp
 
 import jaxwear as jw
-from jaxwear.effects import safe_power
-from jaxwear._physics.effects.shape import state_variables, swept_kernel
+from jaxwear.effects import safe_power, state_variables, swept_kernel
 
 DEPOSIT_UNIT_M = 1e-9  # D = 1 is 1 nm·rad of depth per step (volume D R_b B)
 {chr(10).join(ref_lines)}
@@ -134,6 +134,7 @@ class FoundLaw(jw.Effect):
 {chr(10).join(params)}
     }}
     signature = {("the law found by diagnose --shape: " + law.label)!r}
+    uses_swept_kernel = {law.form == "deposit"!r}  # the kernel once per run: ctx.swept
 
     def local_rate(self, p, rate, ctx):
         e = p.effect_params

@@ -39,6 +39,7 @@ import numpy as np
 
 from jaxwear._core.errors import InputError
 from jaxwear._physics.effects._base import Effect, RateContext
+from jaxwear._physics.effects.shape import swept_kernel
 from jaxwear._physics.params import preset
 
 STEPS, NODES = 6, 8
@@ -88,6 +89,8 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
         params[k] = jnp.asarray(s.default * s.to_si, jnp.float64)
     base = eqx.tree_at(lambda p: p.effect_params, base, params)
     pressure, slide, dt, angle, load = _cycle()
+    # as the wear loop gives them: the kernel where the effect asks for it (else None)
+    swept = swept_kernel(angle, NODES) if getattr(eff, "uses_swept_kernel", False) else None
     rate = base.wear_coefficient * pressure * slide[:, None]
     sense = jnp.where(jnp.arange(STEPS) % 2 == 0, 1.0, -1.0)
     name = type(eff).__name__
@@ -124,7 +127,8 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
                                  f"(steps,) = ({STEPS},)")
             _finite(fail, "friction", mu, "coefficient")
         for slid in SLID_M:
-            ctx = RateContext(pressure, slide, dt, jnp.asarray(slid), angle, load)
+            ctx = RateContext(pressure, slide, dt, jnp.asarray(slid), angle, load,
+                              jnp.zeros(NODES), swept)
             out = _array(call("local_rate", rate, ctx))
             if out is None or out.shape != (STEPS, NODES):
                 fail("local_rate", f"returned {_shape(out)}; expected the wear per step and "

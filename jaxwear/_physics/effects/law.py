@@ -124,6 +124,7 @@ class LawSearch(Effect):
     name = LAW_EFFECT
     parameters = _parameters()
     signature = "a law of the grammar (diagnose's law search)"
+    uses_swept_kernel = True  # computed once per run (`RateContext.swept`)
 
     def local_rate(self, p, rate, ctx):
         e = p.effect_params
@@ -137,7 +138,7 @@ class LawSearch(Effect):
         return out + jax.lax.cond(
             e["law_form"] > 0.5,
             lambda: DEPOSIT_UNIT_M * e["law_deposit"] * phi
-            * swept_kernel(ctx.load_angle, shape[1]),
+            * (swept_kernel(ctx.load_angle, shape[1]) if ctx.swept is None else ctx.swept),
             lambda: jnp.zeros(shape))
 
 
