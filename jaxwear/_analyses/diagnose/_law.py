@@ -339,6 +339,22 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     return dataclasses.replace(res, sentence=law_sentence(res))
 
 
+def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
+    """The law model's program traced and compiled (one for every law of the search) by
+    one evaluation of the first candidate's start, ahead of `search`: diagnose runs it in
+    the background while the shape's correction is refitted through the loop (tracing
+    and compiling the law model took 10-17 s of the search's 21-73 s on the impact
+    study). Failures are left to the search, which meets them again and reports them."""
+    try:
+        todo = candidates(prescreen(linear), THROUGH_LOOP, prefer)
+        if todo:
+            with searching():
+                lm = law_model(model, fit, todo[0][1])
+                lm.evaluate(np.zeros(len(lm.names)))
+    except Exception:  # noqa: BLE001 (the search reports it where it matters)
+        return
+
+
 def from_fitted(law: LawSpec, fitted, linear: dict) -> LawSpec:
     """A product's start from the single law fitted before it along its first variable:
     that term as fitted, the strength divided by the second term's wear-weighted mean

@@ -17,7 +17,7 @@ from jaxwear._analyses.diagnose._evidence import (
     loo,
 )
 from jaxwear._analyses.diagnose._fit import _log, fit_masked
-from jaxwear._analyses.diagnose._law import search
+from jaxwear._analyses.diagnose._law import search, warm
 from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._analyses.diagnose._refit import (
     _check_derivatives,
@@ -316,6 +316,9 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         drawing = None
         if figures is not None:
             drawing = Background(figures, [shp, after])
+        # the law model compiled while the shape's correction is refitted (`_law.warm`)
+        warming = (Background(warm, model, base, shp.linear, (shp.form, shp.best))
+                   if law and shp.best is not None and shp.linear else None)
         shp = shp.finished()
         after = after.finished() if after is not None else None
         if drawing is not None:
@@ -323,6 +326,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             shp = replace(shp, pngs=pngs)
             if after is not None:
                 after = replace(after, pngs=pngs_after)
+        if warming is not None:
+            warming.result()
         if law and shp.best is not None and shp.linear:
             # the law of the grammar that explains the base model's misfit (the study as
             # written: with a library effect that only approximates, the law replaces it)
