@@ -47,7 +47,6 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jaxwear as jw  # noqa: E402
-from jaxwear._analyses.predict.forecast import parameter_covariance  # noqa: E402
 from jaxwear._analyses.predict.grid import training_study  # noqa: E402
 from jaxwear._analyses.predict.nuts import _arviz, sampling_setup, u_of_samples  # noqa: E402
 from jaxwear._inference.calibrate import build_problem, fit, parse_fit  # noqa: E402
@@ -216,7 +215,7 @@ def main(argv=None):
         return None
     with tempfile.TemporaryDirectory() as tmp:
         problem, result = boom_problem() if a.case == "boom" else rig_problem(Path(tmp))
-    cov, _ = parameter_covariance(result, result.noise_um)
+    cov = result.covariance.cov  # the fit's Laplace covariance of u, as predict takes it
     problem, white, logp, z0 = sampling_setup(problem, result, None, cov)
     print(f"case {a.case}: {list(problem.names)} + noise, {problem.n_data} rows; "
           f"warmup {a.warmup}, draws {a.draws}, chains {a.chains}, seed {a.seed}", flush=True)
