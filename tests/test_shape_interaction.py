@@ -203,3 +203,31 @@ def test_variables_the_experiments_vary_together_are_confounded_and_the_text_say
     line = next(x for x in s.split(". ") if "cannot tell" in x)
     assert "--goal separate" in line and "sliding_speed_m_per_s" in line
     assert "AIC within" not in s
+
+
+def test_the_effect_file_computes_the_surface_as_the_model_does():
+    """`missing_wear.py` holds a refitted surface beside a variable's spline: its
+    `correction(z)` is the model's Σ terms (`ShapeVariable.basis`, `ShapeTensor.basis`) at
+    the same states, the surface over a periodic and a clamped variable."""
+    from jaxwear._report.effect_file import effect_file_source
+
+    rng = np.random.default_rng(7)
+    v = _var("pressure_MPa", 10)
+    t = ShapeTensor(ShapeVariable("cycle_phase_deg", 5, (), "factor"),
+                    _var("sliding_speed_m_per_s", 4))
+    cv, ct = rng.standard_normal(10), rng.standard_normal(20)
+    corr = {"form": "factor",
+            "variables": [{"name": v.name, "form": "factor", "size": 10,
+                           "knots": list(v.knots), "coefficients": list(cv)}],
+            "tensors": [{"variables": [t.a.name, t.b.name], "form": "factor", "size": [5, 4],
+                         "knots": [[], list(t.b.knots)], "coefficients": list(ct)}]}
+    src = effect_file_source(V(correction=corr, sentence="a test"), "study.toml")
+    ns = {}
+    exec(compile(src, "missing_wear.py", "exec"), ns)
+    z = {"pressure_MPa": jnp.asarray(rng.uniform(0, 1, 30)),
+         "cycle_phase_deg": jnp.asarray(rng.uniform(0, 360, 30)),
+         "sliding_speed_m_per_s": jnp.asarray(rng.uniform(0, 1, 30))}
+    want = (np.asarray(v.basis(z["pressure_MPa"])) @ cv
+            + np.asarray(t.basis(z["cycle_phase_deg"], z["sliding_speed_m_per_s"])) @ ct)
+    np.testing.assert_allclose(np.asarray(ns["correction"](z)), want, rtol=1e-9, atol=1e-12)
+    assert "cycle_phase_deg x sliding_speed_m_per_s" in src

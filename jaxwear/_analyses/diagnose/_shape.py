@@ -224,7 +224,11 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     surface = None
     if pair is not None:
         tensor = pair_tensor(design, *pair, lead_form)
-        surface = (tensor, Background(tensor_columns, design, tensor, own_groups, verbose))
+        # on top of an effect found, only the base analysis's pair (its columns reused): a
+        # pair of its own would compile another Jacobian (~10 s of the shape's ~60)
+        if not reused or tensor.label in design.tensors:
+            surface = (tensor, Background(tensor_columns, design, tensor, own_groups,
+                                          verbose))
     forms = {}
     for form in FORMS:
         results, forms[form] = _joint(form, results, blocks, rho, rss0, excess, n_res, nu, rng,
@@ -247,8 +251,9 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         best, form = top.name, top.form
         carriers = _carriers(results, top)
         if surface is not None and surface[0].form == form:
-            inter = _interaction(surface, sigma, ev, model, phi, n, proj, blocks, results, form,
-                                 rho, n_res, nu, rng, draws, excess, rss0, alpha_each, verbose)
+            inter = _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers,
+                                 form, rho, n_res, nu, rng, draws, excess, rss0, alpha_each,
+                                 verbose)
             if inter.significant:
                 carriers = tuple(carriers) + tuple(x for x in inter.variables
                                                    if x not in carriers)
@@ -265,7 +270,10 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                            np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
                            exp_name, tuple(alternatives), forms, tuple(carriers), correction,
                            ww, num_info, design=design_out,
-                           linear={"blocks": blocks, "rho": rho},
+                           linear={"blocks": blocks, "rho": rho, "Qb": Qb, "phi": phi,
+                                   "sigma": sigma, "n_res": n_res, "nu": nu,
+                                   "excess": excess, "rss0": rss0, "n": n,
+                                   "n_prior": len(ev.r_prior), "groups": own_groups},
                            interaction=inter, confounded=tuple(confounded))
 
     def finish() -> ShapeResult:
@@ -302,15 +310,16 @@ def choose_best(results):
     return top, alternatives
 
 
-def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, results, form, rho, n_res,
+def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers, form, rho, n_res,
                  nu, rng, draws, excess, rss0, alpha, verbose):
-    """The leading pair's surface tested on top of the form's additive fit
-    (`_shape_interaction`)."""
+    """The leading pair's surface tested on top of the additive fit of the pair and the
+    form's carriers (`_shape_interaction`)."""
     tensor, job = surface
     cols = job.result()
     A, S, Z, X = tensor_system(tensor, cols, sigma, len(ev.r_prior), model.series, phi, n,
                                proj)
-    additive = [blocks[v.label][0] for v in results if v.form == form]
+    names = list(dict.fromkeys(list(carriers) + [tensor.a.name, tensor.b.name]))
+    additive = [blocks[nm if form == "factor" else f"deposit:{nm}"][0] for nm in names]
     inter = interaction_test(tensor, A, S, Z, X, additive, rho, n_res, nu, rng, draws, excess,
                              rss0, alpha)
     _log(verbose, f"    {form}, the surface over {tensor.a.name} x {tensor.b.name} on top of "

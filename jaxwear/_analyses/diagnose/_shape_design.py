@@ -5,6 +5,7 @@ background while the verdict runs), and the model's own numerical error rows."""
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, field
 from dataclasses import replace as dreplace
 from types import SimpleNamespace
@@ -145,10 +146,11 @@ def tensor_columns(design: Design, tensor: ShapeTensor, groups=(),
         return design.tensors[tensor.label]
     jm = design.jmodel
     tm = jm.variant(candidates=list(groups), shape=ShapeBasis((), (tensor,)))
-    _log(verbose, f"    the surface over {tensor.a.name} x {tensor.b.name} ({tensor.form}): "
-                  f"{tensor.size} columns, one Jacobian")
+    t0 = time.perf_counter()
     ev = tm.evaluate(_map_u(design.smodel, design.u, tm))
     cols = np.asarray(ev.J)[:, [tm.index[k] for k in tensor.keys()]]
+    _log(verbose, f"    the surface over {tensor.a.name} x {tensor.b.name} ({tensor.form}): "
+                  f"{tensor.size} columns, one Jacobian ({time.perf_counter() - t0:.1f} s)")
     design.tensors[tensor.label] = cols
     return cols
 
