@@ -257,8 +257,6 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
             if inter.significant:
                 carriers = tuple(carriers) + tuple(x for x in inter.variables
                                                    if x not in carriers)
-        elif surface is not None:
-            surface[1].result()  # computed for another form: not used
     design_out = replace(design, evaluations=0,
                          numerical_um=design.numerical_um if elsewhere else d)
 
