@@ -231,3 +231,17 @@ def test_the_effect_file_computes_the_surface_as_the_model_does():
             + np.asarray(t.basis(z["cycle_phase_deg"], z["sliding_speed_m_per_s"])) @ ct)
     np.testing.assert_allclose(np.asarray(ns["correction"](z)), want, rtol=1e-9, atol=1e-12)
     assert "cycle_phase_deg x sliding_speed_m_per_s" in src
+
+
+def test_the_refits_sum_rows_hold_exactly_the_surfaces_of_no_single_variable():
+    """The refit's prior rows on a factor surface (each row's and each column's sum of its
+    coefficient grid at zero) vanish exactly on the analysis's constrained coefficients
+    (Z_a ⊗ Z_b) and on nothing else: their null space has the dimension (5−1)(4−1)."""
+    from jaxwear._analyses.diagnose._shape_refit import _sums
+
+    t = ShapeTensor(_var("pressure_MPa", 5), _var("sliding_speed_m_per_s", 4))
+    M = _sums(t)
+    Z = np.kron(lin.sum_zero(5), lin.sum_zero(4))
+    np.testing.assert_allclose(M @ Z, 0.0, atol=1e-12)
+    assert t.size - np.linalg.matrix_rank(M) == Z.shape[1] == 12
+    assert _sums(_var("load_N", 6)).shape == (1, 6)
