@@ -245,3 +245,21 @@ def test_the_refits_sum_rows_hold_exactly_the_surfaces_of_no_single_variable():
     np.testing.assert_allclose(M @ Z, 0.0, atol=1e-12)
     assert t.size - np.linalg.matrix_rank(M) == Z.shape[1] == 12
     assert _sums(_var("load_N", 6)).shape == (1, 6)
+
+
+def test_the_pair_is_two_carriers_where_two_carry_else_the_two_leading_variables():
+    """A stand-in (significant alone, no unique share) is passed over for a second carrier
+    that explains less alone; with one carrier, the two that explain most alone."""
+    from jaxwear._analyses.diagnose._shape_interaction import leading_pair
+
+    def v(name, share, carries, form="factor", significant=True):
+        return V(name=name, form=form, explained_fraction=share, carries=carries,
+                 significant=significant)
+
+    res = [v("sliding_speed_m_per_s", 0.77, True), v("load_N", 0.70, False),
+           v("pressure_MPa", 0.40, True), v("bore_angle_deg", 0.9, False, significant=False),
+           v("load_N", 0.95, True, form="deposit")]
+    assert leading_pair(res, "factor") == ("sliding_speed_m_per_s", "pressure_MPa")
+    res[2] = v("pressure_MPa", 0.40, False)
+    assert leading_pair(res, "factor") == ("sliding_speed_m_per_s", "load_N")
+    assert leading_pair(res, "deposit") is None

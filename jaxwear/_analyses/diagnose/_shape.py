@@ -216,23 +216,24 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                       f"{v.dof:.1f}, p {v.p_value:.1e}, peak at {v.peak_at:.4g} {v.unit}")
     alpha_each = ALPHA / len(results)
     results = [replace(v, significant=v.p_value < alpha_each) for v in results]
-    # the leading pair's surface: its columns (one Jacobian) while the joint fits run
-    # (`_shape_interaction`); the form of the variable explaining most alone
+    # the leading pair's surface (`_shape_interaction`): the form of the variable that
+    # explains most alone; its columns (one Jacobian) computed in the background from the
+    # form's joint fit on (its carriers choose the pair)
     sig0 = [v for v in results if v.significant]
     lead_form = max(sig0, key=lambda v: v.explained_fraction).form if sig0 else None
-    pair = leading_pair(results, lead_form) if lead_form else None
     surface = None
-    if pair is not None:
-        tensor = pair_tensor(design, *pair, lead_form)
-        # on top of an effect found, only the base analysis's pair (its columns reused): a
-        # pair of its own would compile another Jacobian (~10 s of the shape's ~60)
-        if not reused or tensor.label in design.tensors:
-            surface = (tensor, Background(tensor_columns, design, tensor, own_groups,
-                                          verbose))
     forms = {}
     for form in FORMS:
         results, forms[form] = _joint(form, results, blocks, rho, rss0, excess, n_res, nu, rng,
                                       alpha_each, verbose)
+        pair = leading_pair(results, form) if form == lead_form else None
+        if pair is not None:
+            tensor = pair_tensor(design, *pair, form)
+            # on top of an effect found, only the base analysis's pair (its columns
+            # reused): a pair of its own would compile another Jacobian
+            if not reused or tensor.label in design.tensors:
+                surface = (tensor, Background(tensor_columns, design, tensor, own_groups,
+                                              verbose))
     rmse_before = float(np.sqrt(np.mean(ev.r ** 2)))
     sig = [v for v in results if v.significant]
     best = form = inter = None

@@ -1,10 +1,11 @@
 """Products of variables in the shape (issue 43 item 1): a surface over the leading pair of
-the chosen form, tested on top of the form's additive joint fit in the linearised system.
+the chosen form, tested on top of the additive fit of the pair and the carriers.
 
 The additive joint fit (`_shape._joint`) can represent Σ_v g_v(z_v) only; a law of two
 variables at once (a factor p · tanh(v), an impact whose size follows the load as well as
-the turn rate) is not such a sum. For the two significant variables that explain most
-alone, a surface g(z_a, z_b) on `TENSOR_SIZE` x `TENSOR_SIZE` tensor-product B-splines
+the turn rate) is not such a sum. For the leading pair of the form (`leading_pair`: the
+two carriers that explain most alone, else the two significant variables), a surface
+g(z_a, z_b) on `TENSOR_SIZE` x `TENSOR_SIZE` tensor-product B-splines
 (`effects.shape.ShapeTensor`; penalised by second differences along both directions; in the
 factor form its coefficient grid has zero row and column sums, so it holds no function of
 one variable alone, which are the additive terms' and K_d's) has its columns computed
@@ -66,10 +67,21 @@ class Interaction:
 
 
 def leading_pair(results, form: str) -> tuple | None:
-    """The two significant variables of `form` that explain most alone, or None."""
+    """The pair of `form` a surface is fitted over, or None: the two carriers (significant
+    unique shares in the form's joint fit) that explain most alone where two carry, else
+    the two significant variables that explain most alone.
+
+    Why carriers first: a stand-in varies with its carrier on the experiments (the load's
+    turn per second and per degree of the cycle; the load and the sliding speed on the
+    paper's rig), and a surface over a variable and its stand-in is no product of two
+    quantities. Measured on the generator's `two_variable` (a step in p·v): by alone share
+    the pair is sliding speed x load (surface p 0.092), by the carriers sliding speed x
+    pressure (p 1.5e-4)."""
     sig = sorted([v for v in results if v.form == form and v.significant],
                  key=lambda v: -v.explained_fraction)
-    return (sig[0].name, sig[1].name) if len(sig) >= 2 else None
+    carry = [v for v in sig if v.carries]
+    lead = carry if len(carry) >= 2 else sig
+    return (lead[0].name, lead[1].name) if len(lead) >= 2 else None
 
 
 def tensor_system(tensor, columns, sigma, n_prior, series, phi, n, proj):
