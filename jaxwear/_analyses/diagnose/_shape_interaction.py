@@ -9,9 +9,10 @@ g(z_a, z_b) on `TENSOR_SIZE` x `TENSOR_SIZE` tensor-product B-splines
 (`effects.shape.ShapeTensor`; penalised by second differences along both directions; in the
 factor form its coefficient grid has zero row and column sums, so it holds no function of
 one variable alone, which are the additive terms' and K_d's) has its columns computed
-through the wear loop (`_shape_design.tensor_columns`, one Jacobian, computed while the
-joint fits run) and is tested as the variables are, with the additive terms of the pair and
-of the form's carriers (the variables the refit uses) treated as nuisance:
+through the wear loop (`_shape_design.tensor_columns`, one Jacobian, computed in the
+background from the form's joint fit on) and is tested as the variables are, with the
+additive terms of the pair and of the form's carriers (the variables the refit uses)
+treated as nuisance:
 
     T = ΔRSS/σ² of the penalised surface on the misfit with those additive columns and the
     fit's own columns projected off; its null simulated with the penalty re-chosen in each
