@@ -247,9 +247,11 @@ def test_the_refits_sum_rows_hold_exactly_the_surfaces_of_no_single_variable():
     assert _sums(_var("load_N", 6)).shape == (1, 6)
 
 
-def test_the_pair_is_two_carriers_where_two_carry_else_the_two_leading_variables():
-    """A stand-in (significant alone, no unique share) is passed over for a second carrier
-    that explains less alone; with one carrier, the two that explain most alone."""
+def test_the_pair_is_the_leader_and_a_carrier_else_the_two_leading_variables():
+    """A stand-in (significant alone, no unique share) is passed over for a carrier that
+    explains less alone; where no other variable carries, the two that explain most
+    alone (the leader need not carry itself: the joint fit may give its share to
+    another)."""
     from jaxwear._analyses.diagnose._shape_interaction import leading_pair
 
     def v(name, share, carries, form="factor", significant=True):
@@ -259,6 +261,8 @@ def test_the_pair_is_two_carriers_where_two_carry_else_the_two_leading_variables
     res = [v("sliding_speed_m_per_s", 0.77, True), v("load_N", 0.70, False),
            v("pressure_MPa", 0.40, True), v("bore_angle_deg", 0.9, False, significant=False),
            v("load_N", 0.95, True, form="deposit")]
+    assert leading_pair(res, "factor") == ("sliding_speed_m_per_s", "pressure_MPa")
+    res[0] = v("sliding_speed_m_per_s", 0.77, False)
     assert leading_pair(res, "factor") == ("sliding_speed_m_per_s", "pressure_MPa")
     res[2] = v("pressure_MPa", 0.40, False)
     assert leading_pair(res, "factor") == ("sliding_speed_m_per_s", "load_N")

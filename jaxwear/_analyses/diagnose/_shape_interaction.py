@@ -4,8 +4,9 @@ the chosen form, tested on top of the additive fit of the pair and the carriers.
 The additive joint fit (`_shape._joint`) can represent Σ_v g_v(z_v) only; a law of two
 variables at once (a factor p · tanh(v), an impact whose size follows the load as well as
 the turn rate) is not such a sum. For the leading pair of the form (`leading_pair`: the
-two carriers that explain most alone, else the two significant variables), a surface
-g(z_a, z_b) on `TENSOR_SIZE` x `TENSOR_SIZE` tensor-product B-splines
+variable that explains most alone and the leading carrier beside it, else the next
+significant variable), a surface g(z_a, z_b) on `TENSOR_SIZE` x `TENSOR_SIZE`
+tensor-product B-splines
 (`effects.shape.ShapeTensor`; penalised by second differences along both directions; in the
 factor form its coefficient grid has zero row and column sums, so it holds no function of
 one variable alone, which are the additive terms' and K_d's) has its columns computed
@@ -68,21 +69,23 @@ class Interaction:
 
 
 def leading_pair(results, form: str) -> tuple | None:
-    """The pair of `form` a surface is fitted over, or None: the two carriers (significant
-    unique shares in the form's joint fit) that explain most alone where two carry, else
-    the two significant variables that explain most alone.
+    """The pair of `form` a surface is fitted over, or None: the variable that explains most
+    alone and the carrier (significant unique share in the form's joint fit) that explains
+    most alone beside it, as the refit's carriers are chosen; where no other variable
+    carries, the two significant variables that explain most alone.
 
     Why carriers first: a stand-in varies with its carrier on the experiments (the load's
     turn per second and per degree of the cycle; the load and the sliding speed on the
     paper's rig), and a surface over a variable and its stand-in is no product of two
     quantities. Measured on the generator's `two_variable` (a step in p·v): by alone share
-    the pair is sliding speed x load (surface p 0.092), by the carriers sliding speed x
+    the pair is sliding speed x load (surface p 0.092), with the carrier sliding speed x
     pressure (p 1.5e-4)."""
     sig = sorted([v for v in results if v.form == form and v.significant],
                  key=lambda v: -v.explained_fraction)
-    carry = [v for v in sig if v.carries]
-    lead = carry if len(carry) >= 2 else sig
-    return (lead[0].name, lead[1].name) if len(lead) >= 2 else None
+    if len(sig) < 2:
+        return None
+    carry = [v for v in sig[1:] if v.carries]
+    return sig[0].name, (carry[0] if carry else sig[1]).name
 
 
 def tensor_system(tensor, columns, sigma, n_prior, series, phi, n, proj):
