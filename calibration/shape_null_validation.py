@@ -63,8 +63,13 @@ def main(argv=None):
                     help="the generator's nodes x steps x M (finer than the study)")
     ap.add_argument("--work", default="out/shape_null")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--interaction", action="store_true",
+                    help="also test the surface over the two factor variables of smallest "
+                         "p on top of their additive fit (the analysis runs it only where "
+                         "two are significant): its p-value on null data")
     a = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "benchmarks"))
+    sys.path.insert(0, str(ROOT))  # this checkout's jaxwear
     import jax
 
     import jaxwear as jw
@@ -96,6 +101,15 @@ def main(argv=None):
         rows.append({"seed": seed, "verdict": d.status, "best": shp.best, "form": shp.form,
                      "min_p": min(ps), "n_variables": len(ps),
                      "numerical_error": shp.numerical, "wall_s": time.perf_counter() - t0})
+        if a.interaction:
+            from jaxwear._analyses.diagnose._shape_interaction import pair_interaction
+
+            fac = sorted(shp.form_variables("factor"), key=lambda v: v.p_value)
+            it = pair_interaction(shp, d.model, fac[0].name, fac[1].name, seed=seed)
+            rows[-1]["interaction"] = it.to_json()
+            rows[-1]["min_p_with_interaction"] = min(min(ps), it.p_value)
+            print(f"  surface over {fac[0].name} x {fac[1].name}: p {it.p_value:.2e}, "
+                  f"explains {it.explained_fraction:.1%}, dof {it.dof:.1f}", flush=True)
         fa = sum(r["best"] is not None for r in rows)
         print(f"seed {seed}: verdict {d.status}, best {shp.best} ({shp.form}), min p "
               f"{min(ps):.2e}; false alarms {fa}/{len(rows)} "
@@ -111,6 +125,8 @@ def main(argv=None):
                "seeds": len(rows), "false_alarms": fa, "rate": fa / len(rows),
                "interval_95": [lo, hi], "alpha": 1e-3, "covers_alpha": lo <= 1e-3 <= hi,
                "min_p_below_0.01": sum(r["min_p"] < 0.01 for r in rows),
+               **({"interaction_p": sorted(r["interaction"]["p_value"] for r in rows)}
+                  if a.interaction else {}),
                "verdicts": {v: sum(r["verdict"] == v for r in rows)
                             for v in ("adequate", "effect_found", "unexplained")},
                "rows": rows}

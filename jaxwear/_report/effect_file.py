@@ -43,7 +43,9 @@ from jaxwear.effects import state_variables, swept_kernel
 FORM = {form!r}  # "factor": rate x exp(gain g(z)); "deposit": rate + gain e(z) kernel
 DEPOSIT_UNIT_M = 1e-9  # e = 1 is 1 nm·rad of depth per step (volume e R_b B)
 # each variable: name, periodic (angles, on the circle), knots (z at t = 0, 1/Q, .., 1 of the
-# wear-weighted coordinate; none for angles) and the coefficients of its cubic B-splines
+# wear-weighted coordinate; none for angles) and the coefficients of its cubic B-splines; a
+# surface over two variables (a product the sum of one-variable terms cannot make) has its
+# second variable under "times" and its coefficients row-major over the two bases
 CORRECTION = {correction}
 
 
@@ -53,25 +55,31 @@ def _bspline(t):
                      jnp.where(a < 2.0, (2.0 - a) ** 3 / 6.0, 0.0))
 
 
-def _spline(var, z):
-    """Σ_k c_k B_k(z) for one variable (z in its unit)."""
-    c = jnp.asarray(var["coefficients"])
-    n = len(var["coefficients"])
+def _basis(var, z, n):
+    """(..., n) the cubic B-splines of one variable at z (in its unit)."""
     if var["periodic"]:
         h = 360.0 / n
         d = jnp.mod(z[..., None] - jnp.arange(n) * h + 180.0, 360.0) - 180.0
-        return _bspline(d / h) @ c
+        return _bspline(d / h)
     knots = jnp.asarray(var["knots"])
     t = jnp.interp(z, knots, jnp.linspace(0.0, 1.0, len(var["knots"])))
     h = 1.0 / (n - 3)
-    return _bspline((t[..., None] - (jnp.arange(n) - 1.0) * h) / h) @ c
+    return _bspline((t[..., None] - (jnp.arange(n) - 1.0) * h) / h)
 
 
 def correction(z):
     """g (factor) or e (deposit), (steps, nodes), from the state variables `z`."""
     total = 0.0
     for var in CORRECTION:
-        total = total + _spline(var, z[var["name"]])
+        c = jnp.asarray(var["coefficients"])
+        if "times" in var:  # a surface: Σ_kl c_kl B_k(z_a) B_l(z_b)
+            other = var["times"]
+            na, nb = var["size"], other["size"]
+            Ba = _basis(var, z[var["name"]], na)
+            Bb = _basis(other, z[other["name"]], nb)
+            total = total + jnp.einsum("...k,...l,kl->...", Ba, Bb, c.reshape(na, nb))
+        else:
+            total = total + _basis(var, z[var["name"]], len(c)) @ c
     return total
 
 
@@ -105,11 +113,20 @@ def effect_file_source(result, study_path: str) -> str:
                   "knots": [round(k, 12) for k in v["knots"]],
                   "coefficients": [round(c, 12) for c in v["coefficients"]]}
                  for v in corr["variables"]]
+    for t in corr.get("tensors", ()):
+        (a, b), (na, nb), (ka, kb) = t["variables"], t["size"], t["knots"]
+        variables.append({"name": a, "periodic": VARIABLES[a][1],
+                          "knots": [round(k, 12) for k in ka], "size": na,
+                          "coefficients": [round(c, 12) for c in t["coefficients"]],
+                          "times": {"name": b, "periodic": VARIABLES[b][1],
+                                    "knots": [round(k, 12) for k in kb], "size": nb}})
+    names = [v["name"] + (f" x {v['times']['name']}" if "times" in v else "")
+             for v in variables]
     text = json.dumps(variables, indent=4).replace("true", "True").replace("false", "False")
     return TEMPLATE.format(
         study=study_path, sentence="\n".join(textwrap.wrap(result.sentence, 86,
                                                            subsequent_indent="    ")),
         form=corr["form"], form_words=FORM_WORDS[corr["form"]],
-        variables=", ".join(v["name"] for v in variables), correction=text,
+        variables=", ".join(names), correction=text,
         signature=f"the missing wear found by diagnose --shape: {corr['form']} along "
-                  f"{', '.join(v['name'] for v in variables)}")
+                  f"{', '.join(names)}")

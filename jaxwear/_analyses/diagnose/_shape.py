@@ -46,13 +46,22 @@ from scipy.stats import chi2
 from jaxwear._analyses.diagnose import _shape_linear as lin
 from jaxwear._analyses.diagnose._fit import Fit, _log
 from jaxwear._analyses.diagnose._model import Model
+from jaxwear._analyses.diagnose._shape_choice import rank_alternatives
 from jaxwear._analyses.diagnose._shape_design import (
     JOINT_DRAWS,
     LEVEL,
     SIZE,
+    Background,
     Design,
     numerical_error_rows,
+    pair_tensor,
     prepare_design,
+    tensor_columns,
+)
+from jaxwear._analyses.diagnose._shape_interaction import (
+    interaction_test,
+    leading_pair,
+    tensor_system,
 )
 from jaxwear._analyses.diagnose._shape_linear import DRAWS
 from jaxwear._analyses.diagnose._shape_map import when_where
@@ -213,37 +222,73 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                       f"{v.dof:.1f}, p {v.p_value:.1e}, peak at {v.peak_at:.4g} {v.unit}")
     alpha_each = ALPHA / len(results)
     results = [replace(v, significant=v.p_value < alpha_each) for v in results]
+    # the leading pair's surface (`_shape_interaction`): the form of the variable that
+    # explains most alone; its columns (one Jacobian) computed in the background from the
+    # form's joint fit on (its carriers choose the pair)
+    sig0 = [v for v in results if v.significant]
+    lead_form = max(sig0, key=lambda v: v.explained_fraction).form if sig0 else None
+    surface = None
     forms = {}
     for form in FORMS:
         results, forms[form] = _joint(form, results, blocks, rho, rss0, excess, n_res, nu, rng,
                                       alpha_each, verbose)
+        pair = leading_pair(results, form) if form == lead_form else None
+        if pair is not None:
+            tensor = pair_tensor(design, *pair, form)
+            # on top of an effect found, only the base analysis's pair (its columns
+            # reused): a pair of its own would compile another Jacobian
+            if not reused or tensor.label in design.tensors:
+                surface = (tensor, Background(tensor_columns, design, tensor, own_groups,
+                                              verbose))
     rmse_before = float(np.sqrt(np.mean(ev.r ** 2)))
     sig = [v for v in results if v.significant]
-    best = form = None
-    alternatives, carriers = [], ()
+    best = form = inter = None
+    alternatives, carriers, confounded = [], (), []
     if sig:
         top, alternatives = choose_best(results)
+        # among variables the data explain alike: unique shares, then left-out experiments
+        alt_v = [next(v for v in results if v.label == a) for a in alternatives]
+        top, alt_v, confounded, loo = rank_alternatives(
+            top, alt_v, blocks, rho, model.row_exp, n, alpha_each)
+        alternatives = [v.label for v in alt_v]
+        if len(loo) > 1:
+            _log(verbose, "    left-out experiments' error (σ² units): " + ", ".join(
+                f"{k} {x:.1f}" for k, x in sorted(loo.items(), key=lambda kv: kv[1]))
+                + (f"; confounded: {', '.join(confounded)}" if confounded else ""))
         best, form = top.name, top.form
         carriers = _carriers(results, top)
+        if surface is not None and surface[0].form == form:
+            inter = _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers,
+                                 form, rho, n_res, nu, rng, draws, excess, rss0, alpha_each,
+                                 verbose)
+            if inter.significant:
+                carriers = tuple(carriers) + tuple(x for x in inter.variables
+                                                   if x not in carriers)
     design_out = replace(design, evaluations=0,
                          numerical_um=design.numerical_um if elsewhere else d)
 
     def result(results, rmse_after, status, correction, ww, evaluations):
-        sentence = describe(best, form, results, load, after, alternatives, carriers, ww)
+        sentence = describe(best, form, results, load, after, alternatives, carriers, ww,
+                            confounded=confounded, interaction=inter)
         return ShapeResult(after, best, form, tuple(results), ALPHA, sigma, rmse_before,
                            rmse_after, evaluations, status, sentence, load,
                            np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
                            exp_name, tuple(alternatives), forms, tuple(carriers), correction,
                            ww, num_info, design=design_out,
-                           linear={"blocks": blocks, "rho": rho,
-                                   "peaks": {v.label: v.peak_at for v in results}})
+                           linear={"blocks": blocks, "rho": rho, "Qb": Qb, "phi": phi,
+                                   "sigma": sigma, "n_res": n_res, "nu": nu,
+                                   "excess": excess, "rss0": rss0, "n": n,
+                                   "n_prior": len(ev.r_prior), "groups": own_groups,
+                                   "peaks": {v.label: v.peak_at for v in results}},
+                           interaction=inter, confounded=tuple(confounded))
 
     def finish() -> ShapeResult:
         """The refit through the loop and the when/where map (the costly part)."""
         e0 = Model.evaluations
+        surf = inter.block if inter is not None and inter.significant else None
         rmse_after, status, corr_model, u_fit, cov, snaps = _refit(
             smodel, own_groups, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
-            Jw, rho_full, verbose, deepest)
+            Jw, rho_full, verbose, deepest, surface=surf)
         correction = _correction(corr_model, u_fit, carriers, form)
         done = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
                 and v.form == form else v for v in results]
@@ -269,6 +314,25 @@ def choose_best(results):
                     for v in sorted(sig, key=lambda v: v.aic)
                     if v is not top and v.aic - top.aic < 2.0 * math.log(20.0)]
     return top, alternatives
+
+
+def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers, form, rho, n_res,
+                 nu, rng, draws, excess, rss0, alpha, verbose):
+    """The leading pair's surface tested on top of the additive fit of the pair and the
+    form's carriers (`_shape_interaction`)."""
+    tensor, job = surface
+    cols = job.result()
+    A, S, Z, X = tensor_system(tensor, cols, sigma, len(ev.r_prior), model.series, phi, n,
+                               proj)
+    names = list(dict.fromkeys(list(carriers) + [tensor.a.name, tensor.b.name]))
+    additive = [blocks[nm if form == "factor" else f"deposit:{nm}"][0] for nm in names]
+    inter = interaction_test(tensor, A, S, Z, X, additive, rho, n_res, nu, rng, draws, excess,
+                             rss0, alpha)
+    _log(verbose, f"    {form}, the surface over {tensor.a.name} x {tensor.b.name} on top of "
+                  f"the additive fit: explains {inter.explained_fraction:.0%} more, dof "
+                  f"{inter.dof:.1f}, p {inter.p_value:.1e}"
+                  + (" (significant: the refit carries it)" if inter.significant else ""))
+    return inter
 
 
 def _variable_result(var, pf, c, Z, excess, rss0, rng, ev, deepest, cols) -> VariableShape:
@@ -307,7 +371,8 @@ def _joint(form, results, blocks, rho, rss0, excess, n_res, nu, rng, alpha_each,
     for v, d in zip(mine, unique):
         p_u = float(chi2.sf(max(d, 0.0), max(v.dof, 1.0)))
         out[v.name] = replace(v, unique_fraction=lin.explained(d, 0.0, excess, rss0),
-                              carries=bool(v.significant and p_u < alpha_each))
+                              carries=bool(v.significant and p_u < alpha_each),
+                              unique_p_value=p_u)
     carriers = [k for k, v in out.items() if v.carries]
     if not carriers:
         # none adds significantly to the others: the significant ones stand in for each

@@ -5,7 +5,8 @@ background while the verdict runs), and the model's own numerical error rows."""
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from dataclasses import replace as dreplace
 from types import SimpleNamespace
 
@@ -22,12 +23,16 @@ from jaxwear._physics.effects.shape import (
     FORMS,
     VARIABLES,
     ShapeBasis,
+    ShapeTensor,
     ShapeVariable,
     state_variables,
 )
 from jaxwear._physics.load import load_history
 
 SIZE = 10  # B-splines per variable
+
+
+TENSOR_SIZE = 5  # B-splines per direction of the leading pair's surface (issue 43)
 
 
 JOINT_DRAWS = 2000  # null simulations of a form's joint fit (larger matrices)
@@ -86,6 +91,9 @@ class Design:
     numerical_um: np.ndarray | None
     u: np.ndarray = None  # where the columns are linearised (smodel's u)
     evaluations: int = 1  # model evaluations it took (0 once an analysis has counted them)
+    # the columns of a pair's surface (`tensor_columns`) by its label, shared by the
+    # analyses on this design (a later one on top of an effect reuses them)
+    tensors: dict = field(default_factory=dict, repr=False)
 
 
 def prepare_design(model: Model, fit, *, groups=None, size: int = SIZE,
@@ -114,6 +122,37 @@ def prepare_design(model: Model, fit, *, groups=None, size: int = SIZE,
     ev_j = jmodel.evaluate(_map_u(model, fit.ev.u, jmodel))
     return Design(model.study, tuple(groups), knots, load, exp_name, deepest, smodel, jmodel,
                   ev_j, None, u=_map_u(model, fit.ev.u, smodel))
+
+
+def pair_tensor(design: Design, a: str, b: str, form: str,
+                size: int = TENSOR_SIZE) -> ShapeTensor:
+    """The surface over variables `a` and `b` in `form`, on `size` B-splines along each
+    (the design's knots: uniform in the same quantile coordinate as the variables')."""
+    ka = () if VARIABLES[a][1] else design.knots[form][a]
+    kb = () if VARIABLES[b][1] else design.knots[form][b]
+    return ShapeTensor(ShapeVariable(a, size, ka, form), ShapeVariable(b, size, kb, form))
+
+
+def tensor_columns(design: Design, tensor: ShapeTensor, groups=(),
+                   verbose: bool = False) -> np.ndarray:
+    """The model's derivative (rows, tensor.size) [µm per unit coefficient] with respect to
+    each coefficient of the surface `tensor`, at the design's answer: one forward-mode
+    Jacobian of the design's (coarse) Jacobian model with the surface as its only
+    correction (its own compiled function; cached on the design). Why a run of its own:
+    the pair is known only once the variables have been tested, after the design's
+    Jacobian; 25 columns of ~170 cost far less than every pair's surface in it.
+    `groups`: the candidate groups the fit has on (the others are off at the answer)."""
+    if tensor.label in design.tensors:
+        return design.tensors[tensor.label]
+    jm = design.jmodel
+    tm = jm.variant(candidates=list(groups), shape=ShapeBasis((), (tensor,)))
+    t0 = time.perf_counter()
+    ev = tm.evaluate(_map_u(design.smodel, design.u, tm))
+    cols = np.asarray(ev.J)[:, [tm.index[k] for k in tensor.keys()]]
+    _log(verbose, f"    the surface over {tensor.a.name} x {tensor.b.name} ({tensor.form}): "
+                  f"{tensor.size} columns, one Jacobian ({time.perf_counter() - t0:.1f} s)")
+    design.tensors[tensor.label] = cols
+    return cols
 
 
 def at_answer(model: Model, evaluation, label: str = "base"):

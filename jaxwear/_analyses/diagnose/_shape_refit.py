@@ -32,19 +32,33 @@ def _carriers(results, top) -> tuple:
 
 
 def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
-           sigma, Jw, rho_full, verbose, deepest: int):
+           sigma, Jw, rho_full, verbose, deepest: int, surface=None):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
     a factor, the zero sum of each variable's coefficients and N(0, FACTOR_SD²) on each as
     prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
     answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
-    None)."""
+    None).
+
+    `surface`: the leading pair's surface where it is significant
+    (`_shape_interaction.Interaction.block`: (A, S, Z, X, tensor)), refitted with the
+    carriers: its roughness along both directions and, for a factor, zero row and column
+    sums of its coefficients and N(0, FACTOR_SD²) on each as prior rows."""
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
+    tensors = ()
+    if surface is not None:
+        A_t, S_t, Z_t, X_t, tensor = surface
+        tensors = (tensor,)
+        # its columns beside the design's, as one more block of the linearised start
+        cols_t = list(range(Jw.shape[1], Jw.shape[1] + tensor.size))
+        Jw = np.hstack([Jw, X_t])
+        blocks = {**blocks, tensor.label: (A_t, S_t, Z_t, cols_t, tensor)}
+        labels = labels + [tensor.label]
     # the fit's own candidate groups only (the design may carry more, held at off)
-    cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_)))
+    cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_), tensors))
     # the when/where map of this model compiles in the background while the refit runs
 
     maps = Background(compile_maps, cm, deepest)
@@ -71,20 +85,21 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
         du = np.linalg.lstsq(Xb, shift, rcond=None)[0]
         for i, d in zip(free_base, du):
             u0[cm.index[smodel.names[i]]] += d
-    cols = [cm.index[key] for var in vars_ for key in var.keys()]
+    terms = list(vars_) + list(tensors)
+    cols = [cm.index[key] for var in terms for key in var.keys()]
     free = np.zeros(len(cm.names), bool)
     base_names = [smodel.names[i] for i in free_base]
     free[[cm.index[nm] for nm in base_names]] = True
     free[cols] = True
     lo, hi = cm.bounds_u()
-    D = [np.linalg.cholesky(v.roughness() + 1e-12 * np.eye(v.size)).T for v in vars_]
+    D = [np.linalg.cholesky(v.roughness() + 1e-12 * np.eye(v.size)).T for v in terms]
 
     def evaluate(v):
         e = cm.evaluate(v)
         pt = e.point()
         rows, J = [], []
         k = 0
-        for var, Dv in zip(vars_, D):
+        for var, Dv in zip(terms, D):
             idx = [cm.index[key] for key in var.keys()]
             c = v[idx]
             w = math.sqrt(lam)
@@ -93,10 +108,12 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
             Jr[:, idx] = w * Dv
             rows.append(r), J.append(Jr)
             if var.form == "factor":  # a level shift of g is K_d's, not the correction's
-                r1 = np.array([np.sum(c) / (0.01 * var.size)])
-                J1 = np.zeros((1, len(v)))
-                J1[0, idx] = 1.0 / (0.01 * var.size)
-                rows.append(r1), J.append(J1)
+                # (a surface's functions of one variable alone are the additive terms')
+                M = _sums(var)
+                rows.append(M @ c / (0.01 * var.size))
+                J1 = np.zeros((len(M), len(v)))
+                J1[:, idx] = M / (0.01 * var.size)
+                J.append(J1)
                 # g = ln of the rate factor, N(0, FACTOR_SD²) per coefficient
                 rows.append(c / FACTOR_SD)
                 J2 = np.zeros((len(c), len(v)))
@@ -121,6 +138,17 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
             snaps)
 
 
+def _sums(term) -> np.ndarray:
+    """The sums of a factor term's coefficients held at zero: all of them for one variable
+    (1, size); for a surface each row's and each column's of its grid (rows + columns,
+    size)."""
+    if not hasattr(term, "a"):
+        return np.ones((1, term.size))
+    na, nb = term.a.size, term.b.size
+    return np.vstack([np.kron(np.eye(na), np.ones((1, nb))),
+                      np.kron(np.ones((1, na)), np.eye(nb))])
+
+
 def _full_cov(out: lsq.Outcome, free) -> np.ndarray:
     """The covariance of all of u (P, P), zero on held columns."""
     P = len(free)
@@ -139,4 +167,8 @@ def _correction(cm: Model, u, carriers, form) -> dict:
         out["variables"].append({"name": var.name, "form": var.form, "size": var.size,
                                  "knots": list(var.knots),
                                  "coefficients": [float(u[cm.index[k]]) for k in var.keys()]})
+    out["tensors"] = [{"variables": [t.a.name, t.b.name], "form": t.form,
+                       "size": [t.a.size, t.b.size], "knots": [list(t.a.knots), list(t.b.knots)],
+                       "coefficients": [float(u[cm.index[k]]) for k in t.keys()]}
+                      for t in cm.ext.cfg.shape.tensors]
     return out

@@ -42,6 +42,7 @@ class VariableShape:
     carries: bool = False  # its unique share is significant in the form's joint fit
     stand_in_for: str | None = None
     refit_rmse_um: float | None = None
+    unique_p_value: float = float("nan")  # of its unique share in the joint fit
 
     @property
     def label(self) -> str:
@@ -99,6 +100,9 @@ class ShapeResult:
     # pre-screen (`_law`)
     linear: dict = field(default_factory=dict, repr=False)
     law: object = None  # `_law.LawResult`: the law found from the shape, or None
+    # the surface over the leading pair (`_shape_interaction.Interaction`), or None
+    interaction: object = None
+    confounded: tuple = ()  # labels the data cannot tell apart (`_shape_choice`)
 
 
     def finished(self) -> ShapeResult:
@@ -125,6 +129,9 @@ class ShapeResult:
                                "variables": [v.to_json() for v in self.form_variables(
                                    _other(self.form or "factor"))]},
                 "alternatives": list(self.alternatives),
+                "confounded": list(self.confounded),
+                "interaction": (None if self.interaction is None
+                                else self.interaction.to_json()),
                 "carriers": list(self.carriers),
                 "forms": self.forms,
                 "when_where": None if self.when_where is None else self.when_where.to_json(),

@@ -103,7 +103,8 @@ def where_along(v) -> str:
     return f"at {LABELS[v.name]} {lo:.3g}-{hi:.3g} {unit}"
 
 
-def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=None) -> str:
+def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=None,
+             confounded=(), interaction=None) -> str:
     on_top = "" if after == "base" else f" on top of {after}"
     if best is None:
         return (f"No state variable explains the misfit{on_top} beyond noise and the model's "
@@ -116,6 +117,11 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
     others = [c for c in carriers if c != best]
     if others:
         s += f"; together with {', '.join(others)}, which carry part of it too"
+    if interaction is not None and interaction.significant:
+        a, b = interaction.variables
+        s += (f", and as a product of {a} and {b} (their surface adds "
+              f"{interaction.explained_fraction:.0%} to the sum of one-variable corrections, "
+              f"{p_text(interaction.p_value)})")
     s += "."
     if ww is not None and ww.made:
         s += (f" It is made at cycle phases {_arcs(ww.made)} and lands on the bore at "
@@ -135,8 +141,13 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
     if stand:
         s += (" Stand-ins on this experiment matrix (they vary together): "
               + ", ".join(f"{a} for {b}" for a, b in stand) + ".")
-    if alternatives:
-        s += (f" The data cannot tell it from {', '.join(alternatives)} (AIC within ln 20).")
+    if len(confounded) >= 2:
+        s += (f" The data cannot tell {', '.join(confounded)} apart (none adds significantly "
+              f"to the others, and each predicts left-out experiments as well): a test that "
+              f"varies them apart would, `jaxwear design STUDY --goal separate` says which.")
+    elif alternatives:
+        s += (f" Preferred to {', '.join(alternatives)} (each within ln 20 of its AIC) by "
+              f"the unique shares of the joint fit and the error on left-out experiments.")
     return s
 
 

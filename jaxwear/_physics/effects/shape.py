@@ -163,17 +163,64 @@ def _cubic_bspline(t, xp):
 
 
 @dataclass(frozen=True)
-class ShapeBasis:
-    """The variables of a shape correction, each in its form (static: part of
-    `ModelConfig`)."""
+class ShapeTensor:
+    """A surface over two variables of one form (issue 43: products of variables): the
+    term Σ_kl c_kl B_k(z_a) B_l(z_b) on the tensor product of `a`'s and `b`'s B-splines
+    (each a `ShapeVariable` of the same form, few splines: 4 or 5). In the factor form
+    it adds to g, so exp(g) holds a product of the two variables that no sum of
+    functions of one variable does; in the deposit form it adds to e (coefficients ≥ 0)."""
 
-    variables: tuple[ShapeVariable, ...]
+    a: ShapeVariable
+    b: ShapeVariable
+
+    @property
+    def form(self) -> str:
+        return self.a.form
+
+    @property
+    def size(self) -> int:
+        return self.a.size * self.b.size
+
+    @property
+    def label(self) -> str:
+        return f"{self.a.label}*{self.b.name}"
 
     def keys(self) -> tuple[str, ...]:
-        return tuple(k for v in self.variables for k in v.keys())
+        """Row-major over (k of `a`, l of `b`)."""
+        prefix = "shape_x" if self.form == "factor" else "deposit_x"
+        return tuple(f"{prefix}_{self.a.name}__{self.b.name}_{k:02d}_{m:02d}"
+                     for k in range(self.a.size) for m in range(self.b.size))
+
+    def basis(self, za, zb, xp=jnp):
+        """(..., size) the products B_k(z_a) B_l(z_b), row-major."""
+        W = self.a.basis(za, xp)[..., :, None] * self.b.basis(zb, xp)[..., None, :]
+        return W.reshape(*W.shape[:-2], self.size)
+
+    def roughness(self) -> np.ndarray:
+        """Second differences along both directions of the coefficient grid: D_a'D_a ⊗ I +
+        I ⊗ D_b'D_b (size, size)."""
+        return (np.kron(self.a.roughness(), np.eye(self.b.size))
+                + np.kron(np.eye(self.a.size), self.b.roughness()))
+
+
+@dataclass(frozen=True)
+class ShapeBasis:
+    """The variables of a shape correction, each in its form, and at most a few surfaces
+    over two of them (`tensors`) (static: part of `ModelConfig`). Coefficients in the
+    order of `keys()`: the variables', then the surfaces'."""
+
+    variables: tuple[ShapeVariable, ...]
+    tensors: tuple[ShapeTensor, ...] = ()
+
+    def keys(self) -> tuple[str, ...]:
+        return (tuple(k for v in self.variables for k in v.keys())
+                + tuple(k for t in self.tensors for k in t.keys()))
 
     def of_form(self, form: str) -> tuple[ShapeVariable, ...]:
         return tuple(v for v in self.variables if v.form == form)
+
+    def has_deposit(self) -> bool:
+        return bool(self.of_form("deposit")) or any(t.form == "deposit" for t in self.tensors)
 
 
 def _wrap(a, xp=jnp):
@@ -259,7 +306,7 @@ def precompute(shape: ShapeBasis, hist, nodes: int) -> dict:
         for var in shape.variables:
             if var.name in CONSTANT:
                 out.setdefault(var.keys()[0], []).append(var.basis(z[var.name]))
-        if shape.of_form("deposit"):
+        if shape.has_deposit():
             out.setdefault("kernel", []).append(swept_kernel(hist.angle[r], nodes))
     return {k: jnp.stack(v) for k, v in out.items()}
 
@@ -283,6 +330,30 @@ def _basis_dot_jvp(var, primals, tangents):
     dz, dcoef = tangents
     B, dB = jax.jvp(var.basis, (z,), (jnp.ones_like(z),))  # the basis and its z-slope, once
     return B @ coef, B @ dcoef + (dB @ coef) * dz
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def tensor_dot(t: ShapeTensor, za, zb, coef):
+    """t.basis(za, zb) @ coef (...) (`basis_dot` for a surface over two variables)."""
+    return t.basis(za, zb) @ coef
+
+
+@tensor_dot.defjvp
+def _tensor_dot_jvp(t, primals, tangents):
+    # as `basis_dot`: the tangent is W dc + (∂W/∂z_a c) dz_a + (∂W/∂z_b c) dz_b, the slopes
+    # computed once per state instead of per column
+    za, zb, coef = primals
+    dza, dzb, dcoef = tangents
+    C = coef.reshape(t.a.size, t.b.size)
+    Ba, dBa = jax.jvp(t.a.basis, (za,), (jnp.ones_like(za),))
+    Bb, dBb = jax.jvp(t.b.basis, (zb,), (jnp.ones_like(zb),))
+    Ba, Bb, dBa, dBb = jnp.broadcast_arrays(Ba, Bb, dBa, dBb)
+    W = (Ba[..., :, None] * Bb[..., None, :]).reshape(*Ba.shape[:-1], t.size)
+    BbC = Bb @ C.T  # (..., size_a): Σ_l C_kl B_l
+    value = jnp.sum(Ba * BbC, axis=-1)
+    slope_a = jnp.sum(dBa * BbC, axis=-1)
+    slope_b = jnp.sum(Ba * (dBb @ C.T), axis=-1)
+    return value, W @ dcoef + slope_a * dza + slope_b * dzb
 
 
 PACKED = "__shape_coefficients__"  # `pack`'s key in `Params.effect_params`
@@ -331,8 +402,22 @@ def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
             g = g + term
         else:
             e = e + term
+    for t in shape.tensors:
+        if packed is not None:
+            coef = packed[at:at + t.size]
+            at += t.size
+        else:
+            coef = jnp.stack([p.effect_params[k] for k in t.keys()])
+        if z is None:
+            z = state_variables(pressure, slide, dt, sliding, angle, load, worn)
+        za, zb = jnp.broadcast_arrays(z[t.a.name], z[t.b.name])
+        term = jnp.broadcast_to(tensor_dot(t, za, zb, coef), pressure.shape)
+        if t.form == "factor":
+            g = g + term
+        else:
+            e = e + term
     deposit = None
-    if shape.of_form("deposit"):
+    if shape.has_deposit():
         kern = (pre["kernel"][regime] if pre is not None
                 else swept_kernel(angle, pressure.shape[1]))
         deposit = DEPOSIT_UNIT_M * e * kern
