@@ -32,14 +32,15 @@ def _carriers(results, top) -> tuple:
 
 
 def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
-           sigma, Jw, rho_full, verbose, deepest: int):
+           sigma, Jw, rho_full, verbose, deepest: int, maps: bool = True):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
     a factor, the zero sum of each variable's coefficients and N(0, FACTOR_SD²) on each as
     prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
     answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
-    None)."""
+    None). `maps`: compile the when/where map's functions meanwhile (False for a caller that
+    draws no map: `design`'s shape rivals)."""
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
@@ -47,7 +48,7 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_)))
     # the when/where map of this model compiles in the background while the refit runs
 
-    maps = Background(compile_maps, cm, deepest)
+    maps = Background(compile_maps, cm, deepest) if maps else None
     u0 = _map_u(smodel, u, cm)
     # the joint linearised start over the carriers (their GCV penalty)
     A, S = lin.block_penalty([blocks[lab][:2] for lab in labels])
@@ -112,7 +113,8 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     out = lsq.solve(evaluate, np.clip(u0, lo, hi), free=free, lower=lo, upper=hi,
                     noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
                     project=cm.packing.project, label=f"    shape {form}", log=log)
-    maps.result()
+    if maps is not None:
+        maps.result()
     r = out.point.r
     snaps = getattr(out.point.extra, "snaps", None)
     if snaps is not None and not np.array_equal(np.asarray(out.point.u), np.asarray(out.u)):

@@ -140,6 +140,48 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
     return s
 
 
+# a stand-in counts as a rival to tell apart when it explains at least this share of what
+# the best explains (alone fits): on the paper's matrix pressure, sliding speed and the load
+# each explained 102-104 % of a pressure law's misfit (issue 44)
+RIVAL_SHARE = 0.9
+
+
+def rival_of(best, form, results, alternatives=()) -> str | None:
+    """The label of the variable the data tell least from the best: its first alternative
+    (AIC within ln 20), else the stand-in (same form) that explains most, where that is at
+    least `RIVAL_SHARE` of the best's share; None where there is none."""
+    if best is None:
+        return None
+    if alternatives:
+        return alternatives[0]
+    top = next(r for r in results if r.name == best and r.form == form)
+    near = [r for r in results if r.form == form and r.significant and r.name != best
+            and r.stand_in_for is not None
+            and r.explained_fraction >= RIVAL_SHARE * top.explained_fraction]
+    if not near:
+        return None
+    return max(near, key=lambda r: r.explained_fraction).label
+
+
+def next_test(study_path, best, form, results, alternatives=()) -> str | None:
+    """The command that ranks the next experiments by how well they would tell the best
+    variable from its rival (`rival_of`; `jaxwear design`, issue 44), or None."""
+    rival = rival_of(best, form, results, alternatives)
+    if rival is None:
+        return None
+    label = best if form == "factor" else f"deposit:{best}"
+    return (f"jaxwear design {study_path} --goal separate --between "
+            f"shape:{label},shape:{rival}")
+
+
+def next_test_sentence(command: str | None) -> str:
+    """The sentence that names `command` (`next_test`), or ""."""
+    if command is None:
+        return ""
+    return (f" To tell them apart, `{command}` ranks the next experiments by how well they "
+            f"would separate the two and writes the best as an [[experiment]] stanza.")
+
+
 def _arcs(arcs) -> str:
     """"50-70° (55 %) and 290-310° (43 %)"."""
     return " and ".join(f"{a:.0f}-{b:.0f}° ({w:.0%})" for a, b, w in arcs)
