@@ -465,6 +465,8 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
                          "predicted rows, against the noise and both models' parameter "
                          "uncertainty (one scan set)",
             "separate_chi2": SEPARATE_CHI2, "flags": flags,
+            # the study's own fit, where a rival was fitted on top of it (base, shape:)
+            "base_rmse_um": None if base is None else float(base[1].rmse_um),
             "resolution": {"nodes": fits[0].problem.cfg.nodes,
                            "steps_per_rev": fits[0].problem.cfg.steps_per_rev}}
     return DesignResult(goal="separate", between=list(between), plan=plan,
