@@ -369,6 +369,8 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
                 base = _fit(st, keys, verbose, "the study (the shape's rivals' base)", flags)
             st, f = base[0], fit_shape(base[0], base[1], name, verbose=verbose)
             flags += f.flags
+        elif name == "base" and base is not None:
+            st, f = base  # fitted already as a shape rival's base
         else:
             st, f = _fit(st, keys, verbose, f"explanation {name}", flags)
             if name == "base":
