@@ -239,8 +239,9 @@ def main(argv=None):
             for seed in seeds:
                 run = run_shape_case if case is SHAPE_CASE else run_case
                 run(*case, seed, rows, Path(tmp))
-    Path(a.out).write_text(table(rows) + "\n")
-    Path(a.out).with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
+                # after every study: a long run stopped part-way keeps what it measured
+                Path(a.out).write_text(table(rows) + "\n")
+                js.write_text(json.dumps(rows, indent=1) + "\n")
     print(table(rows))
 
 
