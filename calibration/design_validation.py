@@ -32,6 +32,7 @@ Writes a markdown table (and the numbers as JSON beside it).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import tempfile
@@ -140,13 +141,14 @@ def run_case(label, hidden, truth, rival, noise, seed, rows, tmp):
 
 
 def shape_study(conds, seed, noise, tmp: Path):
-    """A study of `conds` (hidden_physics Conditions) with the threshold law hidden, at 64 x
-    72 nodes and steps (the wear loop's adaptive integrator, as the generator's study
-    file leaves it), and the generator's truth."""
+    """A study of `conds` (hidden_physics Conditions) with the threshold law hidden, at the
+    other cases' numerics (64 x 72, the paper integrator at M 250: the generator's M 25 is
+    10x finer), and the generator's truth."""
     gen = hp.generate(SHAPE_LAW, conds, seed=seed, noise_um=noise, num=SHAPE_GEN)
     path = hp.write(tmp, gen, conds, study_numerics=(NUM["nodes"], NUM["steps_per_rev"]))
     st = load_study(path)
-    return st, gen.truth
+    return dataclasses.replace(st, integrator="paper",
+                               revolutions_per_update=NUM["revolutions_per_update"]), gen.truth
 
 
 def fit_shape_pair(study, truth, rival):
