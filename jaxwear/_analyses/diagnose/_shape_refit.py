@@ -32,7 +32,8 @@ def _carriers(results, top) -> tuple:
 
 
 def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
-           sigma, Jw, rho_full, verbose, deepest: int, maps: bool = True):
+           sigma, Jw, rho_full, verbose, deepest: int, maps: bool = True,
+           linear_start: bool = True):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
@@ -40,7 +41,9 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
     answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
     None). `maps`: compile the when/where map's functions meanwhile (False for a caller that
-    draws no map: `design`'s shape rivals)."""
+    draws no map: `design`'s shape rivals). `linear_start`: start the correction at the
+    joint linearised fit (False: at zero, the fit's own answer; a caller's retry where the
+    linearised start led the loop astray)."""
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
@@ -55,6 +58,8 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     pf = lin.penalised_fit(A, S, rho, n_res, math.inf, None, 0)
     lam = pf.lam
     a = lin.nonnegative_fit(A, S, rho, lam) if form == "deposit" else pf.a
+    if not linear_start:
+        a = np.zeros_like(a)
     k = 0
     shift = rho_full.copy()
     for lab in labels:
