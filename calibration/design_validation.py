@@ -231,10 +231,10 @@ def main(argv=None):
     seeds = [int(s) for s in a.seeds.split(",")]
     every = CASES + [SHAPE_CASE]
     cases = every if a.cases is None else [every[int(i)] for i in a.cases.split(",")]
-    # the rows of the cases not run now are kept from the table's JSON
+    # the rows of the studies (case, seed) not run now are kept from the table's JSON
     js = Path(a.out).with_suffix(".json")
-    labels = {c[0] for c in cases}
-    rows = ([r for r in json.loads(js.read_text()) if r["case"] not in labels]
+    now = {(c[0], s) for c in cases for s in seeds}
+    rows = ([r for r in json.loads(js.read_text()) if (r["case"], r["seed"]) not in now]
             if js.exists() else [])
     with tempfile.TemporaryDirectory() as tmp:
         for case in cases:
