@@ -223,3 +223,50 @@ def test_shape_pointer_names_the_design_command():
                                 0, "none", "", next_test=cmd).to_json()}
     assert doc["shape"]["next_test"] == cmd
     assert tied_pair(doc)[0] == ["shape:pressure_MPa", "shape:sliding_speed_m_per_s"]
+
+
+# ------------------------------------------------------------------ a rival fitted
+
+
+@pytest.fixture(scope="module")
+def threshold_rig(tmp_path_factory):
+    """Two rig experiments of 2000 revolutions with a pressure-threshold law hidden
+    (benchmarks/hidden_physics.py, the independent NumPy generator, at 96 x 72 and M 10),
+    studied at 48 x 36 with the paper integrator at M 100; noise 0.3 µm."""
+    import dataclasses as dc
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import hidden_physics as hp
+
+    conds = tuple(dc.replace(c, revolutions=2000.0) for c in hp.PAPER[:2])
+    gen = hp.generate(hp.Law("threshold", 1.0, threshold_MPa=1.2), conds, seed=5,
+                      noise_um=0.3, num=hp.Numerics(nodes=96, steps=72, M=10.0))
+    path = hp.write(tmp_path_factory.mktemp("thr"), gen, conds, study_numerics=(48, 36))
+    st = load_study(path)
+    return dc.replace(st, integrator="paper", revolutions_per_update=100.0)
+
+
+def test_a_shape_rival_fits_better_than_the_study_and_design_ranks_with_it(threshold_rig):
+    """The rival `shape:pressure_MPa` on data with a pressure law: its refit ends below the
+    study's misfit (the correction nests the study, and the refit keeps the better of its
+    two starts), its information is a symmetric positive definite matrix, and `design
+    --between shape:pressure_MPa,base` ranks candidates by a finite expected χ² ≥ 0 with
+    the rival's fit and its correction's coefficients reported."""
+    from jaxwear._analyses.design import design, fit_shape
+    from jaxwear._analyses.design.rank import _fit
+
+    st, base = _fit(threshold_rig, study_fit_keys(threshold_rig), False, "the study", [])
+    rival = fit_shape(st, base, "shape:pressure_MPa")
+    assert rival.rss <= base.rss * (1 + 1e-6)
+    print("Δχ² study - rival", (base.rss - rival.rss) / base.noise_um ** 2, rival.status)
+    assert (base.rss - rival.rss) / base.noise_um ** 2 > 2.0  # the law is there to find
+    info = rival.information
+    assert np.allclose(info, info.T) and np.all(np.linalg.eigvalsh(info) > 0)
+    res = design(threshold_rig, goal="separate", between=["shape:pressure_MPa", "base"],
+                 vary=parse_vary("speed_rpm=150,300,revolutions=2000", threshold_rig))
+    assert np.all(np.isfinite(res.values)) and np.all(res.values >= 0)
+    assert res.info["chi2_between_now"] >= -1e-6  # base RSS − rival RSS, in σ²
+    pars = res.info["fits"]["shape:pressure_MPa"]["parameters"]
+    assert sum(k.startswith("shape_pressure_MPa_") for k in pars) == 10
