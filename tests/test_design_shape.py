@@ -260,7 +260,6 @@ def test_a_shape_rival_fits_better_than_the_study_and_design_ranks_with_it(thres
     st, base = _fit(threshold_rig, study_fit_keys(threshold_rig), False, "the study", [])
     rival = fit_shape(st, base, "shape:pressure_MPa")
     assert rival.rss <= base.rss * (1 + 1e-6)
-    print("Δχ² study - rival", (base.rss - rival.rss) / base.noise_um ** 2, rival.status)
     assert (base.rss - rival.rss) / base.noise_um ** 2 > 2.0  # the law is there to find
     info = rival.information
     assert np.allclose(info, info.T) and np.all(np.linalg.eigvalsh(info) > 0)
@@ -268,5 +267,8 @@ def test_a_shape_rival_fits_better_than_the_study_and_design_ranks_with_it(thres
                  vary=parse_vary("speed_rpm=150,300,revolutions=2000", threshold_rig))
     assert np.all(np.isfinite(res.values)) and np.all(res.values >= 0)
     assert res.info["chi2_between_now"] >= -1e-6  # base RSS − rival RSS, in σ²
+    # 150 and 300 r/min lie beyond the study's 276: flagged (the rival is flat there)
+    assert all(d["beyond_study_speeds"] for d in res.details)
+    assert any("beyond the study's (276-276 r/min)" in f for f in res.info["flags"])
     pars = res.info["fits"]["shape:pressure_MPa"]["parameters"]
     assert sum(k.startswith("shape_pressure_MPa_") for k in pars) == 10

@@ -81,6 +81,8 @@ from jaxwear._analyses.design.runs import (
     shared_keys,
 )
 from jaxwear._analyses.design.shape_rival import (
+    beyond_flag,
+    beyond_speeds,
     fit_shape,
     information_of,
     is_shape,
@@ -451,6 +453,11 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
         total += float(v[best])
         pick_vals.append(total)
         I_cur = [I_cur[m] + infos[m][best] for m in range(2)]
+    beyond, span = beyond_speeds(study, plan)
+    flag = beyond_flag(between, sum(beyond), plan.size, span)
+    if flag is not None:
+        flags.append(flag)
+        _log(verbose, f"design: {flag}")
     details = []
     for i in range(plan.size):
         r, s_last = plan.run[i], plan.snaps[i][-1]
@@ -459,6 +466,8 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
                         "peak_depth_um": {between[0]: float(ra.snaps[r, s_last].max()),
                                           between[1]: float(rb.snaps[r, s_last].max())},
                         "scans_needed": scans[i]})
+        if any(is_shape(b) for b in between):
+            details[-1]["beyond_study_speeds"] = bool(beyond[i])
     now = (fits[1].rss - fits[0].rss) / sigma ** 2
     info = {"fits": {n: {"rmse_um": float(f.rmse_um), "noise_um": float(f.noise_um),
                          "parameters": f.parameters_json()} for n, f in zip(between, fits)},

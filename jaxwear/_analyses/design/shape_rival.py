@@ -35,6 +35,7 @@ from jaxwear._core.log import log as _log
 from jaxwear._inference.calibrate import registered
 from jaxwear._inference.result import FitResult
 from jaxwear._physics.effects.shape import DEPOSIT_VARIABLES, VARIABLES, ShapeBasis
+from jaxwear._physics.params import key_to_si
 from jaxwear._study.resolution import at_level
 from jaxwear._study.study import Study
 
@@ -161,6 +162,36 @@ def fit_shape(study: Study, base: FitResult, name: str, *, verbose: bool = False
                     u=np.asarray(u_fit, float), problem=cm.ext, rss=float(rmse ** 2 * n),
                     rmse_um=float(rmse), noise_um=sigma, status=status, information=info,
                     basis=cm.ext.cfg.shape, flags=flags)
+
+
+def beyond_speeds(study: Study, plan) -> tuple[list, tuple | None]:
+    """Per candidate of `plan`, whether its speed lies outside the study's speeds (where a
+    shape rival's correction of a speed-driven state is flat at its last fitted value), and
+    that range [r/min] (None for a study without speeds)."""
+    if not hasattr(plan, "conditions") or not study.experiments:
+        return [False] * getattr(plan, "size", 0), None
+    try:
+        speeds = [float(study.params(e).get("speed_rpm")) / key_to_si("speed_rpm")
+                  for e in study.experiments]
+    except (KeyError, AttributeError, TypeError):
+        return [False] * plan.size, None
+    lo, hi = min(speeds), max(speeds)
+    out = [c.get("speed_rpm") is not None and not (lo * (1 - 1e-9) <= float(c["speed_rpm"])
+                                                   <= hi * (1 + 1e-9))
+           for c in plan.conditions]
+    return out, (lo, hi)
+
+
+def beyond_flag(rivals, n_beyond: int, size: int, span) -> str | None:
+    """The flag for shape rivals ranked at speeds beyond the study's, or None."""
+    if not any(is_shape(r) for r in rivals) or not n_beyond or span is None:
+        return None
+    return (f"{n_beyond} of {size} candidates run at speeds beyond the study's "
+            f"({span[0]:g}-{span[1]:g} r/min), where a shape rival's correction is flat at its "
+            f"last fitted value: their expected chi-square is the rivals' extrapolations, "
+            f"which a refit with the new data absorbs (measured: 325 expected, +4 realised; "
+            f"docs/design_experiments.md); prefer --vary speed_rpm within "
+            f"{span[0]:g}:{span[1]:g}")
 
 
 def information_of(fit) -> np.ndarray:
