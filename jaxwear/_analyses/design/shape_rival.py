@@ -145,9 +145,9 @@ def fit_shape(study: Study, base: FitResult, name: str, *, verbose: bool = False
     n = smodel.n
     if not (math.isfinite(rmse) and rmse ** 2 * n <= fit0.rss * (1 + 1e-6)):
         # worse than no correction (the study's own answer, a point of this model): the
-        # linearised start led the loop astray (measured: a correction along the sliding
-        # speed, linearised where a new fast specimen's states lie beyond the knots, blew
-        # the paper integrator up); refit from zero and keep the better answer
+        # linearised start led the loop astray (measured: the validation's shape case, seed
+        # 1, with a 414 r/min specimen added: one rival's refit ended with residuals that
+        # overflowed, a Δχ² of 4e45); refit from zero and keep the better answer
         _log(verbose, f"design: {name}: the refit from the linearised start ended at RMSE "
                       f"{rmse:.4g} µm, above the study's {math.sqrt(fit0.rss / n):.4g} µm; "
                       f"refitting from zero")
