@@ -19,7 +19,7 @@ from jaxwear._analyses.diagnose import Model
 from jaxwear._analyses.diagnose import _shape_linear as lin
 from jaxwear._analyses.diagnose._shape_choice import left_out_errors, rank_alternatives
 from jaxwear._analyses.diagnose._shape_interaction import interaction_test, tensor_system
-from jaxwear._analyses.diagnose._shape_text import describe
+from jaxwear._analyses.diagnose._shape_text import describe, next_test, next_test_sentence
 from jaxwear._physics.effects.shape import (
     ShapeBasis,
     ShapeTensor,
@@ -201,8 +201,13 @@ def test_variables_the_experiments_vary_together_are_confounded_and_the_text_say
     s = describe("pressure_MPa", "factor", res, {}, "base", ["sliding_speed_m_per_s"],
                  ("pressure_MPa",), None, confounded=confounded)
     line = next(x for x in s.split(". ") if "cannot tell" in x)
-    assert "--goal separate" in line and "sliding_speed_m_per_s" in line
-    assert "AIC within" not in s
+    assert "sliding_speed_m_per_s" in line and "AIC within" not in s
+    # the next sentence is the command that tells them apart (`shape.next_test`)
+    cmd = next_test("s.toml", "pressure_MPa", "factor", res, ["sliding_speed_m_per_s"],
+                    confounded)
+    assert cmd == ("jaxwear design s.toml --goal separate --between "
+                   "shape:pressure_MPa,shape:sliding_speed_m_per_s")
+    assert cmd in next_test_sentence(cmd)
 
 
 def test_the_effect_file_computes_the_surface_as_the_model_does():

@@ -80,6 +80,15 @@ from jaxwear._analyses.design.runs import (
     scan_step_deg,
     shared_keys,
 )
+from jaxwear._analyses.design.shape_rival import (
+    beyond_flag,
+    beyond_speeds,
+    fit_shape,
+    information_of,
+    is_shape,
+    parse_shape,
+    shape_start,
+)
 from jaxwear._analyses.predict.grid import training_study
 from jaxwear._core.errors import InputError, ModelFailure
 from jaxwear._core.log import log as _log
@@ -319,16 +328,21 @@ def target_label(plan: Plan, target, study: Study) -> str:
 
 
 def check_between(study: Study, between: list) -> list:
-    """Two distinct explanations: "base" (the study as written) or registered effects not
-    yet switched on. `InputError` naming --between otherwise."""
+    """Two distinct explanations: "base" (the study as written), registered effects not
+    yet switched on, or variables of the shape (`shape:VARIABLE`, `shape:deposit:VARIABLE`:
+    `shape_rival`). `InputError` naming --between otherwise."""
     known = list(registered_effects())
     if len(between) != 2 or between[0] == between[1]:
         raise InputError(f"<<between>>: expected two different explanations A,B (effects such "
-                         f"as {', '.join(known[:3])}, or base), got {','.join(between) or '-'}")
+                         f"as {', '.join(known[:3])}, base, or variables of the shape such as "
+                         f"shape:pressure_MPa), got {','.join(between) or '-'}")
     for b in between:
+        if is_shape(b):
+            parse_shape(b)
+            continue
         if b != "base" and b not in known:
-            raise InputError(f"<<between>>: unknown explanation {b!r}; expected base or one of "
-                             f"{', '.join(known)}")
+            raise InputError(f"<<between>>: unknown explanation {b!r}; expected base, "
+                             f"shape:VARIABLE or one of {', '.join(known)}")
         if b in study.config.effects:
             raise InputError(f"<<between>>: {b} is already switched on in the study; name "
                              f"effects it lacks (or base)")
@@ -336,8 +350,9 @@ def check_between(study: Study, between: list) -> list:
 
 
 def model_study(study: Study, name: str) -> Study:
-    """The study with the explanation `name` switched on ("base": as written)."""
-    if name == "base":
+    """The study with the explanation `name` switched on ("base", or a variable of the
+    shape whose correction `shape_rival` adds: as written)."""
+    if name == "base" or is_shape(name):
         return study
     return study.with_config(effects=tuple(study.config.effects) + (name,))
 
@@ -346,10 +361,22 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
     is_timed = plan.unit == "hours"
     fits, runs, keys_of, studies, flags = [], [], [], [], []
     t0 = time.perf_counter()
+    base = None
     for name in between:
         st = model_study(study, name)
         keys = study_fit_keys(st)
-        st, f = _fit(st, keys, verbose, f"explanation {name}", flags)
+        if is_shape(name):
+            # the study's fit, then the shape's correction along the variable on top
+            if base is None:
+                base = _fit(st, keys, verbose, "the study (the shape's rivals' base)", flags)
+            st, f = base[0], fit_shape(base[0], base[1], name, verbose=verbose)
+            flags += f.flags
+        elif name == "base" and base is not None:
+            st, f = base  # fitted already as a shape rival's base
+        else:
+            st, f = _fit(st, keys, verbose, f"explanation {name}", flags)
+            if name == "base":
+                base = (st, f)
         fits.append(f)
         studies.append(st)
         keys_of.append(keys)
@@ -358,8 +385,13 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
                   + ", ".join(f"{n} {f.rmse_um:.3g} µm" for n, f in zip(between, fits))
                   + f"); running {len(plan.runs)} candidate run(s) per explanation")
     timing["candidates_s"] = 0.0
+    if fits[0].problem.cfg.nodes != fits[1].problem.cfg.nodes or (
+            fits[0].problem.cfg.steps_per_rev != fits[1].problem.cfg.steps_per_rev):
+        raise ModelFailure("design: the two explanations were fitted at different "
+                           "resolutions; set [numerics] nodes and steps_per_rev in the study")
     for st, f, keys in zip(studies, fits, keys_of):
-        r = run_candidates(st, f, keys, plan.runs, plan.points, is_timed=is_timed)
+        r = run_candidates(st, f, keys, plan.runs, plan.points, is_timed=is_timed,
+                           shape=getattr(f, "basis", None), shape_start=shape_start(f))
         timing["candidates_s"] += r.seconds
         runs.append(r)
     sigma = min(float(f.noise_um) for f in fits)
@@ -385,7 +417,7 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
     for m, (f, r) in enumerate(zip(fits, runs)):
         A = row_blocks(r, metric)
         infos.append(_embed(f, r, plan, A, sigma, None if is_timed else _clear_prec(study)))
-    I_cur = [_full_information(f)[0] for f in fits]
+    I_cur = [information_of(f) for f in fits]
 
     def shared_chol(f, r, info):
         names = list(f.names)
@@ -421,6 +453,11 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
         total += float(v[best])
         pick_vals.append(total)
         I_cur = [I_cur[m] + infos[m][best] for m in range(2)]
+    beyond, span = beyond_speeds(study, plan)
+    flag = beyond_flag(between, sum(beyond), plan.size, span)
+    if flag is not None:
+        flags.append(flag)
+        _log(verbose, f"design: {flag}")
     details = []
     for i in range(plan.size):
         r, s_last = plan.run[i], plan.snaps[i][-1]
@@ -429,6 +466,8 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
                         "peak_depth_um": {between[0]: float(ra.snaps[r, s_last].max()),
                                           between[1]: float(rb.snaps[r, s_last].max())},
                         "scans_needed": scans[i]})
+        if any(is_shape(b) for b in between):
+            details[-1]["beyond_study_speeds"] = bool(beyond[i])
     now = (fits[1].rss - fits[0].rss) / sigma ** 2
     info = {"fits": {n: {"rmse_um": float(f.rmse_um), "noise_um": float(f.noise_um),
                          "parameters": f.parameters_json()} for n, f in zip(between, fits)},
@@ -437,6 +476,8 @@ def _separate(study, plan, between, budget, verbose, timing) -> DesignResult:
                          "predicted rows, against the noise and both models' parameter "
                          "uncertainty (one scan set)",
             "separate_chi2": SEPARATE_CHI2, "flags": flags,
+            # the study's own fit, where a rival was fitted on top of it (base, shape:)
+            "base_rmse_um": None if base is None else float(base[1].rmse_um),
             "resolution": {"nodes": fits[0].problem.cfg.nodes,
                            "steps_per_rev": fits[0].problem.cfg.steps_per_rev}}
     return DesignResult(goal="separate", between=list(between), plan=plan,

@@ -56,9 +56,12 @@ def shared_keys(keys: list[str]) -> list[str]:
 
 
 def run_candidates(study: Study, result: FitResult, keys: list[str], runs: list,
-                   points: list, *, is_timed: bool) -> Runs:
+                   points: list, *, is_timed: bool, shape=None,
+                   shape_start: dict | None = None) -> Runs:
     """Every candidate run of `runs` (experiments, measured at `points`) in the fitted
-    model of `result`, as one batched Jacobian (`_candidate_jit`)."""
+    model of `result`, as one batched Jacobian (`_candidate_jit`). `shape`: the basis of
+    a shape correction the model carries (a `shape:` rival), its coefficients at
+    `shape_start` (by key) and among the shared parameters."""
     skeys = shared_keys(keys)
     fitted = dict(zip(result.names, map(float, result.values)))
     cfg = result.problem.cfg
@@ -67,7 +70,8 @@ def run_candidates(study: Study, result: FitResult, keys: list[str], runs: list,
         auto_resolution=False)
     cand = cand.with_config(nodes=cfg.nodes, steps_per_rev=cfg.steps_per_rev)
     start = {k: fitted[k] for k in skeys if k in fitted}
-    model = build_model(cand, skeys, start)
+    start.update(shape_start or {})
+    model = build_model(cand, skeys, start, shape=shape)
     u0 = np.zeros(model.packing.size)
     model = enough_attempts(model, u0)
     t0 = time.perf_counter()

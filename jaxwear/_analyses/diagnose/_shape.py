@@ -67,7 +67,7 @@ from jaxwear._analyses.diagnose._shape_linear import DRAWS
 from jaxwear._analyses.diagnose._shape_map import when_where
 from jaxwear._analyses.diagnose._shape_refit import _carriers, _correction, _map_u, _refit
 from jaxwear._analyses.diagnose._shape_result import ShapeResult, VariableShape
-from jaxwear._analyses.diagnose._shape_text import describe
+from jaxwear._analyses.diagnose._shape_text import describe, next_test, next_test_sentence
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_differences
 from jaxwear._physics.effects.shape import FORMS
 
@@ -268,13 +268,16 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                          numerical_um=design.numerical_um if elsewhere else d)
 
     def result(results, rmse_after, status, correction, ww, evaluations):
-        sentence = describe(best, form, results, load, after, alternatives, carriers, ww,
-                            confounded=confounded, interaction=inter)
+        command = next_test(model.study.path, best, form, results, alternatives,
+                            confounded)
+        sentence = (describe(best, form, results, load, after, alternatives, carriers, ww,
+                             confounded=confounded, interaction=inter)
+                    + next_test_sentence(command))
         return ShapeResult(after, best, form, tuple(results), ALPHA, sigma, rmse_before,
                            rmse_after, evaluations, status, sentence, load,
                            np.arange(jmodel.ext.cfg.nodes) * 360.0 / jmodel.ext.cfg.nodes,
                            exp_name, tuple(alternatives), forms, tuple(carriers), correction,
-                           ww, num_info, design=design_out,
+                           ww, num_info, design=design_out, next_test=command,
                            linear={"blocks": blocks, "rho": rho, "Qb": Qb, "phi": phi,
                                    "sigma": sigma, "n_res": n_res, "nu": nu,
                                    "excess": excess, "rss0": rss0, "n": n,

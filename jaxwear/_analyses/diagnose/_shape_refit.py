@@ -32,7 +32,8 @@ def _carriers(results, top) -> tuple:
 
 
 def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
-           sigma, Jw, rho_full, verbose, deepest: int, surface=None):
+           sigma, Jw, rho_full, verbose, deepest: int, surface=None, maps: bool = True,
+           linear_start: bool = True):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
@@ -44,7 +45,11 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     `surface`: the leading pair's surface where it is significant
     (`_shape_interaction.Interaction.block`: (A, S, Z, X, tensor)), refitted with the
     carriers: its roughness along both directions and, for a factor, zero row and column
-    sums of its coefficients and N(0, FACTOR_SD²) on each as prior rows."""
+    sums of its coefficients and N(0, FACTOR_SD²) on each as prior rows. `maps`: compile
+    the when/where map's functions meanwhile (False for a caller that draws no map:
+    `design`'s shape rivals). `linear_start`: start the correction at the joint linearised
+    fit (False: at zero, the fit's own answer; a caller's retry where the linearised start
+    led the loop astray)."""
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
@@ -61,13 +66,15 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_), tensors))
     # the when/where map of this model compiles in the background while the refit runs
 
-    maps = Background(compile_maps, cm, deepest)
+    maps = Background(compile_maps, cm, deepest) if maps else None
     u0 = _map_u(smodel, u, cm)
     # the joint linearised start over the carriers (their GCV penalty)
     A, S = lin.block_penalty([blocks[lab][:2] for lab in labels])
     pf = lin.penalised_fit(A, S, rho, n_res, math.inf, None, 0)
     lam = pf.lam
     a = lin.nonnegative_fit(A, S, rho, lam) if form == "deposit" else pf.a
+    if not linear_start:
+        a = np.zeros_like(a)
     k = 0
     shift = rho_full.copy()
     for lab in labels:
@@ -129,7 +136,8 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     out = lsq.solve(evaluate, np.clip(u0, lo, hi), free=free, lower=lo, upper=hi,
                     noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
                     project=cm.packing.project, label=f"    shape {form}", log=log)
-    maps.result()
+    if maps is not None:
+        maps.result()
     r = out.point.r
     snaps = getattr(out.point.extra, "snaps", None)
     if snaps is not None and not np.array_equal(np.asarray(out.point.u), np.asarray(out.u)):

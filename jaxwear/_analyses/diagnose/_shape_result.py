@@ -103,6 +103,9 @@ class ShapeResult:
     # the surface over the leading pair (`_shape_interaction.Interaction`), or None
     interaction: object = None
     confounded: tuple = ()  # labels the data cannot tell apart (`_shape_choice`)
+    # the command that tells the best variable from its rival (`_shape_text.next_test`;
+    # `jaxwear design --between shape:A,shape:B`), or None where none is tied with it
+    next_test: str | None = None
 
 
     def finished(self) -> ShapeResult:
@@ -139,6 +142,7 @@ class ShapeResult:
                 "rmse_before_um": _num(self.rmse_before_um),
                 "model_evaluations": self.evaluations, "refit_status": self.status,
                 "numerical_error": self.numerical, "summary": self.sentence,
+                "next_test": self.next_test,
                 **({"law": self.law.to_json()} if self.law is not None else {})}
 
     def variable(self, name: str, form: str | None = None) -> VariableShape:

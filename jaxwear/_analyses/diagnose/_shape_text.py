@@ -144,11 +144,59 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
     if len(confounded) >= 2:
         s += (f" The data cannot tell {', '.join(confounded)} apart (none adds significantly "
               f"to the others, and each predicts left-out experiments as well): a test that "
-              f"varies them apart would, `jaxwear design STUDY --goal separate` says which.")
+              f"varies them apart would.")
     elif alternatives:
         s += (f" Preferred to {', '.join(alternatives)} (each within ln 20 of its AIC) by "
               f"the unique shares of the joint fit and the error on left-out experiments.")
     return s
+
+
+# a stand-in counts as a rival to tell apart when it explains at least this share of what
+# the best explains (alone fits): on the paper's matrix pressure, sliding speed and the load
+# each explained 102-104 % of a pressure law's misfit (issue 44)
+RIVAL_SHARE = 0.9
+
+
+def rival_of(best, form, results, alternatives=(), confounded=()) -> str | None:
+    """The label of the variable the data tell least from the best: the first other of
+    the variables the joint fit and the left-out experiments cannot tell apart
+    (`confounded`, `_shape_choice`), else the stand-in (same form) that explains most,
+    where that is at least `RIVAL_SHARE` of the best's share; None where there is none.
+    `alternatives` (AIC within ln 20) that the unique shares or the left-out error told
+    from the best ("preferred to") are not rivals: the data already decided."""
+    if best is None:
+        return None
+    label = best if form == "factor" else f"deposit:{best}"
+    others = [c for c in confounded if c != label]
+    if len(confounded) >= 2 and others:
+        return others[0]
+    top = next(r for r in results if r.name == best and r.form == form)
+    near = [r for r in results if r.form == form and r.significant and r.name != best
+            and r.stand_in_for is not None
+            and r.explained_fraction >= RIVAL_SHARE * top.explained_fraction]
+    if not near:
+        return None
+    return max(near, key=lambda r: r.explained_fraction).label
+
+
+def next_test(study_path, best, form, results, alternatives=(), confounded=()
+              ) -> str | None:
+    """The command that ranks the next experiments by how well they would tell the best
+    variable from its rival (`rival_of`; `jaxwear design`, issue 44), or None."""
+    rival = rival_of(best, form, results, alternatives, confounded)
+    if rival is None:
+        return None
+    label = best if form == "factor" else f"deposit:{best}"
+    return (f"jaxwear design {study_path} --goal separate --between "
+            f"shape:{label},shape:{rival}")
+
+
+def next_test_sentence(command: str | None) -> str:
+    """The sentence that names `command` (`next_test`), or ""."""
+    if command is None:
+        return ""
+    return (f" To tell them apart, `{command}` ranks the next experiments by how well they "
+            f"would separate the two and writes the best as an [[experiment]] stanza.")
 
 
 def _arcs(arcs) -> str:
