@@ -38,6 +38,8 @@ PRODUCT = LawSpec("factor", (Term("step", "pressure_MPa", 1.2, x0=1.1, w=0.08),
 DEPOSIT = LawSpec("deposit", (Term("hinge", "load_turn_rate_deg_per_s", 2000.0, x0=1.5,
                                    a=2.0),), 0.02)
 WORN = LawSpec("factor", (Term("exp", "worn_depth_um", 2.0, b=0.5),), 0.4)
+# a PV step: the derived state p·v (the frictional power density's PV factor)
+PV = LawSpec("factor", (Term("step", "pv_MPa_m_per_s", 0.08, x0=1.0, w=0.1),), 1.0)
 
 
 @eqx.filter_jit
@@ -52,7 +54,8 @@ def _rates(cfg, p, h):
     return np.asarray(rate), sol, hist
 
 
-@pytest.mark.parametrize("law", [PRODUCT, DEPOSIT, WORN], ids=["product", "deposit", "worn"])
+@pytest.mark.parametrize("law", [PRODUCT, DEPOSIT, WORN, PV],
+                         ids=["product", "deposit", "worn", "pv"])
 def test_law_file_round_trips_and_both_give_the_formula(tmp_path, law):
     """law.py written for a law, loaded as an effect file, gives the same rates as the
     search's effect (its structure as held data), and the factor form equals the formula
@@ -84,6 +87,14 @@ def test_law_file_round_trips_and_both_give_the_formula(tmp_path, law):
         phi = law_phi_numpy(law, z)
         np.testing.assert_allclose(mine, rate0 * (1.0 + law.strength * phi), rtol=1e-12)
         assert np.ptp(phi) > 0.1  # the law varies over the cycle: the check can fail
+    if law is PV:
+        # p·v by hand from the model's state: the contact pressure at each node [MPa]
+        # times the sliding speed of the step dS/dt [m/s], into the step's formula
+        pv = (np.asarray(sol.pressure) * 1e-6
+              * (np.asarray(hist.slide[0]) / np.asarray(hist.dt[0]))[:, None])
+        phi = 1.0 / (1.0 + np.exp(-(pv / 0.08 - 1.0) / 0.1))
+        np.testing.assert_allclose(mine, rate0 * (1.0 + phi), rtol=1e-10)
+        assert pv.min() < 0.08 < pv.max(), (pv.min(), pv.max())
     else:
         assert np.all(mine >= rate0 - 1e-30) and np.sum(mine - rate0) > 0
 
@@ -293,52 +304,24 @@ def test_constants_the_data_do_not_determine_are_named_and_cost_the_lead():
     assert "A, W0, a1 are not determined" in text
 
 
-def test_the_shapes_factor_from_its_correction_data():
-    """y = exp(Σ g_k(z_k)): cubic B-splines sum to one inside the range, so coefficients
-    all 0.3 along the pressure and all −0.1 along the speed give exp(0.2) at every state
-    met; a deposit correction gives None."""
-    from jaxwear._analyses.diagnose._law_start import shape_factor
+def test_the_derived_pv_state_over_the_states_met_and_its_screened_laws():
+    """p·v's range is the wear-weighted quantiles of pressure × speed over the states met
+    (by hand: equal weights on a grid where p·v takes the values 0.01 .. 0.40 evenly, so
+    its median is 0.205 and its 0.5 % quantile ≈ 0.012); the screened laws step at the
+    coordinates 0.25-0.9 of that range, inside it."""
+    from jaxwear._analyses.diagnose._law_start import derived_variables, pv_laws
 
-    corr = {"form": "factor", "variables": [
-        {"name": "pressure_MPa", "form": "factor", "size": 10,
-         "knots": list(np.linspace(0.5, 3.0, 33)), "coefficients": [0.3] * 10},
-        {"name": "sliding_speed_m_per_s", "form": "factor", "size": 10,
-         "knots": list(np.linspace(0.01, 0.1, 33)), "coefficients": [-0.1] * 10}]}
-    rng = np.random.default_rng(0)
-    Z = {"pressure_MPa": rng.uniform(0.5, 3.0, 50),
-         "sliding_speed_m_per_s": rng.uniform(0.01, 0.1, 50)}
-    np.testing.assert_allclose(shape_factor(corr, Z), np.exp(0.2), rtol=1e-12)
-    assert shape_factor({**corr, "form": "deposit"}, Z) is None
-
-
-def test_curve_fit_recovers_a_product_of_the_grammar_from_its_curve():
-    """A curve made by a law of the grammar itself, y = c (1 + A S((p − 1.4)/0.05) ·
-    (v/0.05)^0.7) with c = 0.8, A = 1.2, over correlated states (v follows p, as on the
-    paper's rig): the product fitted on the curve recovers p0, the exponent, A and c (an
-    identity: the curve is exactly in the grammar, no noise), and the single step in p
-    leaves more of the variation than the product."""
-    from jaxwear._analyses.diagnose._law import single_laws
-    from jaxwear._analyses.diagnose._law_start import Curve, curve_fit
-
-    rng = np.random.default_rng(1)
-    p = rng.uniform(0.6, 2.6, 4000)
-    v = 0.02 + 0.02 * p + rng.uniform(0.0, 0.02, 4000)
-    Z = {"pressure_MPa": p, "sliding_speed_m_per_s": v}
-    w = np.full(4000, 1 / 4000)
-    true = LawSpec("factor", (Term("step", "pressure_MPa", 1.5, x0=1.4 / 1.5, w=0.05 / 1.5),
-                              Term("power", "sliding_speed_m_per_s", 0.05, a=0.7)), 1.2)
-    y = 0.8 * (1 + 1.2 * law_phi_numpy(true, Z))
-    singles = {}
-    for name, z in Z.items():
-        q = np.quantile(z, np.linspace(0, 1, 33))
-        singles[name] = single_laws(ShapeVariable(name, 10, tuple(q), "factor"), "factor")
-    curve = Curve(Z, w, np.arange(4000) // 8, y)  # 500 "node-cycles" of 8 states each
-    two = curve_fit(singles, curve, "pressure_MPa", "sliding_speed_m_per_s")
-    one = curve_fit(singles, curve, "pressure_MPa")
-    assert [t.kind for t in two.law.terms] == ["step", "power"]
-    t1, t2 = two.law.terms
-    # the references are the grid's (the medians): compare in the variables' units
-    assert abs(t1.x0 * t1.ref - 1.4) < 0.01 and abs(t2.a - 0.7) < 0.02, two.law
-    A = two.law.strength * (0.05 / t2.ref) ** 0.7  # the same law on another reference
-    assert abs(two.kd_scale - 0.8) < 0.01 and abs(A - 1.2) < 0.03, (two.kd_scale, A)
-    assert two.residual < 0.01 < one.residual
+    pv = np.linspace(0.01, 0.40, 4001)
+    Z = {"pressure_MPa": pv / 0.05, "sliding_speed_m_per_s": np.full_like(pv, 0.05)}
+    var = derived_variables(Z, np.full(len(pv), 1 / len(pv)))["pv_MPa_m_per_s"]
+    assert abs(var.at_coordinate(0.5) - 0.205) < 1e-3
+    assert abs(var.lo - (0.01 + 0.005 * 0.39)) < 1e-3
+    assert abs(var.hi - (0.40 - 0.005 * 0.39)) < 1e-3
+    laws = pv_laws(var)
+    steps = [law.terms[0] for law in laws if law.terms[0].kind == "step"]
+    assert len(steps) == 8 and all(var.lo < t.x0 * t.ref < var.hi for t in steps)
+    # t = 0..1 spans the 0.5-99.5 % quantiles (the shape's range met)
+    want = [0.01 + (0.005 + q * 0.99) * 0.39 for q in (0.25, 0.5, 0.75, 0.9)]
+    np.testing.assert_allclose(sorted({t.x0 * t.ref for t in steps}), want, atol=2e-4)
+    # without both variables there is no p·v
+    assert derived_variables({"pressure_MPa": pv}, np.ones(len(pv)) / len(pv)) == {}

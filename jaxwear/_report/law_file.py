@@ -18,7 +18,7 @@ from jaxwear._physics.effects.law import SYMBOLS, LawSpec, formula, term_formula
 EFFECT_NAME = "found_law"
 _UNIT_KEY = {"-": "", "MPa": "_MPa", "m/s": "_m_per_s", "m": "_m", "deg/s": "_deg_per_s",
              "deg/deg": "_deg_per_deg", "N": "_N", "µm": "_um",
-             "nm·rad per step": "_nm_rad_per_step"}
+             "nm·rad per step": "_nm_rad_per_step", "MPa·m/s": "_MPa_m_per_s"}
 
 
 def parameter_key(name: str, unit: str) -> str:
@@ -143,6 +143,8 @@ class FoundLaw(jw.Effect):
         z = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
                             ctx.load_angle, ctx.load, ctx.worn_depth)
         z = {{k: jnp.broadcast_to(v, ctx.pressure.shape) for k, v in z.items()}}
+        # p·v: the frictional power density's PV factor [MPa·m/s]
+        z["pv_MPa_m_per_s"] = z["pressure_MPa"] * z["sliding_speed_m_per_s"]
         phi = {phi}
         {ret}
 '''

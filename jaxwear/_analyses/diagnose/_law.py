@@ -12,16 +12,17 @@ left-out experiments and BIC.
    For a factor that is first order in A (1 + AΦ ≈ exp(AΦ), the shape's factor) and the
    level of Φ is K_d's (the shape's factor columns sum to zero). Per variable and form the
    best law is kept.
-2. **Starts from the shape** (`_law_start`, where the shape's answer is a factor
-   correction refitted through the loop): the grammar's laws, and the products of two,
-   fitted to that correction's rate factor exp(Σ g_k(z_k)) over the states the data met
-   (jointly: a product is judged where its two variables occur together), no model run.
-   The best single law along the shape's best variable and the best product of it with
-   another variable (the shape's other carriers first) are the candidates, each started
-   at its constants from that fit and K_d at the level it asks. Otherwise (a deposit):
-   the best single law of the pre-screen along the shape's variable, its product with the
-   best other variable of its form (`candidates`, `from_fitted`) and the pre-screen's own
-   best where it differs.
+2. **Starts by a forward run** (`screened_starts`, `_law_start`; the shape's answer a
+   factor): the pre-screen's best law along the shape's best variable at a few fractions
+   of its first-order strength, and, where the shape carries the pressure or the speed,
+   a few laws of the derived p·v (the PV factor: `effects.law.DERIVED`; the shape has no
+   columns along it), each run forward once with K_d scaled to the data; the best start
+   of each is fitted through the loop (p·v's first where its start fits better), then
+   the product of the single law with the shape's other carrier (else the pre-screen's
+   best other variable), started from the single law as fitted (`from_fitted`).
+   Otherwise (a deposit): the best single law of the pre-screen along the shape's
+   variable, its product with the best other variable of its form (`candidates`) and
+   the pre-screen's own best where it differs.
 3. **Through the loop.** Each candidate fitted with the fit's own parameters (K_d, the
    clearances) by `fit_masked` (the one least-squares core, `jaxwear._inference.lsq`), on
    one compiled model for all of them (the law's structure is held data: `effects.law`).
@@ -50,7 +51,12 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._evidence import evidence, loo
 from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
-from jaxwear._analyses.diagnose._law_start import Curve, curve_fit, joint_states, shape_factor
+from jaxwear._analyses.diagnose._law_start import (
+    derived_variables,
+    forward_rmse,
+    joint_states,
+    pv_laws,
+)
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._refit import _tests_for
 from jaxwear._analyses.diagnose._stats import neighbour_pairs
@@ -325,12 +331,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     t0, c0 = time.perf_counter(), time.process_time()
     screened = prescreen(linear, forms)
     todo = [(d, law, "prescreen") for d, law in candidates(screened, n, prefer)]
-    shaped = from_shape(model, fit, linear, correction, prefer, verbose)
-    if shaped:
-        # the shape's curve gives the factor laws' starts (and their product's second
-        # variable); the pre-screen's own choice of another variable is not fitted: the
-        # shape's correction through the loop already weighed every variable
-        todo = shaped
+    starts = screened_starts(model, fit, linear, screened, prefer, correction, verbose)
+    if starts:
+        # the pre-screen's own choice of another variable is not fitted: the shape's
+        # correction through the loop already weighed every variable
+        todo = starts
     loo_before = loo(model, fit, noise_um)
     lb = _rms(loo_before)
     _log(verbose, f"  law search: {len(screened)} one-term laws pre-screened; through the "
@@ -345,7 +350,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 # most tie with it (each fit costs ~10 runs of the wear loop)
                 _log(verbose, f"    {law.label}: not fitted (a law already fits to noise)")
                 continue
-            if src == "prescreen":
+            if src == "prescreen":  # a product: from the single law as fitted
                 law = from_fitted(law, fitted, linear)
             found, f, lm = fit_law(model, fit, law, noise_um, nu,
                                    max_evaluations=max_evaluations, verbose=verbose)
@@ -372,40 +377,58 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     return dataclasses.replace(res, sentence=law_sentence(res))
 
 
-def from_shape(model: Model, fit: Fit, linear: dict, correction, prefer, verbose=False):
-    """The factor laws to fit through the loop, started from their fit to the shape's
-    refitted correction (`_law_start`): [(NaN, law, K_d's factor, "shape")], the best law
-    along the shape's best variable, then the best product of it with a law of another
-    variable; [] where the shape's answer is not a factor correction along `prefer`."""
-    if (not correction or correction.get("form") != "factor" or prefer is None
-            or prefer[0] != "factor"):
+SCREEN_STRENGTHS = (1.0, 0.5, 0.25, 0.1)  # of the pre-screen's (first-order) strength
+
+
+def screened_starts(model: Model, fit: Fit, linear: dict, screened, prefer, correction,
+                    verbose=False):
+    """The factor laws to fit through the loop, their starts chosen by one forward run
+    each (`_law_start`): [(χ² drop, law, source)]: the pre-screen's best law along the
+    shape's best variable at the strength (`SCREEN_STRENGTHS` of the pre-screen's) whose
+    forward run fits best; then its product with the best law of the shape's other
+    carrier (else the pre-screen's best other variable; started from the single law as
+    fitted, `from_fitted`); and, where the shape carries p or v, a law of the derived
+    p·v (`_law_start.pv_laws`) first where its forward run beats the single law's. [] where
+    the shape's answer is not a factor along a variable of the pre-screen."""
+    if prefer is None or prefer[0] != "factor":
         return []
-    blocks = linear.get("blocks", {})
-    singles = {v: [law for law in single_laws(blocks[v][4], "factor")]
-               for v in LAW_VARIABLES if v in blocks}
     first = prefer[1]
-    if first not in singles:
+    lead = next(((d, law) for d, law in screened if law.form == "factor"
+                 and law.terms[0].variable == first), None)
+    if lead is None:
         return []
-    Z, w, groups = joint_states(model, fit, tuple(singles))
-    y = shape_factor(correction, Z) if len(w) else None
-    if y is None:
-        return []
-    curve = Curve(Z, w, groups, y)
-    one = curve_fit(singles, curve, first)
-    if one is None:
-        return []
-    # the product's second variable: the shape's other carriers first, then the rest
-    carriers = [v["name"] for v in correction.get("variables", ()) if v["name"] != first]
-    others = carriers + [v for v in singles if v != first and v not in carriers]
-    two = [c for c in (curve_fit(singles, curve, first, v) for v in others) if c]
-    best2 = min(two, key=lambda c: c.residual) if two else None
-    _log(verbose, f"  law search: on the shape's refitted factor ({len(w)} states met, "
-                  f"{len(curve.R)} node-cycles): "
-                  f"{one.law.label} leaves {one.residual:.0%} of what a level leaves"
-                  + (f", {best2.law.label} {best2.residual:.0%}" if best2 else ""))
-    out = [(math.nan, one.law, "shape")]
-    if best2 is not None:
-        out.append((math.nan, best2.law, "shape"))
+    drop, law1 = lead
+    trials = [dataclasses.replace(law1, strength=law1.strength * f) for f in SCREEN_STRENGTHS]
+    carriers = [v["name"] for v in (correction or {}).get("variables", ())
+                if v["name"] != first and v.get("form", "factor") == "factor"]
+    pv = []
+    blocks = linear.get("blocks", {})
+    if {"pressure_MPa", "sliding_speed_m_per_s"} & ({first} | set(carriers)) and \
+            {"pressure_MPa", "sliding_speed_m_per_s"} <= set(blocks):
+        Z, w = joint_states(model, fit)
+        for var in derived_variables(Z, w).values():
+            pv += pv_laws(var)
+    with searching():
+        rm = [(forward_rmse(law_model(model, fit, law), model.measured), law)
+              for law in trials + pv]
+    r1, start1 = min(rm[:len(trials)], key=lambda x: x[0])
+    out = [(drop, start1, "forward")]
+    second = next((v for v in carriers if v in LAW_VARIABLES), None)
+    others = [(d, law) for d, law in screened if law.form == "factor"
+              and law.terms[0].variable not in (first,)]
+    other = (next(((d, law) for d, law in others if law.terms[0].variable == second), None)
+             or (others[0] if others else None))
+    if other is not None:
+        out.append((math.nan, LawSpec("factor", (start1.terms[0], other[1].terms[0]),
+                                      start1.strength), "prescreen"))
+    msg = f"{start1.label} x{start1.strength:.3g} {r1:.4f} µm"
+    if pv:
+        r2, start2 = min(rm[len(trials):], key=lambda x: x[0])
+        msg += f"; {start2.label} x{start2.strength:.3g} {r2:.4f} µm"
+        if r2 < r1:
+            out.insert(0, (math.nan, start2, "forward"))
+    _log(verbose, f"  law search: starts by one forward run each ({len(rm)}), RMSE with K_d "
+                  f"scaled: {msg}")
     return out
 
 
