@@ -325,3 +325,13 @@ def test_the_derived_pv_state_over_the_states_met_and_its_screened_laws():
     np.testing.assert_allclose(sorted({t.x0 * t.ref for t in steps}), want, atol=2e-4)
     # without both variables there is no p·v
     assert derived_variables({"pressure_MPa": pv}, np.ones(len(pv)) / len(pv)) == {}
+
+
+def test_the_search_stops_once_a_law_fits_as_well_as_the_shape():
+    """The PV step's numbers: the step in p·v at 0.316 µm against the shape's 0.317: the
+    rest are not fitted; a law at 0.400 leaves them to be tried; no shape, no stop."""
+    from jaxwear._analyses.diagnose._law import as_shape
+
+    assert as_shape([_fit_of(PV, 0.316, 0.321)], 0.317)
+    assert not as_shape([_fit_of(PV, 0.400, 0.415)], 0.317)
+    assert not as_shape([_fit_of(PV, 0.316, 0.321)], None)
