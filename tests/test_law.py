@@ -328,11 +328,16 @@ def test_the_derived_pv_state_over_the_states_met_and_its_screened_laws():
     assert derived_variables({"pressure_MPa": pv}, np.ones(len(pv)) / len(pv)) == {}
 
 
-def test_the_search_stops_once_a_law_fits_as_well_as_the_shape():
-    """The PV step's numbers: the step in p·v at 0.316 µm against the shape's 0.317: the
-    rest are not fitted; a law at 0.400 leaves them to be tried; no shape, no stop."""
+def test_the_search_stops_once_a_law_of_two_variables_fits_as_well_as_the_shape():
+    """The PV step's numbers: the step in p·v (of p and v) at 0.316 µm against the shape's
+    0.317: the rest are not fitted; the same RMSE by a law of p alone leaves the product
+    to be tried (running-in at high pressure: 0.333 alone, 0.316 the product); a law of
+    two variables at 0.400 too; no shape, no stop."""
     from jaxwear._analyses.diagnose._law import as_shape
 
     assert as_shape([_fit_of(PV, 0.316, 0.321)], 0.317)
+    assert as_shape([_fit_of(PRODUCT, 0.316, 0.321)], 0.317)
+    p_alone = LawSpec("factor", (Term("step", "pressure_MPa", 1.5, x0=1.1, w=0.03),), 1.0)
+    assert not as_shape([_fit_of(p_alone, 0.316, 0.321)], 0.317)
     assert not as_shape([_fit_of(PV, 0.400, 0.415)], 0.317)
     assert not as_shape([_fit_of(PV, 0.316, 0.321)], None)
