@@ -557,9 +557,13 @@ def law_sentence(res: LawResult) -> str:
     reach = (f"fitted through the wear loop it brings the RMSE from {res.rmse_before_um:.3f} "
              f"to {b.rmse_um:.3f} µm{lo}, against a noise level of {res.noise_um:.3f} µm "
              f"({b.rmse_um / res.noise_um - 1:+.1%})")
-    und = (f" Its constants {', '.join(b.undetermined)} are not determined by these data "
-           f"(standard errors above their values: they trade off against each other), so "
-           f"the law's form is a lead, not a measurement." if b.undetermined else "")
+    many = len(b.undetermined) > 1
+    und = (f" Its constant{'s' if many else ''} {', '.join(b.undetermined)} "
+           f"{'are' if many else 'is'} not determined by these data one by one (standard "
+           f"error{'s' if many else ''} above the value{'s' if many else ''}: "
+           f"{'they trade' if many else 'it trades'} off against the others), so "
+           f"{'they are' if many else 'it is'} a lead, not a measurement."
+           if b.undetermined else "")
     if res.worse_than_shape:
         return (f"No law of the grammar explains the misfit as well as the shape: the best "
                 f"tried, {b.formula}, with {cs}, reaches {b.rmse_um:.3f} µm, "
