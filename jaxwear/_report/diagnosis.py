@@ -9,7 +9,7 @@ from jaxwear._physics.effects.shape import DEPOSIT_VARIABLES, VARIABLES
 from jaxwear._report.diagnose_html import report_html
 from jaxwear._report.effect_file import effect_file_source
 from jaxwear._report.figures import plt
-from jaxwear._report.law_file import EFFECT_NAME, law_file_source
+from jaxwear._report.law_file import EFFECT_NAME, law_caveat, law_file_source
 from jaxwear._report.shape_plot import file_stem, shape_figure, when_where_figure
 from jaxwear._study.outputs import open_outputs
 
@@ -95,7 +95,7 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
             b = law.best
             out.write_text("law.py", law_file_source(
                 b.law, b.constants, study_path=str(diag.study.path), rmse_um=b.rmse_um,
-                loo_rmse_um=b.loo_rmse_um, noise_um=law.noise_um))
+                loo_rmse_um=b.loo_rmse_um, noise_um=law.noise_um, caveat=law_caveat(law)))
             doc[key]["law"].update(file="law.py", effect=EFFECT_NAME)
     out.write_json("diagnosis.json", doc)
     header, rows = residual_table(diag)

@@ -11,13 +11,14 @@ only: the CLI writes it.
 from __future__ import annotations
 
 import math
+import textwrap
 
 from jaxwear._physics.effects.law import SYMBOLS, LawSpec, formula, term_formula
 
 EFFECT_NAME = "found_law"
 _UNIT_KEY = {"-": "", "MPa": "_MPa", "m/s": "_m_per_s", "m": "_m", "deg/s": "_deg_per_s",
              "deg/deg": "_deg_per_deg", "N": "_N", "µm": "_um",
-             "nm·rad per step": "_nm_rad_per_step"}
+             "nm·rad per step": "_nm_rad_per_step", "MPa·m/s": "_MPa_m_per_s"}
 
 
 def parameter_key(name: str, unit: str) -> str:
@@ -53,9 +54,10 @@ HINGE_MIN = 0.5  # as `effects.law.HINGE_MIN_EXPONENT`
 
 
 def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: float,
-                    loo_rmse_um: float | None, noise_um: float) -> str:
+                    loo_rmse_um: float | None, noise_um: float, caveat: str = "") -> str:
     """The text of `law.py` for a fitted `law` and its `consts` ({NAME: (value, stderr,
-    unit)}, `effects.law.constants`)."""
+    unit)}, `effects.law.constants`); `caveat`: what the search found wanting in it (worse
+    than the shape, constants undetermined), written at the top of its docstring."""
     fitted = {n: c for n, c in consts.items() if not n.endswith("_ref")}
     refs = {n: c for n, c in consts.items() if n.endswith("_ref")}
     keys = {n: parameter_key(n, u) for n, (_, _, u) in fitted.items()}
@@ -95,8 +97,9 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
                f'        return rate + e["{keys["D"]}"] * DEPOSIT_UNIT_M * phi * kernel')
     loo = f"{loo_rmse_um:.4f}" if loo_rmse_um is not None else "-"
     terms = "; ".join(f"φ{k} = {term_formula(t, k)}" for k, t in enumerate(law.terms, 1))
+    warn = f"\n{caveat}\n" if caveat else ""
     return f'''"""{EFFECT_NAME}: the wear law that `jaxwear diagnose --shape` found (issue 43).
-
+{warn}
 Study: {study_path}
 
     {formula(law)}
@@ -141,6 +144,8 @@ class FoundLaw(jw.Effect):
         z = state_variables(ctx.pressure, ctx.slide, ctx.dt, ctx.sliding_distance,
                             ctx.load_angle, ctx.load, ctx.worn_depth)
         z = {{k: jnp.broadcast_to(v, ctx.pressure.shape) for k, v in z.items()}}
+        # p·v: the frictional power density's PV factor [MPa·m/s]
+        z["pv_MPa_m_per_s"] = z["pressure_MPa"] * z["sliding_speed_m_per_s"]
         phi = {phi}
         {ret}
 '''
@@ -152,3 +157,19 @@ def _kind_of(law: LawSpec, name: str) -> str:
         return law.terms[int(name[1:]) - 1].kind
     except (ValueError, IndexError):
         return ""
+
+
+def law_caveat(res) -> str:
+    """The warning `law.py` opens with (`_law.LawResult` `res`): worse than the shape's
+    refitted correction, and the constants the data do not determine; "" where none."""
+    b = res.best
+    out = []
+    if res.worse_than_shape:
+        out.append(f"WARNING: no law of the grammar explains the misfit as well as the shape. "
+                   f"This law reaches an RMSE of {b.rmse_um:.4f} µm where the shape's "
+                   f"correction (missing_wear.py) reaches {res.shape_rmse_um:.4f} µm "
+                   f"({b.rmse_um / res.shape_rmse_um - 1:+.0%}): a lead, not the law found.")
+    if b is not None and b.undetermined:
+        out.append(f"Constants not determined by the data (standard errors above their "
+                   f"values): {', '.join(b.undetermined)}.")
+    return "\n".join(textwrap.fill(x, 88) for x in out)

@@ -26,7 +26,9 @@ def law_section(shape, _table) -> list[str]:
               for k, (v, s, u) in b.constants.items()]
     tried = [(f.law.label, _n(f.rmse_um), _n(f.loo_rmse_um), _n(f.evidence, ".1f"),
               "yes" if f.at_noise else "no", f.status) for f in res.fitted]
-    return ["<h3>The law found</h3>", f"<p>{html.escape(res.sentence)}</p>",
+    head = ("The best law tried: worse than the shape" if res.worse_than_shape
+            else "The law found")
+    return [f"<h3>{head}</h3>", f"<p>{html.escape(res.sentence)}</p>",
             _table(steps, ["model", "RMSE [µm]", "left-out-experiment RMSE [µm]"]),
             _table(consts, ["constant", "value", "SE", "unit"]),
             "<p>Laws of the grammar (power law, hinge, smooth step, exponential and "

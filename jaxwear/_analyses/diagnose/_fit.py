@@ -98,11 +98,13 @@ def whitened_system(ev: Evaluation, mask, noise_um: float):
 
 def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = math.inf,
                label="base", groups=(), ev0: Evaluation | None = None, max_evaluations: int = 20,
-               verbose=False) -> Fit:
+               verbose=False, rescales: int = 0) -> Fit:
     """The free columns `mask` fitted by `lsq.solve` (bounds by projection), from u0, with
     the data's noise level `noise_um` [µm] and its degrees of freedom (held fixed: the
     candidates are compared at one noise level); a start where the model wears through
-    first lowers K_d (`lsq.robust_start`, step 1)."""
+    first lowers K_d (`lsq.robust_start`, step 1); `rescales`: times K_d is first scaled
+    to the data by least squares (its step 2: a start whose level is off, e.g. a law that
+    adds wear on top of a K_d fitted without it)."""
     mask = np.asarray(mask, bool)
     lo, hi = model.bounds_u()
     u = np.clip(np.array(u0, np.float64), lo, hi)
@@ -134,7 +136,7 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
         kd = model.index.get("K_d_per_Pa")
         u, pt0, evals, why = lsq.robust_start(evaluate, u, kd if kd is not None and mask[kd]
                                               else None, measured=model.measured,
-                                              log=log, rescales=0)
+                                              log=log, rescales=rescales)
         if why and pt0 is None:  # every start raised: nothing to report a fit at
             raise lsq.FitError(f"{label}: cannot start the fit at {describe(u)}: {why}")
         if why:

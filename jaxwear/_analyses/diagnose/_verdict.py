@@ -332,7 +332,9 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             # the law of the grammar that explains the base model's misfit (the study as
             # written: with a library effect that only approximates, the law replaces it)
             shp = replace(shp, law=search(model, base, shp.linear, noise, nu,
-                                          prefer=(shp.form, shp.best), verbose=verbose))
+                                          prefer=(shp.form, shp.best),
+                                          correction=shp.correction,
+                                          shape_rmse_um=shp.rmse_after_um, verbose=verbose))
         diag = replace(diag, shape=shp, shape_after_effect=after)
         summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else [])
                            + ([shp.law.sentence] if shp.law is not None else []))

@@ -52,7 +52,14 @@ LAW_EFFECT = "law_search"
 # material law depends on); index = position
 LAW_VARIABLES = ("pressure_MPa", "sliding_speed_m_per_s", "sliding_distance_m",
                  "load_turn_rate_deg_per_s", "load_turn_deg_per_deg", "load_N",
-                 "worn_depth_um")
+                 "worn_depth_um", "pv_MPa_m_per_s")
+# states a law may depend on that are made of the shape's variables (`derived_states`):
+# name -> (unit, its variables). The frictional power density's p·v (the PV factor of
+# bearing design: the frictional heat per unit area is μ p v, the flash temperature's
+# driver, and a polymer's PV limit a step in it) is a law's variable, not one of the
+# shape's: the shape's variables are the states themselves, and a product of two is what
+# the law's products and this derived state are for
+DERIVED = {"pv_MPa_m_per_s": ("MPa·m/s", ("pressure_MPa", "sliding_speed_m_per_s"))}
 # a deposit is made per step by an event of the cycle: its variables are per step
 DEPOSIT_LAW_VARIABLES = ("sliding_speed_m_per_s", "sliding_distance_m",
                          "load_turn_rate_deg_per_s", "load_turn_deg_per_deg", "load_N")
@@ -105,8 +112,20 @@ def law_term(kind, x, a, x0, w, b):
     return jnp.select([k == 1, k == 2, k == 3, k == 4], [power, hinge, step, expo], 1.0)
 
 
+def derived_states(z: dict) -> dict:
+    """`z` ({state variable: values}, `effects.shape.state_variables`) with the `DERIVED`
+    states added: p·v [MPa·m/s] = pressure_MPa × sliding_speed_m_per_s (broadcast)."""
+    return {**z, "pv_MPa_m_per_s": z["pressure_MPa"] * z["sliding_speed_m_per_s"]}
+
+
+def variable_unit(name: str) -> str:
+    """The unit of a law's variable (a shape variable's or a `DERIVED` one's)."""
+    return DERIVED[name][0] if name in DERIVED else VARIABLES[name][0]
+
+
 def law_phi(e: dict, z: dict, shape) -> jax.Array:
     """Φ = φ1 φ2 (steps, nodes) from the law's parameters `e` and the states `z`."""
+    z = derived_states(z)
     Z = jnp.stack([jnp.broadcast_to(z[n], shape) for n in LAW_VARIABLES])
     phi = jnp.ones(shape)
     for k in (1, 2):
@@ -170,7 +189,7 @@ class Term:
 
     @property
     def unit(self) -> str:
-        return VARIABLES[self.variable][0]
+        return variable_unit(self.variable)
 
 
 @dataclass(frozen=True)
@@ -225,7 +244,7 @@ class LawSpec:
 # symbols of the variables in formulas and constant names (ASCII: they name study keys)
 SYMBOLS = {"pressure_MPa": "p", "sliding_speed_m_per_s": "v", "sliding_distance_m": "S",
            "load_turn_rate_deg_per_s": "omega", "load_turn_deg_per_deg": "turn",
-           "load_N": "W", "worn_depth_um": "h"}
+           "load_N": "W", "worn_depth_um": "h", "pv_MPa_m_per_s": "pv"}
 
 
 def constants(law: LawSpec, se: dict | None = None) -> dict:
@@ -295,6 +314,8 @@ def law_phi_numpy(law: LawSpec, z: dict):
     """Φ of `law` at the states `z` ({variable: array}) with numpy: the formula as written
     (`formula`), for checks independent of the traced selectors."""
     out = 1.0
+    if "pv_MPa_m_per_s" not in z and {"pressure_MPa", "sliding_speed_m_per_s"} <= set(z):
+        z = derived_states({k: np.asarray(v, float) for k, v in z.items()})
     for t in law.terms:
         x = np.asarray(z[t.variable], float) / t.ref
         if t.kind == "power":
