@@ -411,3 +411,24 @@ def test_the_resolution_check_measures_what_refining_moves():
     assert refined == pytest.approx(np.max(np.abs(move)), rel=1e-9)
     assert 0.05 < refined < 0.1 < 0.29 < alone  # alone: the leftover step counted too
     assert lsq.step_in_standard_errors(pt(0.0), sigma, relative_to=pt(0.0))[0] == 0.0
+
+
+def test_settled_stops_on_the_data_misfit_and_says_so():
+    """`settled`: a fit whose answer is its misfit (the shape's refit, a candidate law)
+    stops once three evaluations lower the data's ½χ² by less than the threshold. With a
+    Jacobian at half its true scale the parameter stop needs 25 evaluations; the misfit
+    stop ends sooner, says which stop it was, and its ½χ² is within 1.5 of the true least
+    squares minimum (scipy's, with the true Jacobian)."""
+    from scipy.optimize import least_squares
+
+    y = data(0)
+    plain = lsq.solve(exp_model(y, jacobian_scale=0.5), np.array([0.0, 0.2]),
+                      noise_um=SIGMA, max_evaluations=40)
+    out = lsq.solve(exp_model(y, jacobian_scale=0.5), np.array([0.0, 0.2]),
+                    noise_um=SIGMA, max_evaluations=40, settled=1.0)
+    assert out.status == "converged" and "converged in the misfit" in out.message
+    assert out.evaluations < plain.evaluations
+    best = least_squares(lambda u: (math.exp(u[0]) * np.exp(-u[1] * T) - y) / SIGMA,
+                         [0.0, 0.2])
+    chi = 0.5 * float(out.point.r @ out.point.r) / SIGMA ** 2
+    assert 0.0 <= chi - 0.5 * float(best.fun @ best.fun) < 1.5

@@ -98,13 +98,14 @@ def whitened_system(ev: Evaluation, mask, noise_um: float):
 
 def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = math.inf,
                label="base", groups=(), ev0: Evaluation | None = None, max_evaluations: int = 20,
-               verbose=False, rescales: int = 0) -> Fit:
+               verbose=False, rescales: int = 0, settled: float | None = None) -> Fit:
     """The free columns `mask` fitted by `lsq.solve` (bounds by projection), from u0, with
     the data's noise level `noise_um` [µm] and its degrees of freedom (held fixed: the
     candidates are compared at one noise level); a start where the model wears through
     first lowers K_d (`lsq.robust_start`, step 1); `rescales`: times K_d is first scaled
     to the data by least squares (its step 2: a start whose level is off, e.g. a law that
-    adds wear on top of a K_d fitted without it)."""
+    adds wear on top of a K_d fitted without it); `settled`: `lsq.solve`'s stop on the
+    data's misfit (a candidate ranked by its RMSE)."""
     mask = np.asarray(mask, bool)
     lo, hi = model.bounds_u()
     u = np.clip(np.array(u0, np.float64), lo, hi)
@@ -144,7 +145,7 @@ def fit_masked(model: Model, mask, u0, *, noise_um: float, noise_dof: float = ma
     out = lsq.solve(trial, u, point0=pt0, free=mask, lower=lo, upper=hi,
                     noise_um=sigma, noise_dof=noise_dof, max_evaluations=max_evaluations,
                     se_tol=REFIT_SE_TOL, project=model.packing.project, label=f"  {label}",
-                    log=log, describe=describe)
+                    log=log, describe=describe, settled=settled)
     return fit_of(model, mask, out, label, groups, evals + out.evaluations)
 
 

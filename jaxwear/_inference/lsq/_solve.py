@@ -55,6 +55,7 @@ _SEARCH = optx.ClassicalTrustRegion(low_constant=0.1, high_cutoff=0.75)
 GAUSS_NEWTON_WITHIN_SE = 1.0
 SE_TOL = 0.01  # the stop of a reported fit: the next step under 1 % of a standard error
 NO_GAIN = 1e-4  # an accepted step lowering ½χ² by less than this changed nothing the data see
+SETTLED_EVALUATIONS = 3  # the `settled` stop looks at this many evaluations
 _BAD = 1e20  # residual of an unusable trial: the trust region rejects it and shrinks
 
 
@@ -243,7 +244,7 @@ def error_scale(rss: float, n: int, k_eff: float, sigma: float, sigma_dof: float
 def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None = None,
           free=None, lower=None, upper=None, noise_um: float | None = None,
           noise_dof: float = math.inf, max_evaluations: int = 30, se_tol: float = SE_TOL,
-          max_rejections: int = 6, label: str = "fit",
+          max_rejections: int = 6, label: str = "fit", settled: float | None = None,
           log: Callable[[str], None] | None = None,
           project: Callable[[np.ndarray], np.ndarray] | None = None,
           describe: Callable[[np.ndarray], str] | None = None) -> Outcome:
@@ -260,6 +261,13 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
       residuals after every accepted step (one pass: the prior rows need no re-weighting,
       they are in units of their standard deviation).
     - `max_evaluations`: the budget; `se_tol`: the stop (fraction of a standard error).
+    - `settled`: a second stop, for fits whose answer is their misfit to the data rather
+      than their parameters (a spline correction whose coefficients nobody reads one by
+      one; a candidate law ranked by its RMSE): the last `SETTLED_EVALUATIONS` evaluations
+      together lowered the data rows' ½χ² by less than this (the prior rows, a penalty,
+      may still trade against them; status "converged", the message says it is the
+      misfit that settled and how far the next step would still move the parameters).
+      None: parameters only.
     - `label`, `log`: progress, one line per evaluation.
     - `project`: u ↦ u inside constraints the box cannot state (a bound on a value that
       depends on two coordinates), applied to every trial after the box.
@@ -340,6 +348,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     # start has brought the scale in
     step_size = jnp.asarray(1e2)
     rejections = 0  # trials in a row that were rejected or gained nothing (< NO_GAIN)
+    gains: list[float] = []  # ½χ² each evaluation lowered (0 where rejected)
     gauss_newton_failed, ratio_at_failure = False, math.inf
     say(f"    {label}: start, rms {pt.rms_um:.4f} µm, σ {sigma:.3g} µm"
         f"{'' if estimated else ' (stated)'}")
@@ -385,6 +394,13 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
                            f"or gained nothing: {why}; "
                            f"the next Gauss-Newton step is {ratio:.2g} standard errors",
                            cov, ratio, pred, floor)
+        if (settled is not None and len(gains) >= SETTLED_EVALUATIONS
+                and sum(gains[-SETTLED_EVALUATIONS:]) < settled):
+            return outcome("converged", f"converged in the misfit: the last "
+                           f"{SETTLED_EVALUATIONS} evaluations lowered the data's ½χ² by "
+                           f"{sum(gains[-SETTLED_EVALUATIONS:]):.2g} (< {settled:g}); the next "
+                           f"Gauss-Newton step would still move a parameter by {ratio:.2g} "
+                           f"standard errors along a flat direction", cov, ratio, pred, floor)
         if evals >= max_evaluations:
             return outcome("budget", f"not converged within {max_evaluations} model "
                            f"evaluations: the next Gauss-Newton step is {ratio:.2g} standard "
@@ -423,6 +439,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
         accept = bool(accept) and why is None
         if accept:
             gain = 0.5 * (float(rw @ rw) - float(rw_t @ rw_t))
+            gains.append(0.5 * (float(pt.r @ pt.r) - float(pt_t.r @ pt_t.r)) / sigma ** 2)
             u, pt = trial, pt_t
             D = _column_scale(whitened(pt, sigma, free)[1], D)
             if gauss_newton_failed and ratio < 0.5 * ratio_at_failure:
@@ -431,6 +448,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             if estimated:
                 sigma = noise_estimate(pt, cov.k_eff)
         else:
+            gains.append(0.0)
             rejections += 1
             if near:
                 gauss_newton_failed, ratio_at_failure = True, ratio
