@@ -108,6 +108,19 @@ def added(base, base_truth, study_conditions, hidden, seed, noise, exp: Experime
     return base.with_experiments(list(base.experiments) + [res.study.experiments[-1]])
 
 
+def next_experiments(res, seed):
+    """(what, conditions, expected value) of the three next experiments compared: the
+    design's recommendation, the paper matrix's next point, a random candidate (seeded)."""
+    best = int(res.order[0])
+    rng = np.random.default_rng(1000 + seed)
+    rand = int(rng.integers(res.plan.size))
+    _, n, r, c = PAPER_MATRIX[STUDY_EXPERIMENTS]
+    return [("recommended", res.plan.conditions[best], float(res.values[best])),
+            ("matrix's next point", {"speed_rpm": n, "clearance_mm": c, "revolutions": r},
+             None),
+            ("random in the grid", res.plan.conditions[rand], float(res.values[rand]))]
+
+
 def run_case(label, hidden, truth, rival, noise, seed, rows, tmp):
     t0 = time.perf_counter()
     cond = conditions()
@@ -115,14 +128,7 @@ def run_case(label, hidden, truth, rival, noise, seed, rows, tmp):
     base = made.study
     d0, _ = fit_pair(base, truth, rival)
     res = design(base, goal="separate", between=[truth, rival], vary=parse_vary(VARY, base))
-    best = int(res.order[0])
-    rng = np.random.default_rng(1000 + seed)
-    rand = int(rng.integers(res.plan.size))
-    name, n, r, c = PAPER_MATRIX[STUDY_EXPERIMENTS]
-    nexts = [("recommended", res.plan.conditions[best], float(res.values[best])),
-             ("matrix's next point", {"speed_rpm": n, "clearance_mm": c, "revolutions": r},
-              None),
-             ("random in the grid", res.plan.conditions[rand], float(res.values[rand]))]
+    nexts = next_experiments(res, seed)
     for what, cnd, expected in nexts:
         over = {k: v for k, v in cnd.items() if k != "revolutions"}
         over.setdefault("clearance_mm", 0.05)
@@ -184,16 +190,9 @@ def run_shape_case(label, truth, rival, noise, seed, rows, tmp, in_range=False):
                 for n, f in res.info["fits"].items()}
     print(f"  {label} seed {seed}: before Δχ² {d0:.2f}; base -> each alone "
           f"{explains}", file=sys.stderr, flush=True)
-    best = int(res.order[0])
-    rng = np.random.default_rng(1000 + seed)
-    rand = int(rng.integers(res.plan.size))
-    name, n, r, c = PAPER_MATRIX[STUDY_EXPERIMENTS]
-    nexts = [("recommended", res.plan.conditions[best], float(res.values[best])),
-             ("matrix's next point", {"speed_rpm": n, "clearance_mm": c, "revolutions": r},
-              None),
-             ("random in the grid", res.plan.conditions[rand], float(res.values[rand]))]
+    nexts = next_experiments(res, seed)
     if in_range:
-        nexts = [(IN_RANGE, res.plan.conditions[best], float(res.values[best]))]
+        nexts = [(IN_RANGE, *nexts[0][1:])]  # the recommendation, within the speeds
     for what, cnd, expected in nexts:
         tag = "in-range" if what == IN_RANGE else what.split()[0]
         new = hp.Condition(f"next-{tag}", float(cnd["speed_rpm"]),

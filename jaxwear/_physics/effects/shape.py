@@ -385,12 +385,18 @@ def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
     e = jnp.zeros(pressure.shape)
     packed = p.effect_params.get(PACKED)
     at = 0
+
+    def coefficients(term):
+        """The term's coefficients: its slice of the packed vector (in the basis's order,
+        variables then surfaces), else its own keys."""
+        nonlocal at
+        if packed is None:
+            return jnp.stack([p.effect_params[k] for k in term.keys()])
+        at += term.size
+        return packed[at - term.size:at]
+
     for var in shape.variables:
-        if packed is not None:
-            coef = packed[at:at + var.size]
-            at += var.size
-        else:
-            coef = jnp.stack([p.effect_params[k] for k in var.keys()])
+        coef = coefficients(var)
         if pre is not None and var.name in CONSTANT:
             term = pre[var.keys()[0]][regime] @ coef
         else:
@@ -403,11 +409,7 @@ def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
         else:
             e = e + term
     for t in shape.tensors:
-        if packed is not None:
-            coef = packed[at:at + t.size]
-            at += t.size
-        else:
-            coef = jnp.stack([p.effect_params[k] for k in t.keys()])
+        coef = coefficients(t)
         if z is None:
             z = state_variables(pressure, slide, dt, sliding, angle, load, worn)
         za, zb = jnp.broadcast_arrays(z[t.a.name], z[t.b.name])
