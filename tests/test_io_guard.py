@@ -241,3 +241,92 @@ def test_simulate_writes_only_planned_files(tmp_path):
     written = {p.name for p in (tmp_path / "o").iterdir()}
     assert written and written <= set(simulate_outputs(load_study(study)))
     assert "pressure_a.png" in written and not any(n.endswith(".part") for n in written)
+
+
+# --------------------------------------------------------------------------------------
+# Issue 49: a full disk named as such, a killed run's temporaries swept, Ctrl-C at shutdown
+# --------------------------------------------------------------------------------------
+
+def _full_disk(*args, **kwargs):
+    import errno
+
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_full_disk_is_named_with_the_path_and_leaves_no_temporary(tmp_path, monkeypatch):
+    from jaxwear._core.errors import NoSpaceError
+
+    out = OutputDir(tmp_path / "o")
+    monkeypatch.setattr(os, "fsync", _full_disk)  # the data reach the device at fsync
+    with pytest.raises(NoSpaceError) as e:
+        out.write_text("report.html", "<html>")
+    assert str(tmp_path / "o" / "report.html") in str(e.value)
+    assert "no space left on the device" in str(e.value)
+    assert list((tmp_path / "o").iterdir()) == []
+
+
+def test_a_full_disk_ends_the_command_in_one_line_exit_1(tmp_path, monkeypatch, capsys):
+    """It read "internal error (OSError: [Errno 28] No space left on device); please report
+    it"."""
+    import jaxwear.cli.simulate as sim
+
+    def engine(study, out):
+        monkeypatch.setattr(os, "fsync", _full_disk)
+        out.write_text("profiles.csv", "experiment,angle_deg,depth_um\n")
+
+    monkeypatch.setattr(sim, "simulate_study", engine)
+    study = _study(tmp_path)
+    rc = main(["simulate", str(study), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 1 and err.count("\n") == 1, err
+    assert err.startswith(f"jaxwear: {tmp_path / 'o' / 'profiles.csv'}: no space left on the "
+                          f"device"), err
+    assert "internal error" not in err
+
+
+def test_the_next_run_sweeps_a_killed_runs_temporaries(tmp_path):
+    """A kill -9 during a run left `out/.fit_a.png.*.part`; a live run's are kept (two runs
+    may share a folder)."""
+    import time
+
+    from jaxwear._core.io import LEGACY_PART_AGE_S, _temporary
+
+    o = tmp_path / "o"
+    o.mkdir()
+    # a temporary of a process that is gone: a child that made one and was killed
+    code = ("import sys; from pathlib import Path; from jaxwear._core.io import _temporary;"
+            f"_temporary(Path({str(o / 'fit_a.png')!r})); import os; os._exit(0)")
+    subprocess.run([sys.executable, "-c", code], check=True,
+                   env=dict(os.environ, PYTHONPATH=str(Path(__file__).parent.parent)))
+    dead = [p.name for p in o.iterdir()]
+    assert len(dead) == 1 and dead[0].startswith(".fit_a.png.") and dead[0].endswith(".part")
+    fd, mine = _temporary(o / "report.html")  # this process's: alive
+    os.close(fd)
+    old = o / ".summary.json.abcd1234.part"  # an older version's, an hour old
+    old.write_text("{")
+    stamp = time.time() - LEGACY_PART_AGE_S - 10
+    os.utime(old, (stamp, stamp))
+    young = o / ".profiles.csv.efgh5678.part"  # an older version's, just written
+    young.write_text("x")
+    keep = o / "notes.part"  # not a temporary's name
+    keep.write_text("mine")
+    OutputDir(o)  # the next run opens its outputs
+    assert sorted(p.name for p in o.iterdir()) == sorted(
+        [Path(mine).name, young.name, keep.name])
+
+
+def test_ctrl_c_while_shutting_down_is_one_line(tmp_path):
+    """A Ctrl-C that lands in JAX's exit hook (4.5 s into a 5 s calibrate) printed the
+    hook's traceback. The exit hook here sends the interrupt itself, then waits."""
+    code = ("import atexit, os, signal, time\n"
+            "from jaxwear._core.interrupt import shutting_down\n"
+            "def hook():\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    time.sleep(5)\n"
+            "atexit.register(hook)\n"
+            "shutting_down(0)\n")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=60,
+                       env=dict(os.environ, PYTHONPATH=str(Path(__file__).parent.parent)))
+    assert (p.returncode, p.stderr) == (
+        1, "jaxwear: interrupted while shutting down (the outputs were written)\n")

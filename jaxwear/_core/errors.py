@@ -45,3 +45,19 @@ class TrialFailed(RuntimeError):
 class FitError(RuntimeError):
     """A fit could not start: the model gives no usable value at the start, where there is
     nothing to fall back to. The message names the parameter values and the cause."""
+
+
+class NoSpaceError(OSError):
+    """An output could not be written: the device (or the user's quota) is full. Exit 1
+    from the command line, with the message alone: the path and what to do (issue 49: it
+    read "internal error (OSError: [Errno 28] No space left on device); please report
+    it")."""
+
+    def __init__(self, path, errno_: int):
+        super().__init__(errno_, f"{path}: no space left on the device (the disk or the "
+                                 f"quota is full); free some space or choose another "
+                                 f"output folder, and rerun")
+        self.path = str(path)
+
+    def __str__(self) -> str:
+        return self.strerror

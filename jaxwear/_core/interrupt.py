@@ -107,6 +107,25 @@ def restore() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+SHUTDOWN_MESSAGE = f"{MESSAGE} while shutting down (the outputs were written)"
+
+
+def shutting_down(rc: int) -> None:
+    """After `cli.main` returns `rc` in the command line's process: a Ctrl-C while the
+    process shuts down (JAX's exit hook waits for its backends: half a second after a
+    calibrate, issue 49) prints one line and exits `EXIT_CODE` at once, not a traceback
+    from the hook. The outputs are complete where `rc` is 0, and the line says so."""
+
+    line = (SHUTDOWN_MESSAGE if rc == 0 else MESSAGE) + "\n"
+
+    def on_sigint(signum, frame):
+        os.write(2, line.encode())
+        os._exit(EXIT_CODE)
+
+    if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, _on_sigint):
+        signal.signal(signal.SIGINT, on_sigint)
+
+
 def interrupted() -> bool:
     """Whether a Ctrl-C came while `cli.main` runs (even one whose exception was dropped)."""
     return bool(_STATE["armed"] and _STATE["interrupted"])

@@ -22,11 +22,13 @@ import csv
 import errno
 import json
 import os
+import re
 import tempfile
+import time
 from collections.abc import Iterable
 from pathlib import Path
 
-from jaxwear._core.errors import InputError
+from jaxwear._core.errors import InputError, NoSpaceError
 from jaxwear._core.interrupt import raise_if_interrupted
 from jaxwear._core.jsonfmt import _fmt, _json_default
 
@@ -76,6 +78,7 @@ class OutputDir:
         # unwritable output (permissions, a read-only mount, /proc, a path under a file)
         # was found only when the results were written, after the whole computation.
         _writable_folder(self.root, "<<out>>")
+        sweep_parts(self.root)
         if self.json_file is not None:
             _writable_folder(self.json_file.parent, "<<json_file>>")
 
@@ -152,6 +155,53 @@ class OutputDir:
         return p
 
 
+# `.NAME.PID.XXXXXXXX.part` (`_temporary`), and the older `.NAME.XXXXXXXX.part`
+_PART = re.compile(r"^\..+?(?:\.(\d+))?\.[A-Za-z0-9_]{8}\.part$")
+LEGACY_PART_AGE_S = 3600.0  # a temporary without a process id: swept once this old
+
+
+def sweep_parts(folder: Path) -> list[Path]:
+    """Remove the temporary files (`atomic_open`'s `.part`) that killed runs left in
+    `folder`: those whose process is gone (its id is in the name), and those of older
+    versions (no id) not touched for `LEGACY_PART_AGE_S`; a live run's are left alone
+    (two runs may share a folder). Returns the paths removed. Issue 49: a kill -9 during
+    a run left `out/.fit_a.png.*.part` behind."""
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    now = time.time()
+    for entry in entries:
+        m = _PART.match(entry.name)
+        if m is None or not entry.is_file(follow_symlinks=False):
+            continue
+        try:
+            if m.group(1) is not None:
+                if _alive(int(m.group(1))):
+                    continue
+            elif now - entry.stat(follow_symlinks=False).st_mtime < LEGACY_PART_AGE_S:
+                continue
+            os.unlink(entry.path)
+            removed.append(Path(entry.path))
+        except OSError:
+            continue
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this id exists (this one included)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, OSError):
+        return True  # another user's, or not ours to judge: left alone
+    return True
+
+
 def _no_link_loop(p: Path, option: str) -> None:
     """Refuse a path that is (or runs through) a symbolic link loop, named as such."""
     try:
@@ -191,12 +241,29 @@ def _mode() -> int:
     return 0o666 & ~_UMASK
 
 
+# the errors of a full device: the disk (ENOSPC) or the user's quota (EDQUOT)
+FULL = tuple(e for e in (errno.ENOSPC, getattr(errno, "EDQUOT", None)) if e is not None)
+
+
+def _temporary(path: Path) -> tuple[int, str]:
+    """A temporary file beside `path` (fd, name): `.NAME.PID.XXXXXXXX.part`, the process
+    id in the name so that the next run sweeps what a killed one left (`sweep_parts`)."""
+    try:
+        return tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.",
+                                suffix=".part")
+    except OSError as e:
+        if e.errno in FULL:
+            raise NoSpaceError(path, e.errno) from None
+        raise
+
+
 @contextlib.contextmanager
 def atomic_open(path, mode: str = "w", **kw):
     """Open a temporary file beside `path`; on success it replaces `path`, on any error
-    (or interrupt) it is removed and `path` is left as it was."""
+    (or interrupt) it is removed and `path` is left as it was. A full device is a
+    `NoSpaceError` naming `path`."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    fd, tmp = _temporary(path)
     try:
         if "b" not in mode:
             kw.setdefault("encoding", "utf-8")
@@ -207,9 +274,11 @@ def atomic_open(path, mode: str = "w", **kw):
         os.chmod(tmp, _mode())
         raise_if_interrupted()  # a Ctrl-C whose exception was dropped: no output
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not isinstance(e, NoSpaceError) and e.errno in FULL:
+            raise NoSpaceError(path, e.errno) from None
         raise
 
 
@@ -218,16 +287,18 @@ def atomic_path(path):
     """A temporary file name beside `path` for a writer that opens files itself; on
     success it replaces `path`, on any error it is removed and `path` is left as it was."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    fd, tmp = _temporary(path)
     os.close(fd)
     try:
         yield Path(tmp)
         os.chmod(tmp, _mode())
         raise_if_interrupted()
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not isinstance(e, NoSpaceError) and e.errno in FULL:
+            raise NoSpaceError(path, e.errno) from None
         raise
 
 

@@ -15,8 +15,23 @@ from pathlib import Path
 
 import jax
 
-from jaxwear._core.errors import FitError, InputError, ModelFailure, TrialFailed, WornThroughError
-from jaxwear._core.interrupt import EXIT_CODE, MESSAGE, interrupted, release, restore
+from jaxwear._core.errors import (
+    FitError,
+    InputError,
+    ModelFailure,
+    NoSpaceError,
+    TrialFailed,
+    WornThroughError,
+)
+from jaxwear._core.interrupt import (
+    EXIT_CODE,
+    MESSAGE,
+    interrupted,
+    launched_as_cli,
+    release,
+    restore,
+    shutting_down,
+)
 from jaxwear._core.xla_flags import apply as configure_xla
 from jaxwear._study.effect_files import effect_file_frame
 from jaxwear.cli._parser import Parser, join_negative_values, value_options
@@ -63,10 +78,14 @@ def main(argv=None) -> int:
     # library leaves XLA's settings to its user); before any computation starts the backend
     configure_xla()
     release()  # Ctrl-C from here on is caught below (and remembered: `_interrupt`)
+    rc = EXIT_CODE
     try:
-        return _run(argv)
+        rc = _run(argv)
+        return rc
     finally:
         restore()
+        if launched_as_cli():  # not a test or a program calling main: it goes on
+            shutting_down(rc)
 
 
 def _run(argv) -> int:
@@ -107,7 +126,7 @@ def _run(argv) -> int:
 
 
 # failures of a run that jaxwear names itself (exit 1, the message alone)
-OWN_FAILURES = (FitError, ModelFailure, TrialFailed, WornThroughError)
+OWN_FAILURES = (FitError, ModelFailure, TrialFailed, WornThroughError, NoSpaceError)
 
 
 def _one_line(e) -> str:

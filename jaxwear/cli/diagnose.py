@@ -71,12 +71,6 @@ class Diagnose(Verb):
         for line in loud_lines(doc["outside_model"]):  # answers outside the model first
             print(line)
         v = doc["verdict"]
-        name = " + ".join(v["effects"]) if v["effects"] else "none"
-        print(f"verdict: {v['status']} (missing effect: {name}); base RMSE "
-              f"{doc['baseline']['rmse_um']:.4g} µm, after {doc['after']['rmse_um']:.4g} µm, "
-              f"noise {doc['baseline']['noise_um']:.4g} µm")
-        for flag in v.get("flags", []):
-            print(f"flag: {flag}")
         integ = doc["after"]["integration"]
         if integ["integrator"] == "adaptive":
             err, tol = float(integ["error_estimate_um"]), integ["tolerance_um"]
@@ -91,4 +85,10 @@ class Diagnose(Verb):
                   f"half numerics.revolutions_per_update)")
         print(f"wrote {Path(args.out) / 'report.html'}, {Path(args.out) / 'diagnosis.json'}"
               + (f", {args.json}" if args.json else ""))
+        # the answer last, as the JSON says it (`_headline`): a script and a person read
+        # the same verdict
+        print(f"verdict: {v['status']}")
+        print(v["headline"])
+        if v["summary"]:
+            print(v["summary"])
         return diag

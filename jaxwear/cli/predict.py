@@ -176,7 +176,7 @@ def plot_profiles(out, study, res):
 def summary_text(res) -> str:
     lines = loud_lines(res.flags)  # answers outside the model first
     lines.append(f"forecast ({res.method}, level {res.level:g}): noise {res.noise_um:.3g} µm "
-                 f"({'given' if res.noise_given else f'estimated, {res.dof} dof'}), "
+                 f"({'given' if res.noise_given else f'estimated, {res.dof:.3g} dof'}), "
                  f"quantile {res.quantile:.3g}")
     for name, v in res.parameters.items():
         lines.append(f"  {name} = {v['value']:.5g} ± {v['stderr'] or float('nan'):.2g}")

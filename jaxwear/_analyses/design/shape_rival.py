@@ -141,7 +141,7 @@ def fit_shape(study: Study, base: FitResult, name: str, *, verbose: bool = False
         return _refit(smodel, [], ev, u, free_base, blocks, (var,), form, rho, n_res, sigma,
                       Jw, rho_full, verbose, deepest, maps=False, linear_start=linear_start)
 
-    rmse, status, cm, u_fit, cov, _ = refit(True)
+    rmse, status, cm, u_fit, cov, *_ = refit(True)
     n = smodel.n
     if not (math.isfinite(rmse) and rmse ** 2 * n <= fit0.rss * (1 + 1e-6)):
         # worse than no correction (the study's own answer, a point of this model): the
@@ -153,7 +153,7 @@ def fit_shape(study: Study, base: FitResult, name: str, *, verbose: bool = False
                       f"refitting from zero")
         again = refit(False)
         if not math.isfinite(rmse) or again[0] < rmse:
-            rmse, status, cm, u_fit, cov, _ = again
+            rmse, status, cm, u_fit, cov, *_ = again
     flags = [] if status == "converged" else [
         f"the refit of {name} did not converge ({status}): its expected χ² is approximate"]
     info = np.linalg.pinv(0.5 * (cov + cov.T))

@@ -304,12 +304,15 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 _log(verbose, f"    {law.label}: {f.status} ({f.message})")
                 continue
             se = {nm: float(s) for nm, s in zip(lm.names, f.stderr)}
-            lo = _rms(loo(lm, f, noise_um))
+            lo_each = loo(lm, f, noise_um)
+            lo = _rms(lo_each)
             ev = evidence(model, f, fit, noise_um)
             tests = _tests_for(lm, f, noise_um, nu, pairs)
             fitted.append(LawFit(found, f.rmse, lo, ev, f.status, f.evaluations,
                                  constants(found, se), drop, not tests.systematic,
-                                 tests.p_min, undetermined(found, se), src))
+                                 tests.p_min, undetermined(found, se), src,
+                                 residual_um=np.asarray(f.ev.r),
+                                 loo_per_experiment_um=lo_each))
             _log(verbose, f"    {found.label}: RMSE {f.rmse:.4f} µm, left-out "
                           f"{_fmt(lo)} µm, evidence {ev:.1f} ({f.status}, "
                           f"{f.evaluations} evaluations)")

@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from jaxwear._core.jsonfmt import json_float as _num
 from jaxwear._physics.effects.law import LawSpec, formula
 
@@ -35,6 +37,10 @@ class LawFit:
     p_combined: float = math.nan  # that test's p
     undetermined: tuple = ()  # names of constants the data do not determine (`undetermined`)
     start: str = "prescreen"  # where its fit started: "prescreen" or "shape" (`_law_start`)
+    # its rows' residuals (model - measured) [µm] (rows,) and its left-out-experiment
+    # RMSE per experiment [µm], for the report's error table and profiles
+    residual_um: np.ndarray | None = field(default=None, repr=False, compare=False)
+    loo_per_experiment_um: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def formula(self) -> str:

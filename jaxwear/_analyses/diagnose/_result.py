@@ -58,7 +58,7 @@ class Diagnosis:
     final_tests: Tests
     loo_before: dict
     loo_after: dict
-    summary: str = ""
+    summary: str = ""  # at most five short sentences (`_headline.summary`)
     wall_s: float = 0.0
     log: list = field(default_factory=list)
     compare_fits: dict = field(default_factory=dict)
@@ -75,6 +75,8 @@ class Diagnosis:
     unresolved: bool = False
     # what the verdict rests on that a reader must know (the numerics it changed)
     flags: list = field(default_factory=list)
+    headline: str = ""  # the answer in one line (`_headline.headline`)
+    details: str = ""  # the long text: the verdict's paragraph, the shape's, the law's
 
     @property
     def confident(self) -> bool:
@@ -152,7 +154,8 @@ class Diagnosis:
             "baseline": base,
             "candidates": cands,
             "verdict": {"status": self.status, "missing_effect": self.missing_effect,
-                        "summary": self.summary, "effects": list(self.effects),
+                        "headline": self.headline, "summary": self.summary,
+                        "details": self.details, "effects": list(self.effects),
                         "partial": list(self.partial), "alternatives": list(self.alternatives),
                         "confident": self.confident, "refits_failed": list(self.failed),
                         "flags": list(self.flags)},

@@ -289,15 +289,16 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         """The refit through the loop and the when/where map (the costly part)."""
         e0 = Model.evaluations
         surf = inter.block if inter is not None and inter.significant else None
-        rmse_after, status, corr_model, u_fit, cov, snaps = _refit(
+        rmse_after, status, corr_model, u_fit, cov, snaps, resid = _refit(
             smodel, own_groups, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
             Jw, rho_full, verbose, deepest, surface=surf)
         correction = _correction(corr_model, u_fit, carriers, form)
         done = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
                 and v.form == form else v for v in results]
         ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL, snaps=snaps)
-        return result(done, rmse_after, status, correction, ww,
-                      linear.evaluations + Model.evaluations - e0)
+        return replace(result(done, rmse_after, status, correction, ww,
+                              linear.evaluations + Model.evaluations - e0),
+                       residual_um=resid)
 
     linear = result(results, None, "none", {}, None, Model.evaluations - evals0 + spent)
     if not sig:

@@ -46,7 +46,7 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     a factor, the zero sum of each variable's coefficients and N(0, FACTOR_SD²) on each as
     prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
     answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
-    None).
+    None, the rows' residuals at the answer [µm] (rows,)).
 
     `surface`: the leading pair's surface where it is significant
     (`_shape_interaction.Interaction.block`: (A, S, Z, X, tensor)), refitted with the
@@ -150,7 +150,7 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     if snaps is not None and not np.array_equal(np.asarray(out.point.u), np.asarray(out.u)):
         snaps = None
     return (float(np.sqrt(np.mean(r ** 2))), out.status, cm, out.u, _full_cov(out, free),
-            snaps)
+            snaps, np.asarray(r))
 
 
 def _sums(term) -> np.ndarray:

@@ -106,6 +106,9 @@ class ShapeResult:
     # the command that tells the best variable from its rival (`_shape_text.next_test`;
     # `jaxwear design --between shape:A,shape:B`), or None where none is tied with it
     next_test: str | None = None
+    # the rows' residuals (model - measured) [µm] (rows,) with the refitted correction,
+    # for the report's error table and profiles (None before the refit)
+    residual_um: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
     def finished(self) -> ShapeResult:

@@ -136,11 +136,7 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
                 for a, b, _ in ww.made[:1]):
             s += f", around the load's peak ({ww.peak_load_deg:.0f}°)"
         s += "."
-    stand = sorted({r.name: r.stand_in_for for r in results
-                    if r.form == form and r.stand_in_for}.items())
-    if stand:
-        s += (" Stand-ins on this experiment matrix (they vary together): "
-              + ", ".join(f"{a} for {b}" for a, b in stand) + ".")
+    s += stand_ins(results, form)
     if len(confounded) >= 2:
         s += (f" The data cannot tell {', '.join(confounded)} apart (none adds significantly "
               f"to the others, and each predicts left-out experiments as well): a test that "
@@ -149,6 +145,26 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
         s += (f" Preferred to {', '.join(alternatives)} (each within ln 20 of its AIC) by "
               f"the unique shares of the joint fit and the error on left-out experiments.")
     return s
+
+
+def stand_ins(results, form) -> str:
+    """" Stand-ins on this experiment matrix (they vary with it): for worn_depth_um,
+    bore_angle_deg, cycle_phase_deg, load_N and 5 more.": one clause per leading variable,
+    at most three stand-ins named (issue 49: eight pairs "a for b" read as noise), "" where
+    there are none. The shape's table names every one."""
+    by_lead = {}
+    for r in results:
+        if r.form == form and r.stand_in_for:
+            by_lead.setdefault(r.stand_in_for, []).append(r.name)
+    if not by_lead:
+        return ""
+    clauses = []
+    for lead, names in sorted(by_lead.items()):
+        names = sorted(names)
+        few = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        clauses.append(f"for {lead}, {few}")
+    return (" Stand-ins on this experiment matrix (they vary with it): "
+            + "; ".join(clauses) + ".")
 
 
 # a stand-in counts as a rival to tell apart when it explains at least this share of what

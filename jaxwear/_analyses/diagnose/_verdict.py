@@ -17,6 +17,7 @@ from jaxwear._analyses.diagnose._evidence import (
     loo,
 )
 from jaxwear._analyses.diagnose._fit import _log, fit_masked
+from jaxwear._analyses.diagnose._headline import compose
 from jaxwear._analyses.diagnose._law import search, warm
 from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._analyses.diagnose._refit import (
@@ -336,14 +337,14 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                           correction=shp.correction,
                                           shape_rmse_um=shp.rmse_after_um, verbose=verbose))
         diag = replace(diag, shape=shp, shape_after_effect=after)
-        summary = " ".join([summary, shp.sentence] + ([after.sentence] if after else [])
-                           + ([shp.law.sentence] if shp.law is not None else []))
     own = Model.evaluations - evals0
     cost = {"model_evaluations": calibrate_evals + own,
             "calibrate_path_evaluations": calibrate_evals, "diagnose_evaluations": own,
             "base_fit_evaluations": 1 + base.evaluations,  # its start ev0 and the fit
             "compiles": traces_since(before)}
-    diag = replace(diag, summary=summary, wall_s=time.perf_counter() - t0, cost=cost)
+    head, short, long = compose(diag, summary)  # the answer first (`_headline`)
+    diag = replace(diag, headline=head, summary=short, details=long,
+                   wall_s=time.perf_counter() - t0, cost=cost)
     comp = cost["compiles"]
     _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
                   + f" in {diag.wall_s:.1f} s ({calibrate_evals + own} model evaluations: "
