@@ -207,7 +207,7 @@ def test_the_first_screen_shows_the_answer(reports, status, tmp_path):
     for key in ("headline", "table", "profiles"):
         b = got[key]
         assert b is not None, f"no {key}"
-        assert b["w"] > 200 and b["h"] > 20, (key, b)
+        assert b["w"] > 150 and b["h"] > 20, (key, b)
         assert 0 <= b["top"] and b["bottom"] <= HEIGHT, (key, b)
     assert got["profiles"]["h"] > 250  # a figure to read, not a thumbnail
     head = got["headline"]["text"]

@@ -147,8 +147,8 @@ def _partly_text(diag: Diagnosis) -> str:
             + f", lowers the RMSE from {diag.base.rmse:.3f} to {fit.rmse:.3f} µm, "
             f"{noise_claim(tests)}, and no pair of candidates passes it: the missing physics "
             f"is only approximated by the library (partly explained), so no effect is named "
-            f"as missing. See the shape of the missing wear on top of {name} for what is "
-            f"left.")
+            f"as missing. The shape of the missing wear (on top of the base model, and on "
+            f"top of {name} where it finds something else) describes what it misses.")
 
 
 def _verdict_text(diag: Diagnosis) -> str:
