@@ -317,7 +317,8 @@ def test_the_next_run_sweeps_a_killed_runs_temporaries(tmp_path):
 
 def test_ctrl_c_while_shutting_down_is_one_line(tmp_path):
     """A Ctrl-C that lands in JAX's exit hook (4.5 s into a 5 s calibrate) printed the
-    hook's traceback. The exit hook here sends the interrupt itself, then waits."""
+    hook's traceback. The exit hook here sends the interrupt itself, then waits (without
+    the guard: Python's "Exception ignored in atexit callback" and its traceback)."""
     code = ("import atexit, os, signal, time\n"
             "from jaxwear._core.interrupt import shutting_down\n"
             "def hook():\n"
@@ -328,5 +329,6 @@ def test_ctrl_c_while_shutting_down_is_one_line(tmp_path):
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        timeout=60,
                        env=dict(os.environ, PYTHONPATH=str(Path(__file__).parent.parent)))
+    # the run had ended: its exit status stands
     assert (p.returncode, p.stderr) == (
-        1, "jaxwear: interrupted while shutting down (the outputs were written)\n")
+        0, "jaxwear: interrupted while shutting down (the outputs were written)\n")

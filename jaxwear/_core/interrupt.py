@@ -113,14 +113,15 @@ SHUTDOWN_MESSAGE = f"{MESSAGE} while shutting down (the outputs were written)"
 def shutting_down(rc: int) -> None:
     """After `cli.main` returns `rc` in the command line's process: a Ctrl-C while the
     process shuts down (JAX's exit hook waits for its backends: half a second after a
-    calibrate, issue 49) prints one line and exits `EXIT_CODE` at once, not a traceback
-    from the hook. The outputs are complete where `rc` is 0, and the line says so."""
+    calibrate, issue 49) prints one line and exits at once with `rc`, not a traceback from
+    the hook: the run had ended, so its exit status stands (0: the outputs are complete,
+    and the line says so)."""
 
-    line = (SHUTDOWN_MESSAGE if rc == 0 else MESSAGE) + "\n"
+    line = (SHUTDOWN_MESSAGE if rc == 0 else f"{MESSAGE} while shutting down") + "\n"
 
     def on_sigint(signum, frame):
         os.write(2, line.encode())
-        os._exit(EXIT_CODE)
+        os._exit(rc)
 
     if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, _on_sigint):
         signal.signal(signal.SIGINT, on_sigint)
