@@ -114,7 +114,9 @@ def profile_figure(diag, corrected):
             axr.set_ylabel("model − meas.", fontsize=7)
     from matplotlib.lines import Line2D
 
-    handles = [Line2D([], [], ls="", marker=".", color="0.3", label="measured (each scan)"),
+    scans = bool((~m.is_max).any())
+    handles = [Line2D([], [], ls="", marker="." if scans else "s", color="0.3",
+                      label="measured (each scan)" if scans else "measured"),
                Line2D([], [], ls=":", color="0.3", label="base model")]
     if after is not None:
         handles.append(Line2D([], [], ls="-", color="0.3", label=f"with {label}"))
@@ -124,6 +126,18 @@ def profile_figure(diag, corrected):
     fig.subplots_adjust(left=0.08 if cols > 1 else 0.11, right=0.98,
                         bottom=0.45 / (h * rows + 0.5), top=1 - 0.45 / (h * rows + 0.5))
     return fig
+
+
+def profile_caption(diag, corrected) -> str:
+    """The caption of `profile_figure`: what is drawn, over the bore angle or over time."""
+    with_ = "" if corrected is None else f" and with {corrected[0]} (solid)"
+    scans = bool((~diag.model.is_max).any())
+    hist = bool(diag.model.is_max.any())
+    what = ((["measured profiles (each scan, dots) over the bore angle"] if scans else [])
+            + (["the measured maximum depth over time"] if hist else []))
+    text = " and ".join(what)
+    return (f"{text[0].upper()}{text[1:]}, the base model (dotted){with_}; beneath, the "
+            f"residuals (model − measured; grey: base) within ±2 noise")
 
 
 def _times(times) -> str:

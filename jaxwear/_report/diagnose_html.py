@@ -19,7 +19,7 @@ from jaxwear._analyses.diagnose._headline import (
     shape_adds,
 )
 from jaxwear._analyses.diagnose._shape_text import p_text
-from jaxwear._report.answer_plot import law_figure, profile_figure
+from jaxwear._report.answer_plot import law_figure, profile_caption, profile_figure
 from jaxwear._report.figures import plt, thinned, thinned_label
 from jaxwear._report.law_html import law_section
 from jaxwear._report.shape_plot import shape_figure, when_where_figure
@@ -241,7 +241,7 @@ def report_html(diag, doc: dict, saved: dict | None = None) -> str:
         f"<style>{STYLE}</style></head><body>",
         f"<h1>Diagnosis of {html.escape(name)}</h1>",
         f"<div class='verdict {v['status']}'>"
-        f"<div class='status'>{html.escape(v['status'].replace('_', ' '))}</div>"
+        f"<div class='status'>{html.escape(_status_words(diag, v['status']))}</div>"
         f"<p class='headline'>{html.escape(v.get('headline') or '')}</p>"
         f"<p class='summary'>{_code(v['summary'])}</p></div>",
         "<div class='first'><div id='errors'><h2>The error, base → answer</h2>",
@@ -251,7 +251,8 @@ def report_html(diag, doc: dict, saved: dict | None = None) -> str:
         "experiment predicted by a fit without it (one Gauss-Newton step from the full fit, "
         "its clearance at the nominal value). A model complete to the noise reaches the "
         "noise level in both.</p></div>",
-        f"<div id='profiles'>{_img(_png(profiles), _profile_caption(corr))}</div></div>",
+        f"<div id='profiles'>{_img(_png(profiles), profile_caption(diag, corr))}</div>"
+        "</div>",
     ]
     shp, after = diag.shape, diag.shape_after_effect
     if shp is not None and getattr(shp, "law", None) is not None and shp.law.best is not None:
@@ -285,16 +286,19 @@ def report_html(diag, doc: dict, saved: dict | None = None) -> str:
     return "\n".join(parts)
 
 
+def _status_words(diag, status: str) -> str:
+    """The verdict's status in words above the headline; where the answer is a law of the
+    shape's search, that the library's status is the library's."""
+    words = status.replace("_", " ")
+    if answer(diag) == "law":
+        return f"{words} by the library's effects · a law found by the search"
+    return words
+
+
 def _code(text: str) -> str:
     """`text` escaped, its `backquoted` commands as <code>."""
     bits = html.escape(text).split("`")
     return "".join(f"<code>{b}</code>" if i % 2 else b for i, b in enumerate(bits))
-
-
-def _profile_caption(corr) -> str:
-    with_ = "" if corr is None else f" and with {corr[0]} (solid)"
-    return (f"Measured profiles (each scan, dots), the base model (dotted){with_} over the "
-            f"bore angle; beneath, the residuals (grey: base) within ±2 noise")
 
 
 def error_table(diag, doc: dict) -> str:
@@ -361,6 +365,8 @@ def _columns_note(diag) -> str:
     """What the columns of the error table are, in a sentence."""
     bits = ["base: the model as the study states it"]
     cand = _best_candidate(diag)
+    if cand is None and diag.status == "unexplained":
+        bits.append("no library candidate lowers the RMSE")
     if cand is not None:
         role = {"effect_found": "the missing effect found",
                 "partly_explained": "the library's best, which only approximates"}.get(
@@ -374,15 +380,23 @@ def _columns_note(diag) -> str:
     return html.escape("; ".join(bits)) + ". "
 
 
+# an unexplained verdict's best candidate gets a column only where it lowers the RMSE by
+# more than this fraction: a column equal to the base's reads as "after = base" (issue 49)
+LOWERS = 0.01
+
+
 def _best_candidate(diag):
     """The best library candidate with a usable refit (the verdict's where it named one
-    or one approximates), or None (an adequate verdict: none is needed)."""
+    or one approximates; for an unexplained verdict, the best where it lowers the RMSE by
+    more than `LOWERS`), or None (an adequate verdict: none is needed)."""
     if diag.status == "adequate":
         return None
     name = (diag.effects and " + ".join(diag.effects)) or (diag.partial or [None])[0]
     for c in diag.candidates:
         if c.fit is not None and c.fit.usable and (name is None or c.effect == name
                                                    or c.fit is diag.final):
+            if diag.status == "unexplained" and not c.fit.rmse < (1 - LOWERS) * diag.base.rmse:
+                return None
             return c
     return None
 

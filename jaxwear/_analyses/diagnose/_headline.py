@@ -242,7 +242,7 @@ def _evidence(diag: Diagnosis) -> str:
                 f"{t.rho:.2f} (p = {p_text(t.p_autocorr)}).")
     if kind == "effect":
         lead = next((c for c in diag.candidates if c.fit is diag.final), None)
-        ev = "" if lead is None else (f"ln Bayes factor {lead.evidence:.0f} over the base "
+        ev = "" if lead is None else (f"ln Bayes factor {lead.evidence:.1f} over the base "
                                       f"model (very strong above ln 150 = 5.0); ")
         return f"Evidence: {ev}with it the misfit is {noise_claim(diag.final_tests)}."
     law = _law_of(diag)
