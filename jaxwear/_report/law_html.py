@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import html
 
+from jaxwear._analyses.diagnose._headline import law_status
+
 
 def _n(x, fmt=".3f") -> str:
     return "—" if x is None else format(float(x), fmt)
@@ -26,8 +28,9 @@ def law_section(shape, _table) -> list[str]:
               for k, (v, s, u) in b.constants.items()]
     tried = [(f.law.label, _n(f.rmse_um), _n(f.loo_rmse_um), _n(f.evidence, ".1f"),
               "yes" if f.at_noise else "no", f.status) for f in res.fitted]
-    head = ("The best law tried: worse than the shape" if res.worse_than_shape
-            else "The law found")
+    head = ("The law found" if law_status(res) == "found" else
+            "The best law tried: worse than the shape, a lead" if res.worse_than_shape
+            else "The best law tried: a lead")
     return [f"<h3>{head}</h3>", f"<p>{html.escape(res.sentence)}</p>",
             _table(steps, ["model", "RMSE [µm]", "left-out-experiment RMSE [µm]"]),
             _table(consts, ["constant", "value", "SE", "unit"]),

@@ -140,7 +140,8 @@ def corrected(diag: Diagnosis):
         return " + ".join(diag.effects), np.asarray(diag.final.ev.r)
     law = _law_of(diag)
     if law is not None and law.best is not None and law.best.residual_um is not None:
-        return "the law", np.asarray(law.best.residual_um)
+        return ("the law" if kind == "law" else "the law (a lead)",
+                np.asarray(law.best.residual_um))
     shp = _shape_of(diag)
     if shp is not None and shp.best is not None and shp.residual_um is not None:
         return "the shape", np.asarray(shp.residual_um)
