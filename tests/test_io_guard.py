@@ -332,3 +332,20 @@ def test_ctrl_c_while_shutting_down_is_one_line(tmp_path):
     # the run had ended: its exit status stands
     assert (p.returncode, p.stderr) == (
         0, "jaxwear: interrupted while shutting down (the outputs were written)\n")
+
+
+def test_a_full_device_met_elsewhere_is_named_too(tmp_path, monkeypatch, capsys):
+    """A full device outside the outputs' own writes (a library writing its own file)."""
+    import errno
+
+    import jaxwear.cli.simulate as sim
+
+    def engine(study, out):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "cache.bin"))
+
+    monkeypatch.setattr(sim, "simulate_study", engine)
+    rc = main(["simulate", str(_study(tmp_path)), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 1 and err == (f"jaxwear: {tmp_path / 'cache.bin'}: no space left on the "
+                               f"device (the disk or the quota is full); free some space or "
+                               f"choose another output folder, and rerun\n"), err

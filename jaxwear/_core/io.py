@@ -10,9 +10,10 @@ effect files, its load files and its profile/history CSVs (for `synth`, the cond
 study and its data). Names not planned are checked again when written. Every file is
 written to a temporary name in its folder and renamed over the final name (`os.replace`,
 atomic on POSIX and Windows), so an interrupted run leaves the previous file or none, never
-half a file. Each output folder is created and probed with a real file (removed at once)
-before any work, so that an output that cannot be written is refused (exit 2) before the
-computation, not after it.
+half a file; a full device is a `NoSpaceError` naming the file (exit 1, one line), and the
+temporaries a killed run left are swept by the next run (`sweep_parts`). Each output
+folder is created and probed with a real file (removed at once) before any work, so that an
+output that cannot be written is refused (exit 2) before the computation, not after it.
 """
 
 from __future__ import annotations

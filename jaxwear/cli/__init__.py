@@ -32,6 +32,7 @@ from jaxwear._core.interrupt import (
     restore,
     shutting_down,
 )
+from jaxwear._core.io import FULL
 from jaxwear._core.xla_flags import apply as configure_xla
 from jaxwear._study.effect_files import effect_file_frame
 from jaxwear.cli._parser import Parser, join_negative_values, value_options
@@ -112,6 +113,9 @@ def _run(argv) -> int:
         if os.environ.get("JAXWEAR_DEBUG"):
             raise
 
+        if isinstance(e, OSError) and not isinstance(e, NoSpaceError) and e.errno in FULL:
+            # a full device met outside the outputs' writes (those name their file)
+            e = NoSpaceError(e.filename or "a file being written", e.errno)
         where = effect_file_frame(e)  # an effect from a file that failed inside a run
         # jaxwear's own failures say what happened in words; anything else is a fault of
         # the program, said as one (the exception's name is for the bug report); an
