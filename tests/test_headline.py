@@ -86,3 +86,25 @@ def test_the_title_is_the_studys_name_not_its_path():
     assert study_name("/home/me/runs/2026/coating/study.toml") == "coating"
     assert study_name("/home/me/runs/impact_load.toml") == "impact_load"
     assert study_name("/a/b/c.toml") == "c"
+
+
+def test_a_law_that_predicts_worse_than_the_base_model_is_no_lead():
+    """Seen on a running-in study: the law of the search (its constants undetermined)
+    predicted the left-out experiments at 0.774 µm against the base model's 0.317; the
+    headline named it the best lead, with its RMSE."""
+    from jaxwear._analyses.diagnose._headline import lead
+
+    base, cand = object(), object()
+    bad = _law(best=SimpleNamespace(undetermined=("A",), loo_rmse_um=0.774, rmse_um=0.235),
+               loo_before_um=0.317)
+    shape = SimpleNamespace(law=bad, best="sliding_distance_m")
+    diag = SimpleNamespace(shape=shape, partial=["running_in"], final=cand, base=base)
+    assert lead(diag) == "shape"
+    diag = SimpleNamespace(shape=SimpleNamespace(law=bad, best=None), partial=["running_in"],
+                           final=cand, base=base)
+    assert lead(diag) == "library"
+    good = _law(worse_than_shape=True)  # a lead that predicts: still the best lead
+    diag = SimpleNamespace(shape=SimpleNamespace(law=good, best="worn_depth_um"), partial=[],
+                           final=base, base=base)
+    assert lead(diag) == "law"
+    assert lead(SimpleNamespace(shape=None, partial=[], final=base, base=base)) is None

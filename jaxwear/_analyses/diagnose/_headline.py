@@ -101,6 +101,25 @@ def answer(diag: Diagnosis) -> str:
     return "lead"
 
 
+def lead(diag: Diagnosis) -> str | None:
+    """The best lead of a verdict without an answer (`answer` "lead"): "law" where the
+    law of the search predicts the left-out experiments better than the base model (a lead
+    that does not is no lead), else "shape" where the shape found a variable, else
+    "library" where a library candidate approximates; None where there is none."""
+    law = _law_of(diag)
+    if law is not None and law.best is not None:
+        b = law.best
+        if b.loo_rmse_um is None or law.loo_before_um is None or (
+                b.loo_rmse_um < law.loo_before_um):
+            return "law"
+    shp = _shape_of(diag)
+    if shp is not None and shp.best is not None:
+        return "shape"
+    if diag.partial and diag.final is not diag.base:
+        return "library"
+    return None
+
+
 def errors(diag: Diagnosis) -> dict:
     """{"before", "after", "loo_before", "loo_after"} [µm] of the answer (`answer`): the
     base model's and the answer's RMSE in-sample and on left-out experiments (None where
@@ -114,12 +133,13 @@ def errors(diag: Diagnosis) -> dict:
     if kind == "effect":
         return dict(before=before, after=diag.final.rmse, loo_before=loo_before,
                     loo_after=_mean_sq(diag.loo_after))
-    if law is not None and law.best is not None:
+    if kind == "law" or lead(diag) == "law":
         return dict(before=before, after=law.best.rmse_um, loo_before=loo_before,
                     loo_after=law.best.loo_rmse_um, **({} if kind == "law" else
                                                        {"with": "the law"}))
     shp = _shape_of(diag)
-    if shp is not None and shp.best is not None and shp.rmse_after_um is not None:
+    if (diag.final is diag.base and shp is not None and shp.best is not None
+            and shp.rmse_after_um is not None):
         return dict(before=before, after=shp.rmse_after_um, loo_before=loo_before,
                     loo_after=getattr(shp, "loo_rmse_um", None), **{"with": "the shape"})
     if diag.final is not diag.base:
@@ -139,11 +159,12 @@ def corrected(diag: Diagnosis):
     if kind == "effect":
         return " + ".join(diag.effects), np.asarray(diag.final.ev.r)
     law = _law_of(diag)
-    if law is not None and law.best is not None and law.best.residual_um is not None:
+    if ((kind == "law" or lead(diag) == "law") and law.best.residual_um is not None):
         return ("the law" if kind == "law" else "the law (a lead)",
                 np.asarray(law.best.residual_um))
     shp = _shape_of(diag)
-    if shp is not None and shp.best is not None and shp.residual_um is not None:
+    if (diag.final is diag.base and shp is not None and shp.best is not None
+            and shp.residual_um is not None):
         return "the shape", np.asarray(shp.residual_um)
     if diag.final is not diag.base:
         return diag.final.label, np.asarray(diag.final.ev.r)
@@ -182,10 +203,11 @@ def _lead_text(diag: Diagnosis, library: bool = True) -> str:
     """The best lead of a verdict without an answer, in words ("" where there is none);
     `library`: the candidate that approximates counts as one."""
     law = _law_of(diag)
-    if law is not None and law.best is not None:
+    which = lead(diag)
+    if which == "law":
         return f"the law {law_text(law)} (a lead: {_why_lead(law)})"
     shp = _shape_of(diag)
-    if shp is not None and shp.best is not None:
+    if which == "shape":
         v = shp.variable(shp.best, shp.form)
         what = "more wear" if shp.form == "factor" else "extra wear not tied to sliding"
         return (f"{what} following {shp.best}, {where_along(v)} (explains "
@@ -314,7 +336,11 @@ def summary(diag: Diagnosis) -> str:
     parts += [s for s in (_evidence(diag), _where(diag), _confounded(diag)) if s]
     law = _law_of(diag)
     if answer(diag) == "lead" and law is not None and law.best is not None:
-        parts.append("law.py holds the law as a lead; missing_wear.py holds the shape.")
+        parts.append("law.py holds the best law tried as a lead only" + (
+            "" if lead(diag) == "law" else
+            f" (it predicts the left-out experiments no better than the base model: "
+            f"{num(law.best.loo_rmse_um)} against {num(law.loo_before_um)} µm)")
+            + "; missing_wear.py holds the shape.")
     if not diag.confident and diag.failed:
         parts.append(f"Refits that failed, not compared: {', '.join(diag.failed)}.")
     return " ".join(parts[:MAX_SENTENCES])
