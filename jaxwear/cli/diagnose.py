@@ -5,6 +5,7 @@ point: measured, base model and the model after, in µm) and `report.html`; `--j
 the document too. With the shape analysis (`--shape`, or an unexplained verdict):
 `shape_<variable>.png` per state variable (and `shape_after_effect_<variable>.png`),
 `missing_wear.py` and, where the law search found one, `law.py` (design.md §7 `shape.law`).
+Its last lines are the verdict's status, `headline` and `summary`, as the JSON has them.
 """
 
 from __future__ import annotations

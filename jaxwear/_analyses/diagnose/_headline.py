@@ -210,8 +210,7 @@ def _lead_text(diag: Diagnosis, library: bool = True) -> str:
     if which == "shape":
         v = shp.variable(shp.best, shp.form)
         what = "more wear" if shp.form == "factor" else "extra wear not tied to sliding"
-        return (f"{what} following {shp.best}, {where_along(v)} (explains "
-                f"{v.explained_fraction:.0%} of the misfit)")
+        return f"{what} following {shp.best} (explains {v.explained_fraction:.0%} of the misfit)"
     if library and diag.partial:
         return _partial_text(diag)
     return ""
