@@ -61,6 +61,7 @@ def profile_figure(diag, corrected):
     base = m.measured + diag.base.ev.r
     label, r_corr = corrected if corrected is not None else (None, None)
     after = None if r_corr is None else m.measured + r_corr
+    base_style = ":" if after is not None else "-"  # dotted beside the answer's line
     time_unit = "h" if diag.study.config.driver in TIMED_DRIVERS else "rev"
     for i, name in enumerate(m.exp_names):
         row, col = divmod(i, cols)
@@ -78,7 +79,7 @@ def profile_figure(diag, corrected):
             x = m.row_x[rows_t]
             keep = thinned(x, m.measured[rows_t], PLOT_POINTS // max(len(times), 1))
             ax.plot(x[keep], m.measured[rows_t][keep], ".", color=c, ms=2, alpha=0.6)
-            _scan_lines(ax, x, base[rows_t], c, ":", 1.2)
+            _scan_lines(ax, x, base[rows_t], c, base_style, 1.2)
             if after is not None:
                 _scan_lines(ax, x, after[rows_t], c, "-", 1.4)
             axr.plot(x[keep], diag.base.ev.r[rows_t][keep], ".", color="0.6", ms=1.5)
@@ -117,7 +118,7 @@ def profile_figure(diag, corrected):
     scans = bool((~m.is_max).any())
     handles = [Line2D([], [], ls="", marker="." if scans else "s", color="0.3",
                       label="measured (each scan)" if scans else "measured"),
-               Line2D([], [], ls=":", color="0.3", label="base model")]
+               Line2D([], [], ls=base_style, color="0.3", label="base model")]
     if after is not None:
         handles.append(Line2D([], [], ls="-", color="0.3", label=f"with {label}"))
     handles.append(Line2D([], [], ls=":", lw=0.7, color="k", label="±2 noise"))
@@ -136,7 +137,8 @@ def profile_caption(diag, corrected) -> str:
     what = ((["measured profiles (each scan, dots) over the bore angle"] if scans else [])
             + (["the measured maximum depth over time"] if hist else []))
     text = " and ".join(what)
-    return (f"{text[0].upper()}{text[1:]}, the base model (dotted){with_}; beneath, the "
+    base = "(dotted)" if corrected is not None else "(solid)"
+    return (f"{text[0].upper()}{text[1:]}, the base model {base}{with_}; beneath, the "
             f"residuals (model − measured; grey: base) within ±2 noise")
 
 
