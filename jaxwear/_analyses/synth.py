@@ -38,7 +38,6 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -46,6 +45,7 @@ from jaxwear._analyses import diagnose as _diagnosis
 from jaxwear._analyses.diagnose._extended import candidate_names
 from jaxwear._core.errors import InputError
 from jaxwear._core.io import OutputDir
+from jaxwear._core.jit import jit
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._physics.config import ModelConfig, timed
 from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
@@ -197,7 +197,7 @@ def _true_snapshots(model, u):
     global _snapshots_jit
     if _snapshots_jit is None:
 
-        @eqx.filter_jit
+        @jit
         def f(ext, u):
             snaps, res = ext.snapshots(u)
             return snaps, jnp.max(res.worn_through_cycle)
