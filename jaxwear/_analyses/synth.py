@@ -41,8 +41,6 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from jaxwear._analyses import diagnose as _diagnosis
-from jaxwear._analyses.diagnose._extended import candidate_names
 from jaxwear._core.errors import InputError
 from jaxwear._core.io import OutputDir
 from jaxwear._core.jit import jit
@@ -270,7 +268,11 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     # Only the hidden candidates: a registered effect the truth does not use would be
     # computed at zero strength in every stage of the run (an effect file a notebook loaded
     # earlier made a synth 4-15x slower, measured).
-    # the diagnosis package looked up at the call: tests stand in for its model
+    # the diagnosis package looked up at the call: tests stand in for its model (and
+    # `import jaxwear` does not pay for it)
+    from jaxwear._analyses import diagnose as _diagnosis
+    from jaxwear._analyses.diagnose._extended import candidate_names
+
     model = _diagnosis.Model(fine, candidates=[n for n in candidate_names(fine.config) if n in hid])
     truth_model = model.with_contact("unsymmetric") if "unsymmetric" in hid else model
     tol_um = planned.clearance_tolerance_um if math.isfinite(
