@@ -6,8 +6,9 @@ This module is a façade: it re-exports the public API from the layer packages
 Importing jaxwear switches JAX to float64 (`jax_enable_x64`). This is deliberate and the
 only global JAX setting the package touches: wear depths are micrometres on 50 µm clearances
 accumulated over 10⁴-10⁵ revolutions, which float32 cannot resolve. XLA's own settings are
-left alone; `configure_xla()` opts in to the faster-compiling XLA:CPU emitters (the command
-line does so itself).
+left alone: jaxwear's own compiled programs ask XLA:CPU for its legacy emitters per program
+(`_core.jit`: faster to compile and to run), and `configure_xla()` opts the whole process in
+(the command line does so itself).
 """
 
 from jaxwear._core import interrupt as _interrupt
