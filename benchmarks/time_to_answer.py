@@ -32,6 +32,12 @@ top-level call timed to its result, its compilation taken out) and `host` (the r
 the fits' bookkeeping, the outputs). Recorded in the command's own process by
 `jax.monitoring` listeners and a timer around `jaxwear._core.jit.Jit` (`_RUNNER`).
 
+A fixed reference runs before every command: `benchmarks/numpy_reference.py`'s rig, 10 000
+rev at 360 x 360, M = 500 (plain NumPy, no compilation; 1.46 s on the quiet machine of
+2026-11-26). The `/ ref` column divides the command's wall time by it, a figure that moves
+less with the machine's speed and load than the wall time does (an answer's target over
+1.46 s is its target in that unit: 10 s is 6.8).
+
 Benchmarks are not tests: figures depend on the machine and its load (recorded before and
 after every command).
 """
@@ -137,6 +143,18 @@ def run(cmd: list[str], json_path: Path | None, cache: Path | None, times: Path 
         raise RuntimeError(f"{' '.join(cmd)} exited {proc.returncode}: {proc.stderr[-2000:]}")
     doc = json.loads(json_path.read_text()) if json_path and json_path.exists() else None
     return wall, doc, proc.stderr, load0, os.getloadavg()[0]
+
+
+def reference() -> float:
+    """Wall seconds of the fixed NumPy reference (the module's docstring)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import numpy_reference
+
+    t0 = time.perf_counter()
+    numpy_reference.simulate_rig(speed_rpm=276.0, revolutions=10000, M=500, nodes=360,
+                                 steps=360, clearance_m=0.05e-3, K_d=1e-13, spring=1009.4,
+                                 contact="unsymmetric")
+    return time.perf_counter() - t0
 
 
 def _f(x) -> str:
@@ -274,7 +292,8 @@ def main(argv=None) -> int:
              [str(tmp / "rig" / "study.toml")], "92-109 s / 74.9 s, 8", "<= 30 s",
              check_verdict("adequate")),
             ("diagnose the 5-experiment rig study, speed effect", "diagnose",
-             [str(tmp / "rig_speed" / "study.toml")], "513 s / 175.6 s, 17", "<= 30 s (60 s partly explained)",
+             [str(tmp / "rig_speed" / "study.toml")], "513 s / 175.6 s, 17",
+             "<= 30 s (60 s partly explained)",
              check_verdict("effect_found", "speed_dependence")),
             ("diagnose --shape, the same study (issue 20: <= 60 s more)", "diagnose",
              [str(tmp / "rig_speed" / "study.toml"), "--shape"], "- / 339.9 s, 28",
@@ -300,6 +319,7 @@ def main(argv=None) -> int:
             cache = tmp / f"cache{i}"
             cache.mkdir()
             walls, loads, shares = [], [], []
+            ref = reference()
             for which in ("cold",) if args.cold_only else ("cold", "warm"):
                 out = tmp / f"out{i}-{which}"
                 js = out / "answer.json"
@@ -320,7 +340,8 @@ def main(argv=None) -> int:
             evals = (doc.get("model_evaluations") or (doc.get("fit") or {}).get(
                 "model_evaluations") or "?")
             row = (label, before, target, f"{walls[0]:.1f} s",
-                   f"{walls[1]:.1f} s" if len(walls) > 1 else "-", " / ".join(shares),
+                   f"{walls[1]:.1f} s" if len(walls) > 1 else "-",
+                   f"{walls[0] / ref:.1f} (ref {ref:.2f} s)", " / ".join(shares),
                    str(evals), _compiles(doc), ("ok: " if ok else "FAILED: ") + text,
                    " ".join(loads))
             rows.append(row)
@@ -337,9 +358,9 @@ def main(argv=None) -> int:
              "compiled programs running, N top-level calls), host (the rest); see the "
              "script's docstring.", "",
              "| answer (CLI wall, defaults) | before: issue 19 / issue 26 (cold, evaluations) "
-             "| target | cold | warm | where (cold / warm) | model evaluations | compiles | "
-             "check | load |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| target | cold | warm | cold / ref | where (cold / warm) | model evaluations | "
+             "compiles | check | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
