@@ -28,9 +28,11 @@ Where each answer's time goes (the columns after the wall times): `import` (Pyth
 imports, jax's included), `compile` (tracing + lowering + XLA's compilation, summed over
 threads: a background compilation overlaps the rest), `cache` (reading compiled programs
 from the persistent cache, warm runs), `runs` (jaxwear's compiled programs running, each
-top-level call timed to its result, its compilation taken out) and `host` (the rest: NumPy,
-the fits' bookkeeping, the outputs). Recorded in the command's own process by
-`jax.monitoring` listeners and a timer around `jaxwear._core.jit.Jit` (`_RUNNER`).
+top-level call timed to its result, the compilation in its own thread taken out; calls in
+several threads at once are each counted) and `host` (the rest: NumPy, the fits'
+bookkeeping, the outputs, waiting; negative where compilations or runs overlapped).
+Recorded in the command's own process by `jax.monitoring` listeners and a timer around
+`jaxwear._core.jit.Jit` (`_RUNNER`).
 
 A fixed reference runs before every command: `benchmarks/numpy_reference.py`'s rig, 10 000
 rev at 360 x 360, M = 500 (plain NumPy, no compilation; 1.46 s on the quiet machine of
@@ -80,18 +82,22 @@ def strip_numerics(path: Path, effects: list[str] | None = None) -> None:
 
 # The command line, timed from inside its process (see the module's docstring).
 _RUNNER = r"""
-import json, os, sys, time
+import json, os, sys, threading, time
 t0 = time.perf_counter()
 import jax
 import jax.monitoring as mon
 acc = {"trace": 0.0, "lower": 0.0, "xla": 0.0, "cache": 0.0}
+mine = {}  # thread id: its own compile seconds (a background compilation is another's)
 names = {"/jax/core/compile/jaxpr_trace_duration": "trace",
          "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
          "/jax/core/compile/backend_compile_duration": "xla",
          "/jax/compilation_cache/cache_retrieval_time_sec": "cache"}
-mon.register_event_duration_secs_listener(
-    lambda event, duration, **kw: acc.__setitem__(names[event], acc[names[event]] + duration)
-    if event in names else None)
+def listen(event, duration, **kw):
+    if event in names:
+        acc[names[event]] += duration
+        t = threading.get_ident()
+        mine[t] = mine.get(t, 0.0) + duration
+mon.register_event_duration_secs_listener(listen)
 from jaxwear import cli
 from jaxwear._core import jit as J
 t_import = time.perf_counter() - t0
@@ -100,9 +106,10 @@ plain_call = J.Jit.__call__
 def timed_call(self, *a, **k):
     if J._traced(a, k):
         return plain_call(self, *a, **k)
-    c0, s0 = sum(acc.values()), time.perf_counter()
+    t = threading.get_ident()
+    c0, s0 = mine.get(t, 0.0), time.perf_counter()
     out = jax.block_until_ready(plain_call(self, *a, **k))
-    runs["seconds"] += time.perf_counter() - s0 - (sum(acc.values()) - c0)
+    runs["seconds"] += time.perf_counter() - s0 - (mine.get(t, 0.0) - c0)
     runs["calls"] += 1
     return out
 J.Jit.__call__ = timed_call
