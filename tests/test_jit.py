@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 _PLAIN = """
 import json, sys
 import jaxwear as jw
+import jaxwear.cli  # the command line imports a verb's module when that verb runs
 heavy = sorted(m for m in sys.modules if m == "scipy.stats"
                or m.startswith(("jaxwear._analyses.diagnose", "jaxwear._report.diagnosis")))
 from jaxwear._core import jit as J
@@ -49,7 +50,8 @@ def _plain_process(*args, **env_extra):
 
 def test_plain_import_is_light_and_runs_the_wear_loop_with_legacy_emitters():
     got = _plain_process("run")
-    # neither scipy.stats nor the diagnose package at import (a verb imports what it needs)
+    # neither scipy.stats nor the diagnose package at import, the command line's included
+    # (a verb imports what it needs)
     assert got["heavy"] == []
     assert got["diagnose"].startswith("jaxwear._analyses.diagnose")  # the name resolves
     # the process's flags untouched, the wear loop's program compiled with the option
