@@ -231,10 +231,10 @@ def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None,
     """(problem with room for the draws, `Whitening`, log density, start position): what
     `run_nuts` samples, and the benchmark's samplers with it. `compiled(logp)`: the
     compiled function of the log density checked for a finite value at the start
-    (default `jax.jit(logp)`); a sampler passes the program it will time, so that the check
-    costs no compilation of its own (12 s of the boom's 200 s NUTS answer). `dynamic`:
-    the adaptive loop's attempt count a traced bound (forward and forward-mode only: a
-    reverse-mode gradient needs the static count)."""
+    (default `jit(logp)`, jaxwear's wrapper); a sampler passes the program it will time, so
+    that the check costs no compilation of its own (12 s of the boom's 200 s NUTS answer).
+    `dynamic`: the adaptive loop's attempt count a traced bound (forward and forward-mode
+    only: a reverse-mode gradient needs the static count)."""
     # Room for the draws: the training problem's attempt count was estimated at the start
     # values, so first raise it to what the fitted values need (K_d moves by orders), then
     # leave 4x headroom for the posterior's tails (larger K_d: more steps on a stiff layer).
