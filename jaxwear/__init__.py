@@ -6,21 +6,22 @@ This module is a façade: it re-exports the public API from the layer packages
 Importing jaxwear switches JAX to float64 (`jax_enable_x64`). This is deliberate and the
 only global JAX setting the package touches: wear depths are micrometres on 50 µm clearances
 accumulated over 10⁴-10⁵ revolutions, which float32 cannot resolve. XLA's own settings are
-left alone; `configure_xla()` opts in to the faster-compiling XLA:CPU emitters (the command
-line does so itself).
+left alone: jaxwear's own compiled programs ask XLA:CPU for its legacy emitters per program
+(`_core.jit`: faster to compile and to run), and `configure_xla()` opts the whole process in
+(the command line does so itself).
 """
 
 from jaxwear._core import interrupt as _interrupt
 
 _interrupt.guard_import()  # only in the command line's process: Ctrl-C while JAX imports
 
+from typing import TYPE_CHECKING
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
 from jaxwear import effects  # the public effect interface (a façade module)
-from jaxwear._analyses.diagnose import Candidate, Diagnosis, ShapeResult, VariableShape
-from jaxwear._analyses.diagnose import diagnose as diagnose
 from jaxwear._analyses.predict.forecast import PredictResult, predict
 from jaxwear._analyses.sensitivity import Sensitivities, sensitivities, study_sensitivities
 from jaxwear._analyses.sweep import SweepResult, sweep
@@ -38,13 +39,42 @@ from jaxwear._physics.mechanism import crank_slider_forces
 from jaxwear._physics.params import Params, preset
 from jaxwear._physics.schedule import Schedule, make_schedule
 from jaxwear._physics.wear import WearResult, build_schedule, simulate, wear_loop
-from jaxwear._report.diagnosis import write_outputs as write_diagnosis
 from jaxwear._study.budget import WorkEstimate, check_work, estimate_work
 from jaxwear._study.load_file import make_cycle, read_load_file
 from jaxwear._study.outputs import input_files, open_outputs
 from jaxwear._study.study import Experiment, Study, load_study
 
 __version__ = "0.1.0"
+
+if TYPE_CHECKING:  # for type checkers and the API docs (griffe); at run time: `_LAZY`
+    from jaxwear._analyses.diagnose import Candidate, Diagnosis, ShapeResult, VariableShape
+    from jaxwear._analyses.diagnose import diagnose as diagnose
+    from jaxwear._report.diagnosis import write_outputs as write_diagnosis
+
+# Imported on first use (PEP 562): the diagnose package (and scipy.stats with it) is ~0.7 s
+# of `import jaxwear`, which every verb and library user would otherwise pay.
+_LAZY = {"Candidate": ("jaxwear._analyses.diagnose", "Candidate"),
+         "Diagnosis": ("jaxwear._analyses.diagnose", "Diagnosis"),
+         "ShapeResult": ("jaxwear._analyses.diagnose", "ShapeResult"),
+         "VariableShape": ("jaxwear._analyses.diagnose", "VariableShape"),
+         "diagnose": ("jaxwear._analyses.diagnose", "diagnose"),
+         "write_diagnosis": ("jaxwear._report.diagnosis", "write_outputs")}
+
+
+def __getattr__(name):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'jaxwear' has no attribute {name!r}")
+    import importlib
+
+    module, attr = _LAZY[name]
+    value = getattr(importlib.import_module(module), attr)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
 
 # The public API: what the README, docs/ and calibration/examples use. Everything else is
 # private (underscore packages) and may change without notice.

@@ -32,6 +32,9 @@ def test_public_names_defined_in_the_package_are_in_all():
     exported = {a.asname or a.name for node in tree.body if isinstance(node, ast.ImportFrom)
                 and (node.module or "").startswith("jaxwear") for a in node.names
                 if not (a.asname or a.name).startswith("_")}
+    # and the names imported on first use (`_LAZY`: the diagnose package is not imported
+    # with jaxwear)
+    exported |= set(jaxwear._LAZY)
     assert exported == set(jaxwear.__all__)
 
 

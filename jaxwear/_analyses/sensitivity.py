@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.jit import jit
 from jaxwear._inference.calibrate import unit_of
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.effects import effect_parameter_specs, get_effect
@@ -104,7 +105,7 @@ def _log_outputs(s, p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple):
                                                       r.steps)
 
 
-@eqx.filter_jit
+@jit
 def _jac(p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple, mode: str):
     f = lambda s: _log_outputs(s, p, cfg, sched, keys)
     s0 = jnp.zeros(len(keys))

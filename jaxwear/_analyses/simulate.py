@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core.jit import jit
 from jaxwear._physics.cycle import WearResult, cycle_increment
 from jaxwear._physics.wear import build_schedule, check_result, schedule_numerics, simulate
 from jaxwear._study.study import Experiment, Study
@@ -38,7 +38,7 @@ def run_experiment(study: Study, exp: Experiment, *, M=None, check=True,
     return res
 
 
-@eqx.filter_jit
+@jit
 def _pressure(p, cfg, h, hist, regime):
     # The contact call of the wear itself (friction and every effect's contact terms), so
     # that the plotted pressure is the pressure that wore the bore.

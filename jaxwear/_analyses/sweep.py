@@ -14,12 +14,12 @@ import sys
 import time
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.jit import jit
 from jaxwear._core.numbers import MAX_POINTS, parse_range  # noqa: F401  (the CLI range parser)
 from jaxwear._core.parallel import sharded_vmap
 from jaxwear._physics.adaptive import DEFAULT_WEAR_TOLERANCE_UM
@@ -147,7 +147,7 @@ def _outputs(p, cfg, sched, keys, vals):
             node_area(q, cfg.nodes), r.error_estimate, r.steps, r.snapshots)
 
 
-@eqx.filter_jit
+@jit
 def _run_chunk(p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple, vals, method: str):
     """The wear loop at `vals` (chunk, keys) [SI], batched over the chunk."""
     one = lambda v: _outputs(p, cfg, sched, keys, v)

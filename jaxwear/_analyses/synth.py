@@ -38,14 +38,12 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from jaxwear._analyses import diagnose as _diagnosis
-from jaxwear._analyses.diagnose._extended import candidate_names
 from jaxwear._core.errors import InputError
 from jaxwear._core.io import OutputDir
+from jaxwear._core.jit import jit
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._physics.config import ModelConfig, timed
 from jaxwear._physics.effects import STRUCTURAL_CANDIDATES, get_effect, registered_effects
@@ -197,7 +195,7 @@ def _true_snapshots(model, u):
     global _snapshots_jit
     if _snapshots_jit is None:
 
-        @eqx.filter_jit
+        @jit
         def f(ext, u):
             snaps, res = ext.snapshots(u)
             return snaps, jnp.max(res.worn_through_cycle)
@@ -270,7 +268,11 @@ def synthesize(hidden=None, conditions="paper", *, noise_um: float = 0.3, seed: 
     # Only the hidden candidates: a registered effect the truth does not use would be
     # computed at zero strength in every stage of the run (an effect file a notebook loaded
     # earlier made a synth 4-15x slower, measured).
-    # the diagnosis package looked up at the call: tests stand in for its model
+    # the diagnosis package looked up at the call: tests stand in for its model (and
+    # `import jaxwear` does not pay for it)
+    from jaxwear._analyses import diagnose as _diagnosis
+    from jaxwear._analyses.diagnose._extended import candidate_names
+
     model = _diagnosis.Model(fine, candidates=[n for n in candidate_names(fine.config) if n in hid])
     truth_model = model.with_contact("unsymmetric") if "unsymmetric" in hid else model
     tol_um = planned.clearance_tolerance_um if math.isfinite(

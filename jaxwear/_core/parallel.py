@@ -28,6 +28,8 @@ from jax import lax
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from jaxwear._core.jit import jit
+
 AXIS = "points"
 METHODS = ("vmap", "map")
 
@@ -118,7 +120,7 @@ def _compiled(fn: Callable, devices: tuple, method: str):
     """
     mesh = points_mesh(devices)
 
-    @eqx.filter_jit
+    @jit
     def call(broadcast_args, batched_args):
         dynamic, static = eqx.partition(broadcast_args, eqx.is_array)
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import TrialFailed
+from jaxwear._core.jit import jit
 from jaxwear._inference.residual import ResidualModel
 from jaxwear._physics.adaptive import _regime_rates, adaptive_attempts
 
@@ -50,7 +50,7 @@ def attempts_needed(model: ResidualModel, u) -> int | float:
     return need
 
 
-@eqx.filter_jit
+@jit
 def _experiment_rates(model: ResidualModel, u):
     """`_regime_rates` of every experiment at u (experiments, regimes) [1/cycle], one
     compiled call (the model without its schedule: an attempt count is no new program).

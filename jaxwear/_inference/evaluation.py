@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core.jit import jit
 from jaxwear._inference import lsq
 from jaxwear._inference.attempts import _dynamic, attempts_needed, enough_attempts, work_failure
 from jaxwear._inference.residual import TRACES, ResidualModel
@@ -91,7 +92,7 @@ class Evaluation:
                          error_um=err, extra=self, why=self.why)
 
 
-@eqx.filter_jit
+@jit
 def _evaluate_jit(model: ResidualModel, u):
     TRACES["jacobian"] += 1  # runs when traced only
     def g(v):
@@ -105,7 +106,7 @@ def _evaluate_jit(model: ResidualModel, u):
     return J, J_snaps, aux
 
 
-@eqx.filter_jit
+@jit
 def _forward_jit(model: ResidualModel, u):
     """Rows [µm], snapshots [µm], worn-through cycle, error estimate [µm], steps: no
     Jacobian (a check of a linearised answer costs one plain run)."""

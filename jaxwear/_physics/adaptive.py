@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
 from jaxwear._core.errors import TrialFailed
+from jaxwear._core.jit import jit
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.contact import stiffness_per_area
 from jaxwear._physics.cycle import (
@@ -293,7 +293,7 @@ def stable_amplification(p: Params, cfg: ModelConfig) -> float:
     return math.inf if not rate > 0 else 2.0 / rate
 
 
-@eqx.filter_jit
+@jit
 def _update_rate(p: Params, cfg: ModelConfig):
     """K_d k S_cycle (per cycle) of the unworn joint, for `stable_amplification`."""
     return jnp.max(_regime_rates(p, cfg))
@@ -334,4 +334,4 @@ def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) 
     return bucket(int(math.ceil(stiff + acc)) + 4 * int(np.sum(live)))
 
 
-_regime_rates_jit = eqx.filter_jit(_regime_rates)
+_regime_rates_jit = jit(_regime_rates)

@@ -11,13 +11,13 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
 from jaxwear._core.errors import InputError, WornThroughError
+from jaxwear._core.jit import jit
 from jaxwear._core.types import NodeArray
 from jaxwear._physics.adaptive import DEFAULT_WEAR_TOLERANCE_UM, _adaptive_loop, adaptive_attempts
 from jaxwear._physics.config import ModelConfig, timed
@@ -128,7 +128,7 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
                       rejected_steps=jnp.zeros((), jnp.int32))
 
 
-_wear_loop_jit = eqx.filter_jit(wear_loop)
+_wear_loop_jit = jit(wear_loop)
 
 
 

@@ -36,19 +36,26 @@ from jaxwear._core.io import FULL
 from jaxwear._core.xla_flags import apply as configure_xla
 from jaxwear._study.effect_files import effect_file_frame
 from jaxwear.cli._parser import Parser, join_negative_values, value_options
-from jaxwear.cli.calibrate import Calibrate
-from jaxwear.cli.design import Design
-from jaxwear.cli.diagnose import Diagnose
-from jaxwear.cli.predict import Predict
-from jaxwear.cli.sensitivity import Sensitivity
-from jaxwear.cli.simulate import Simulate
-from jaxwear.cli.sweep import Sweep
-from jaxwear.cli.synth import Synth
+
+# verb name: (module, class), in the order `--help` lists them. A verb's module is imported
+# when it is named: the diagnose and design packages (scipy.stats with them) cost ~0.6 s of
+# every start-up otherwise.
+VERBS = {"simulate": ("jaxwear.cli.simulate", "Simulate"),
+         "calibrate": ("jaxwear.cli.calibrate", "Calibrate"),
+         "diagnose": ("jaxwear.cli.diagnose", "Diagnose"),
+         "synth": ("jaxwear.cli.synth", "Synth"),
+         "sweep": ("jaxwear.cli.sweep", "Sweep"),
+         "sensitivity": ("jaxwear.cli.sensitivity", "Sensitivity"),
+         "predict": ("jaxwear.cli.predict", "Predict"),
+         "design": ("jaxwear.cli.design", "Design")}
 
 
-def _verbs():
-    return [Simulate(), Calibrate(), Diagnose(), Synth(), Sweep(), Sensitivity(), Predict(),
-            Design()]
+def _verbs(only: str | None = None):
+    """The verbs (all, or the one named `only`)."""
+    import importlib
+
+    names = [only] if only in VERBS else list(VERBS)
+    return [getattr(importlib.import_module(VERBS[n][0]), VERBS[n][1])() for n in names]
 
 
 def _enable_cache():
@@ -66,10 +73,12 @@ def _enable_cache():
         pass
 
 
-def build_parser() -> Parser:
+def build_parser(only: str | None = None) -> Parser:
+    """The command line's parser: every verb, or only the verb named `only` (the one a
+    command line asks for: the others' modules are not imported)."""
     ap = Parser(prog="jaxwear", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="verb_name", required=True, metavar="VERB")
-    for verb in _verbs():
+    for verb in _verbs(only):
         verb.add_to(sub)
     return ap
 
@@ -93,7 +102,7 @@ def _run(argv) -> int:
 
     argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
     try:
-        ap = build_parser()
+        ap = build_parser(argv[0] if argv else None)
         args = ap.parse_args(join_negative_values(argv, value_options(ap)))
         _enable_cache()
         args.verb.execute(args)

@@ -7,20 +7,20 @@ import dataclasses
 import time
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._analyses.design.plan import DEFAULT_SCAN_STEP_DEG, NUISANCE, _placeholder
 from jaxwear._core.errors import InputError
+from jaxwear._core.jit import jit
 from jaxwear._inference.attempts import enough_attempts
 from jaxwear._inference.residual import build_model
 from jaxwear._inference.result import FitResult
 from jaxwear._study.study import Study
 
 
-@eqx.filter_jit
+@jit
 def _candidate_jit(model, v):
     """Snapshots (runs, S, N) [µm] and their Jacobian (runs, S, N, P + 1) in (u, δ): δ [mm]
     a shift of every run's clearance; the integration's worst error estimate [µm] and the

@@ -53,14 +53,12 @@ from jaxwear._analyses.predict.grid import (
     training_study,
     unit_of_study,
 )
-from jaxwear._analyses.predict.importance import run_importance
 from jaxwear._analyses.predict.life import (
     LIFE_REFINE_ROUNDS,
     LIFE_RTOL,
     guided_points,
     refined_points,
 )
-from jaxwear._analyses.predict.nuts import run_nuts
 from jaxwear._analyses.predict.result import PredictResult
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
 from jaxwear._core.errors import InputError
@@ -261,7 +259,11 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
     draws = extra = forecast_draws = None  # sampled posteriors: draws' forecasts, JSON
     sampled = method in ("nuts", "importance")
     if sampled:
-        run_sampler = run_nuts if method == "nuts" else run_importance
+        # the samplers imported where asked for (scipy.special, ~0.1 s of every start-up)
+        if method == "nuts":
+            from jaxwear._analyses.predict.nuts import run_nuts as run_sampler
+        else:
+            from jaxwear._analyses.predict.importance import run_importance as run_sampler
 
         if life:
             # Each life refinement round forecasts every draw again (~80 s on the boom's

@@ -58,6 +58,7 @@ from jaxwear._analyses.predict.nuts import (
     with_tolerance,
 )
 from jaxwear._core.errors import InputError
+from jaxwear._core.jit import jit
 from jaxwear._core.log import log as _log
 from jaxwear._inference.evaluation import forward_run
 
@@ -378,7 +379,7 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
             z["log_noise"] = x[p]
         return z
 
-    logp_x = jax.jit(lambda x: logp(z_of(x)))
+    logp_x = jit(lambda x: logp(z_of(x)))
     mean = np.zeros(d)
     scale = np.ones(d)
     if not given:
@@ -404,7 +405,7 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     # the proposal is restricted to the prior's support (a cheap check, no model run):
     # every draw then runs the model once; the share inside, for the log
     prior = prior_density(problem, noise_um, white)
-    in_support = jax.jit(jax.vmap(lambda xx: jnp.isfinite(prior(z_of(xx))[2])))
+    in_support = jit(jax.vmap(lambda xx: jnp.isfinite(prior(z_of(xx))[2])))
     inside = _share_in_support(in_support, mean, chol, np.random.default_rng([seed, 1]))
     est = (n * t_eval + n_pred * t_fc) / par
     _log(verbose, f"predict/importance: {p} parameters{'' if given else ' + noise'}; log "
@@ -422,7 +423,7 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
         with ThreadPoolExecutor(max_workers=par) as pool:
             return np.array(list(pool.map(lambda x: float(logp_x(jnp.asarray(x))), xs)))
 
-    u_of_x = jax.jit(jax.vmap(lambda xx: white.u_of(z_of(xx))))
+    u_of_x = jit(jax.vmap(lambda xx: white.u_of(z_of(xx))))
 
     def values(xf):
         """(u (n, p), the parameters' values and σ [µm] per draw: name ↦ (n,)) of x (n, d)."""

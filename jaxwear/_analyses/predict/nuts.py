@@ -49,6 +49,7 @@ import numpy as np
 
 from jaxwear._analyses.predict.draws import DrawForecasts, run_forward
 from jaxwear._core.errors import InputError, ModelFailure
+from jaxwear._core.jit import jit
 from jaxwear._core.log import log as _log
 from jaxwear._inference.attempts import enough_attempts as _enough_attempts
 from jaxwear._inference.residual import TRACES
@@ -230,10 +231,10 @@ def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None,
     """(problem with room for the draws, `Whitening`, log density, start position): what
     `run_nuts` samples, and the benchmark's samplers with it. `compiled(logp)`: the
     compiled function of the log density checked for a finite value at the start
-    (default `jax.jit(logp)`); a sampler passes the program it will time, so that the check
-    costs no compilation of its own (12 s of the boom's 200 s NUTS answer). `dynamic`:
-    the adaptive loop's attempt count a traced bound (forward and forward-mode only: a
-    reverse-mode gradient needs the static count)."""
+    (default `jit(logp)`, jaxwear's wrapper); a sampler passes the program it will time, so
+    that the check costs no compilation of its own (12 s of the boom's 200 s NUTS answer).
+    `dynamic`: the adaptive loop's attempt count a traced bound (forward and forward-mode
+    only: a reverse-mode gradient needs the static count)."""
     # Room for the draws: the training problem's attempt count was estimated at the start
     # values, so first raise it to what the fitted values need (K_d moves by orders), then
     # leave 4x headroom for the posterior's tails (larger K_d: more steps on a stiff layer).
@@ -251,7 +252,7 @@ def sampling_setup(problem, result, noise_um=None, cov=None, compiled=None,
     z_fit = initial_position(result, noise_um, white)
     for i in range(4):  # the estimate may still fall short at the fit itself
         logp = log_density(problem, noise_um, white)
-        f = (jax.jit if compiled is None else compiled)(logp)
+        f = (jit if compiled is None else compiled)(logp)
         finite = math.isfinite(float(f(z_fit)))  # one compile per try
         if finite or not problem.schedule.adaptive or i == 3:
             break
@@ -312,9 +313,9 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
             return v, v
 
         if forward_mode:
-            f = jax.jit(lambda z: jax.jacfwd(with_value, has_aux=True)(z)[::-1])
+            f = jit(lambda z: jax.jacfwd(with_value, has_aux=True)(z)[::-1])
         else:
-            f = jax.jit(jax.value_and_grad(potential))
+            f = jit(jax.value_and_grad(potential))
         built.update(grad=f, potential=potential)
 
         def first_call(z):  # compiles; the check reads the log density

@@ -40,7 +40,6 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from scipy.stats import chi2
 
 from jaxwear._core.errors import FitError, TrialFailed
 from jaxwear._inference.lsq._covariance import Covariance, covariance, gauss_newton
@@ -366,6 +365,8 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
         # its lower 99 % bound is used, or a large early misfit reads as "within a
         # standard error" (the boom: 5 rows, 4 parameters).
         dof = max(n - cov.k_eff, 1.0)
+        from scipy.stats import chi2  # here: scipy.stats costs ~0.4 s of `import jaxwear`
+
         low = math.sqrt(dof / chi2.ppf(0.995, dof))
         rss_next = max(float(pt.r @ pt.r) - 2.0 * sigma ** 2 * max(pred, 0.0),
                        1e-6 * float(pt.r @ pt.r))
