@@ -51,6 +51,7 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._evidence import evidence, loo
 from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
+from jaxwear._analyses.diagnose._law_memory import after, memory_candidates
 from jaxwear._analyses.diagnose._law_result import (  # noqa: F401 (the search's types)
     LAW_WORSE,
     LawFit,
@@ -228,13 +229,16 @@ def law_model(model: Model, fit: Fit, law: LawSpec) -> Model:
     compilation for the search). Call inside `effects.law.searching()`."""
     st = model.study
     vals = law.values()
-    held = {k: v for k, v in vals.items() if k not in LAW_KEYS}
+    # a law with memory is its own effect and columns (`_law_memory`)
+    effects, cols = getattr(law, "model_effects", (LAW_EFFECT,)), getattr(law, "columns",
+                                                                          LAW_KEYS)
+    held = {k: v for k, v in vals.items() if k not in cols}
     study = dataclasses.replace(
-        st, config=st.config.replace(effects=tuple(st.config.effects) + (LAW_EFFECT,)),
+        st, config=st.config.replace(effects=tuple(st.config.effects) + tuple(effects)),
         parameters={**st.parameters, **held})
     start = {n: float(v) for n, v, m in zip(model.names, fit.values, model.base_mask) if m}
-    start.update({k: vals[k] for k in LAW_KEYS})
-    return Model(study, keys=list(model.keys) + list(LAW_KEYS), start=start, candidates=[],
+    start.update({k: vals[k] for k in cols})
+    return Model(study, keys=list(model.keys) + list(cols), start=start, candidates=[],
                  defect_um=model.ext.defect)
 
 
@@ -282,7 +286,10 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     fitted = []
     pairs = neighbour_pairs(model)
     with searching():
-        for drop, law, src in todo:
+        # then the laws with memory where the shape points at the history (`_law_memory`)
+        for drop, law, src in after(todo, lambda: memory_candidates(
+                model, fit, prefer, correction, law_model, verbose=verbose,
+                skip=any(f.at_noise for f in fitted) or as_shape(fitted, shape_rmse_um))):
             if fitted and any(f.at_noise for f in fitted):
                 # a law already fits to noise by diagnose's own tests: the others can at
                 # most tie with it (each fit costs ~10 runs of the wear loop)
@@ -425,6 +432,8 @@ def undetermined(law: LawSpec, se: dict) -> tuple:
     standard error that is not finite. Why: a law whose constants trade off against each
     other (the PV step's load hinge: A = 26.64 ± 2.5e+03, W0 = 218 ± 713 N, a1 = 1.98 ±
     80) fits a misfit without measuring anything; the report says so."""
+    if getattr(law, "memory", False):
+        return law.undetermined(se)
     names = list(constants(law))
     out = []
 
@@ -490,7 +499,7 @@ def rank(fitted) -> list:
 
     def key(f):
         k = f.loo_rmse_um if f.loo_rmse_um is not None else f.rmse_um
-        strength = "A" if f.law.form == "factor" else "D"
+        strength = "D" if f.law.form == "deposit" else "A"
         return k * (1 + LAW_WORSE) if strength in f.undetermined else k
 
     best = min(key(f) for f in fitted)
