@@ -90,7 +90,7 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
                       f'            "{doc}", scale={sd!r}),')
     ref_lines = [f"{SYMBOLS[t.variable].upper()}_REF = {t.ref!r}  # z_s of "
                  f"{t.variable} [{t.unit}]" for t in law.terms if t.kind in
-                 ("power", "hinge", "exp")]
+                 ("power", "hinge", "exp") and not memory]
     phi = "" if memory else " * ".join(_term_code(law, k, keys)
                                        for k in range(1, len(law.terms) + 1))
     if law.form != "deposit":

@@ -286,9 +286,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     fitted = []
     pairs = neighbour_pairs(model)
     with searching():
-        # then the laws with memory where the shape points at the history (`_law_memory`)
+        # then the laws with memory, where the history shows or no law of the present
+        # states reaches the noise (`_law_memory`)
         for drop, law, src in after(todo, lambda: memory_candidates(
-                model, fit, prefer, correction, law_model, verbose=verbose,
+                model, fit, prefer, correction, law_model, fitted, noise_um,
+                verbose=verbose,
                 skip=any(f.at_noise for f in fitted) or as_shape(fitted, shape_rmse_um))):
             if fitted and any(f.at_noise for f in fitted):
                 # a law already fits to noise by diagnose's own tests: the others can at

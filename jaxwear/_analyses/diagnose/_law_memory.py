@@ -1,15 +1,19 @@
 """Laws with memory as candidates of the law search (issue 48 item 4): which to try, and
 from where (`memory_candidates`; the laws themselves: `effects.law_memory`).
 
-**When.** Only where the shape's answer points at the history: its best variable or one
-of the carriers of its refitted correction is the sliding distance (the cycle count's
-stand-in) or the worn depth. A law with memory makes a rate that depends on what the node
-went through, which the shape, a function of the present states, can only follow along
-the variables that grow with it. Elsewhere the search fits no memory law (each costs a
-compilation of its model and ~10 evaluations with 5 more Jacobian columns, against
-`diagnose --shape`'s 2-minute budget). They are fitted after the memoryless laws, so the
-search's own stops apply to them: none is fitted once a memoryless law fits to noise by
-diagnose's tests, or one of two variables as well as the shape (`_law.search`).
+**When.** After the memoryless laws, and only where (a) the shape's answer points at the
+history: its best variable or a carrier of its refitted correction is the sliding
+distance (the cycle count's stand-in) or the worn depth (a law with memory makes a rate
+that depends on what the node went through, which the shape, a function of the present
+states, follows along the variables that grow with it); or (b) the best memoryless law
+leaves an RMSE more than `LAW_WORSE` above the noise (what no law of the present states
+explains may be history: on the generator's fatigue law the shape pointed at the sliding
+speed, which told the experiments apart, and the best memoryless law stopped at 1.44 x
+the noise). Not where a memoryless law already fits to noise by diagnose's tests, or one
+of two variables as well as the shape (the search's own stops, `_law.search`). Why not
+always: each costs a compilation of its model (forward and Jacobian), ~17 forward runs
+and ~10 evaluations with 5 more Jacobian columns, against `diagnose --shape`'s 2-minute
+budget.
 
 **From where.** A law with memory is far from linear in its constants (a damage's step
 comes at a cycle count ∝ 1/k1), so the pre-screen's first-order answer does not reach
@@ -31,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._analyses.diagnose._fit import _log
+from jaxwear._analyses.diagnose._law_result import LAW_WORSE
 from jaxwear._analyses.diagnose._law_start import STATE_FRACTIONS, forward_rmse
 from jaxwear._analyses.diagnose._shape_design import (
     _cycle_states,
@@ -134,14 +139,23 @@ def after(todo, more):
     yield from more()
 
 
-def memory_candidates(model, fit, prefer, correction, law_model, *, skip=False,
-                      verbose=False) -> list:
+def wanted(prefer, correction, fitted, noise_um) -> bool:
+    """Whether to try laws with memory (module docstring, "When"): the shape points at the
+    history, or the best of the memoryless laws `fitted` (`LawFit`s) is more than
+    `LAW_WORSE` above the noise `noise_um` [µm] (or none was fitted)."""
+    if points_at_history(prefer, correction):
+        return True
+    best = min((f.rmse_um for f in fitted), default=math.inf)
+    return bool(best > (1.0 + LAW_WORSE) * noise_um)
+
+
+def memory_candidates(model, fit, prefer, correction, law_model, fitted, noise_um, *,
+                      skip=False, verbose=False) -> list:
     """[(nan, law, "memory")]: the best start of each form of law with memory (module
-    docstring), or [] where the shape does not point at the history or `skip` (a
-    memoryless law already fits to noise, or as well as the shape). `law_model`:
-    `_law.law_model` (the search's model of a candidate); call inside
-    `effects.law.searching()`."""
-    if skip or not points_at_history(prefer, correction):
+    docstring), or [] where they are not `wanted` or `skip` (a memoryless law already
+    fits to noise, or as well as the shape). `law_model`: `_law.law_model` (the search's
+    model of a candidate); call inside `effects.law.searching()`."""
+    if skip or not wanted(prefer, correction, fitted, noise_um):
         return []
     z, w, cycles = memory_states(model, fit)
     if not z or not (math.isfinite(cycles) and cycles > 0):
