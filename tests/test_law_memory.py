@@ -3,6 +3,8 @@ against a NumPy recurrence of the formulas as written, its closed form where the
 stands still, gradients of the memory law's constants against central differences, and
 law.py with its state: written, loaded as an effect file, the same run."""
 
+from types import SimpleNamespace
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -11,7 +13,7 @@ import pytest
 from helpers import central_fd
 
 import jaxwear as jw
-from jaxwear._analyses.diagnose._law_memory import points_at_history
+from jaxwear._analyses.diagnose._law_memory import points_at_history, wanted
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.cycle import cycle_rates, run_history
 from jaxwear._physics.effects.law import constants, formula, searching
@@ -150,3 +152,9 @@ def test_memory_laws_are_tried_where_the_shape_points_at_the_history():
     assert not points_at_history(("factor", "pressure_MPa"),
                                  {"variables": [{"name": "sliding_speed_m_per_s"}]})
     assert not points_at_history(None, None)
+    # or where no memoryless law reaches the noise (5 % above it, `LAW_WORSE`)
+    fits = [SimpleNamespace(rmse_um=0.33), SimpleNamespace(rmse_um=0.40)]
+    speed = ("factor", "sliding_speed_m_per_s")
+    assert wanted(speed, None, fits, 0.30) and wanted(speed, None, [], 0.30)
+    assert not wanted(speed, None, fits, 0.32)
+    assert wanted(("factor", "sliding_distance_m"), None, fits, 0.32)
