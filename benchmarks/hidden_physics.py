@@ -59,14 +59,14 @@ import numpy_reference as ref  # noqa: E402
 TWO_PI = 2.0 * math.pi
 DEG = math.pi / 180.0
 LAWS = ("impact", "threshold", "two_variable", "null", "pv_tanh", "worn_soft",
-        "running_pressure", "impact_load", "fatigue", "film")
+        "running_pressure", "impact_load", "fatigue", "film", "damage_step")
 # laws whose structure neither jaxwear's shape basis nor its law grammar contains exactly
 # (issue 43 item 5): two variables at once, the surface's own state, an event's size
 # depending on two quantities
 FACTOR_LAWS = ("threshold", "two_variable", "pv_tanh", "worn_soft", "running_pressure")
 # laws with memory (issue 48 item 4): a hidden per-node state that each revolution drives,
 # of other forms than jaxwear's grammar (`effects.law_memory`)
-MEMORY_LAWS = ("fatigue", "film")
+MEMORY_LAWS = ("fatigue", "film", "damage_step")
 
 
 class BadInput(ValueError):
@@ -113,7 +113,10 @@ class Law:
       [kJ/m²], k_f = `film_formation`, k_r = `film_removal` (per revolution), t1 =
       `film_time_s`, w1 = `film_work_kJ_per_m2`; K_d → K_d (1 − a f), a = `strength` < 1
       (the grammar's film is first order in both and divides the rate by 1 + A s).
-    Both states move by explicit Euler over each update of M revolutions (the profile and
+    - `damage_step`: the grammar's own damage (for recovery): dD/dN = (p_max/p_r)^m /
+      N_f, p_r = `damage_ref_MPa`, m = `fatigue_exponent`, N_f = `fatigue_cycles`; K_d →
+      K_d (1 + a S((D − 1)/w)), S the logistic function, w = `damage_width`.
+    All three states move by explicit Euler over each update of M revolutions (the profile and
     the state frozen within it).
     """
 
@@ -140,6 +143,8 @@ class Law:
     film_removal: float = 3.0e-4
     film_time_s: float = 0.1
     film_work_kJ_per_m2: float = 8.0
+    damage_ref_MPa: float = 2.0
+    damage_width: float = 0.15
 
     def __post_init__(self):
         if self.name not in LAWS:
@@ -154,7 +159,7 @@ class Law:
                     "pv_p_MPa", "pv_v_m_per_s", "soft_depth_um", "rp_p_MPa",
                     "rp_distance_m", "impact_load_N", "fatigue_endurance_MPa",
                     "fatigue_exponent", "fatigue_cycles", "film_formation", "film_removal",
-                    "film_time_s", "film_work_kJ_per_m2")
+                    "film_time_s", "film_work_kJ_per_m2", "damage_ref_MPa", "damage_width")
         for k in positive:
             if not getattr(self, k) > 0:
                 raise BadInput(f"law constant {k} must be > 0, got {getattr(self, k):g}")
@@ -170,6 +175,10 @@ class Law:
         step Δt [s]; (None, None) for the others."""
         if self.name not in MEMORY_LAWS or self.strength == 0:
             return None, None
+        if self.name == "damage_step":
+            d = (pressure.max(axis=0) * 1e-6 / self.damage_ref_MPa) ** self.fatigue_exponent
+            return d / self.fatigue_cycles, 1.0 + self.strength * _logistic(
+                (state - 1.0) / self.damage_width)
         if self.name == "fatigue":
             over = np.maximum(pressure.max(axis=0) * 1e-6 / self.fatigue_endurance_MPa - 1.0,
                               0.0)
@@ -207,7 +216,7 @@ class Law:
 
 DEFAULT_STRENGTH = {"impact": 0.05, "threshold": 1.0, "two_variable": 1.0, "null": 0.0,
                     "pv_tanh": 1.0, "worn_soft": 1.5, "running_pressure": 2.0,
-                    "impact_load": 0.16, "fatigue": 1.5, "film": 0.6}
+                    "impact_load": 0.16, "fatigue": 1.5, "film": 0.6, "damage_step": 1.5}
 
 
 def _logistic(x):
