@@ -31,6 +31,8 @@ left-out experiments and BIC.
    data do not determine (`undetermined`); once one passes that test (the misfit left is
    noise), or a law of two variables reaches the shape's refitted RMSE (`as_shape`), the
    rest are not fitted.
+   Then, where the history shows or no law of the present states reaches the noise,
+   laws with memory: a per-node damage or film the cycle drives (`_law_memory`).
 4. **Ranking.** By the left-out-experiment RMSE (a law whose strength is undetermined as
    if `LAW_WORSE` higher); candidates within `LOO_TIE` of the best are ranked by BIC (the
    evidence, which pays for constants). The best, with its constants in their units and
