@@ -161,6 +161,9 @@ def test_memory_laws_are_tried_where_the_shape_points_at_the_history():
     assert wanted(speed, None, fits, 0.30) and wanted(speed, None, [], 0.30)
     assert not wanted(speed, None, fits, 0.32)
     assert wanted(("factor", "sliding_distance_m"), None, fits, 0.32)
+    # a memoryless law as good as the shape stops them, unless the shape shows history
+    assert not wanted(speed, None, fits, 0.30, as_shape=True)
+    assert wanted(("factor", "sliding_distance_m"), None, fits, 0.30, as_shape=True)
 
 
 @pytest.fixture(scope="module")

@@ -292,14 +292,14 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
         # states reaches the noise (`_law_memory`)
         for drop, law, src in after(todo, lambda: memory_candidates(
                 model, fit, prefer, correction, law_model, fitted, noise_um,
-                verbose=verbose,
-                skip=any(f.at_noise for f in fitted) or as_shape(fitted, shape_rmse_um))):
+                verbose=verbose, skip=any(f.at_noise for f in fitted),
+                as_shape=as_shape(fitted, shape_rmse_um))):
             if fitted and any(f.at_noise for f in fitted):
                 # a law already fits to noise by diagnose's own tests: the others can at
                 # most tie with it (each fit costs ~10 runs of the wear loop)
                 _log(verbose, f"    {law.label}: not fitted (a law already fits to noise)")
                 continue
-            if fitted and as_shape(fitted, shape_rmse_um):
+            if fitted and as_shape(fitted, shape_rmse_um) and src != "memory":
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
                 # fitted after the step in p·v (0.316 µm, the shape 0.317) reached 0.400

@@ -9,9 +9,12 @@ states, follows along the variables that grow with it); or (b) the best memoryle
 leaves an RMSE more than `LAW_WORSE` above the noise (what no law of the present states
 explains may be history: on the generator's fatigue law the shape pointed at the sliding
 speed, which told the experiments apart, and the best memoryless law stopped at 1.44 x
-the noise). Not where a memoryless law already fits to noise by diagnose's tests, or one
-of two variables as well as the shape (the search's own stops, `_law.search`). Why not
-always: each costs a compilation of its model (forward and Jacobian), ~17 forward runs
+the noise). Not where a memoryless law already fits to noise by diagnose's tests; where
+one of two variables fits as well as the shape (the search's stop for memoryless laws),
+only under (a): the shape is a function of the present states, no bound on a law with
+memory (on the generator's slow film the search stopped at a deposit ∝ S^−1.14, 0.315 µm,
+left-out 0.321, the shape 0.314; the film law, fitted, reached 0.307, left-out 0.308).
+Why not always: each costs a compilation of its model (forward and Jacobian), ~17 forward runs
 and ~10 evaluations with 5 more Jacobian columns, against `diagnose --shape`'s 2-minute
 budget.
 
@@ -139,23 +142,27 @@ def after(todo, more):
     yield from more()
 
 
-def wanted(prefer, correction, fitted, noise_um) -> bool:
+def wanted(prefer, correction, fitted, noise_um, as_shape=False) -> bool:
     """Whether to try laws with memory (module docstring, "When"): the shape points at the
     history, or the best of the memoryless laws `fitted` (`LawFit`s) is more than
-    `LAW_WORSE` above the noise `noise_um` [µm] (or none was fitted)."""
+    `LAW_WORSE` above the noise `noise_um` [µm] (or none was fitted) and none of two
+    variables fits as well as the shape (`as_shape`)."""
     if points_at_history(prefer, correction):
         return True
+    if as_shape:
+        return False
     best = min((f.rmse_um for f in fitted), default=math.inf)
     return bool(best > (1.0 + LAW_WORSE) * noise_um)
 
 
 def memory_candidates(model, fit, prefer, correction, law_model, fitted, noise_um, *,
-                      skip=False, verbose=False) -> list:
+                      skip=False, as_shape=False, verbose=False) -> list:
     """[(nan, law, "memory")]: the best start of each form of law with memory (module
     docstring), or [] where they are not `wanted` or `skip` (a memoryless law already
-    fits to noise, or as well as the shape). `law_model`: `_law.law_model` (the search's
-    model of a candidate); call inside `effects.law.searching()`."""
-    if skip or not wanted(prefer, correction, fitted, noise_um):
+    fits to noise). `as_shape`: a memoryless law of two variables fits as well as the
+    shape (`_law.as_shape`). `law_model`: `_law.law_model` (the search's model of a
+    candidate); call inside `effects.law.searching()`."""
+    if skip or not wanted(prefer, correction, fitted, noise_um, as_shape):
         return []
     z, w, cycles = memory_states(model, fit)
     if not z or not (math.isfinite(cycles) and cycles > 0):
