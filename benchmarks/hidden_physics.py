@@ -15,9 +15,12 @@ jaxwear: the two meet only in the files.
 Laws (`LAWS`; each with a strength, 0 = the base model): `impact` (wear deposited at the
 load direction where it turns fast, resolved along the swept arc), `threshold` (the wear
 rate jumps above a contact pressure), `two_variable` (the rate jumps above a pressure x
-sliding-speed product, the PV limit), `null` (nothing hidden). Conditions: `paper` (the
-rig matrix of design.md §6), `other` (other speeds, clearances, revolutions, spring rates and
-crank lengths, so that crank speed and load turn rate are not confounded) or a TOML file.
+sliding-speed product, the PV limit), `null` (nothing hidden), and the others of `Law`'s
+docstring, among them two laws with memory: `fatigue` (a per-node damage that gives way) and
+`film` (a per-node protective film that forms out of contact and wears off). Conditions:
+`paper` (the rig matrix of design.md §6), `other` (other speeds, clearances, revolutions,
+spring rates and crank lengths, so that crank speed and load turn rate are not confounded)
+or a TOML file.
 
 The wear loop is design.md §3-4 (Winkler springs of the worn layer, unsymmetric contact,
 Archard wear with eq 23's M revolutions per update and a partial block where a snapshot
@@ -56,11 +59,14 @@ import numpy_reference as ref  # noqa: E402
 TWO_PI = 2.0 * math.pi
 DEG = math.pi / 180.0
 LAWS = ("impact", "threshold", "two_variable", "null", "pv_tanh", "worn_soft",
-        "running_pressure", "impact_load")
+        "running_pressure", "impact_load", "fatigue", "film", "damage_step")
 # laws whose structure neither jaxwear's shape basis nor its law grammar contains exactly
 # (issue 43 item 5): two variables at once, the surface's own state, an event's size
 # depending on two quantities
 FACTOR_LAWS = ("threshold", "two_variable", "pv_tanh", "worn_soft", "running_pressure")
+# laws with memory (issue 48 item 4): a hidden per-node state that each revolution drives,
+# of other forms than jaxwear's grammar (`effects.law_memory`)
+MEMORY_LAWS = ("fatigue", "film", "damage_step")
 
 
 class BadInput(ValueError):
@@ -95,6 +101,23 @@ class Law:
     - `impact_load`: `impact` whose size at each event is also ∝ tanh(|W|/W1), W1 =
       `impact_load_N`: an event's size depending on two quantities at the event (the turn
       rate and the load).
+    - `fatigue`: a damage D per node (0 new) that each revolution adds to, with an
+      endurance limit: dD/dN = max(p_max/p_e − 1, 0)^m / N_f, p_max the node's peak
+      pressure over the revolution, p_e = `fatigue_endurance_MPa`, m = `fatigue_exponent`,
+      N_f = `fatigue_cycles`; K_d → K_d (1 + a (1 − exp(−D³))) (a Weibull-like giving way:
+      the grammar's damage is a power law of its driver and a logistic step).
+    - `film`: a protective film f per node (0 new) that forms while the node is out of
+      contact and wears off with its contact work, by second-order formation and a power
+      of the work: df/dN = k_f (1 − f)² sqrt(t_off/t1) − k_r f (w/w1)^1.5, t_off the
+      node's time out of contact per revolution [s], w = Σ_i p_ij dS_i its contact work
+      [kJ/m²], k_f = `film_formation`, k_r = `film_removal` (per revolution), t1 =
+      `film_time_s`, w1 = `film_work_kJ_per_m2`; K_d → K_d (1 − a f), a = `strength` < 1
+      (the grammar's film is first order in both and divides the rate by 1 + A s).
+    - `damage_step`: the grammar's own damage (for recovery): dD/dN = (p_max/p_r)^m /
+      N_f, p_r = `damage_ref_MPa`, m = `fatigue_exponent`, N_f = `fatigue_cycles`; K_d →
+      K_d (1 + a S((D − 1)/w)), S the logistic function, w = `damage_width`.
+    All three states move by explicit Euler over each update of M revolutions (the profile and
+    the state frozen within it).
     """
 
     name: str = "null"
@@ -113,6 +136,15 @@ class Law:
     rp_p_MPa: float = 1.5
     rp_distance_m: float = 20.0
     impact_load_N: float = 40.0
+    fatigue_endurance_MPa: float = 0.7
+    fatigue_exponent: float = 2.0
+    fatigue_cycles: float = 6000.0
+    film_formation: float = 3.0e-4
+    film_removal: float = 3.0e-4
+    film_time_s: float = 0.1
+    film_work_kJ_per_m2: float = 8.0
+    damage_ref_MPa: float = 2.0
+    damage_width: float = 0.15
 
     def __post_init__(self):
         if self.name not in LAWS:
@@ -125,12 +157,38 @@ class Law:
         positive = ("turn_reference_deg_per_s", "impact_exponent", "impact_width_deg",
                     "threshold_MPa", "threshold_width", "pv_MPa_m_per_s", "pv_width",
                     "pv_p_MPa", "pv_v_m_per_s", "soft_depth_um", "rp_p_MPa",
-                    "rp_distance_m", "impact_load_N")
+                    "rp_distance_m", "impact_load_N", "fatigue_endurance_MPa",
+                    "fatigue_exponent", "fatigue_cycles", "film_formation", "film_removal",
+                    "film_time_s", "film_work_kJ_per_m2", "damage_ref_MPa", "damage_width")
         for k in positive:
             if not getattr(self, k) > 0:
                 raise BadInput(f"law constant {k} must be > 0, got {getattr(self, k):g}")
         if self.turn_threshold_deg_per_s < 0:
             raise BadInput("turn_threshold_deg_per_s must be >= 0")
+        if self.name == "film" and not self.strength < 1:
+            raise BadInput(f"the film's strength a must be < 1 (K_d (1 − a f) stays "
+                           f"positive), got {self.strength:g}")
+
+    def memory_step(self, pressure, slide, dt, state):
+        """(dstate per revolution (nodes,), rate factor (nodes,) or None) of a law with
+        memory at `state` (nodes,), from p [Pa] (steps, nodes), dS_i [m] (steps,) and the
+        step Δt [s]; (None, None) for the others."""
+        if self.name not in MEMORY_LAWS or self.strength == 0:
+            return None, None
+        if self.name == "damage_step":
+            d = (pressure.max(axis=0) * 1e-6 / self.damage_ref_MPa) ** self.fatigue_exponent
+            return d / self.fatigue_cycles, 1.0 + self.strength * _logistic(
+                (state - 1.0) / self.damage_width)
+        if self.name == "fatigue":
+            over = np.maximum(pressure.max(axis=0) * 1e-6 / self.fatigue_endurance_MPa - 1.0,
+                              0.0)
+            d = over ** self.fatigue_exponent / self.fatigue_cycles
+            return d, 1.0 + self.strength * (1.0 - np.exp(-np.maximum(state, 0.0) ** 3))
+        t_off = dt * np.sum(pressure < 1.0, axis=0)  # the solve's p is exactly 0 off contact
+        work = slide @ pressure * 1e-3  # J/m² -> kJ/m²
+        d = (self.film_formation * (1.0 - state) ** 2 * np.sqrt(t_off / self.film_time_s)
+             - self.film_removal * state * (work / self.film_work_kJ_per_m2) ** 1.5)
+        return d, 1.0 - self.strength * state
 
     def rate_factor(self, pressure, speed, depth=None, sliding=0.0):
         """Factor of the local Archard rate, (steps, nodes) from p [Pa] (steps, nodes), v
@@ -158,7 +216,7 @@ class Law:
 
 DEFAULT_STRENGTH = {"impact": 0.05, "threshold": 1.0, "two_variable": 1.0, "null": 0.0,
                     "pv_tanh": 1.0, "worn_soft": 1.5, "running_pressure": 2.0,
-                    "impact_load": 0.16}
+                    "impact_load": 0.16, "fatigue": 1.5, "film": 0.6, "damage_step": 1.5}
 
 
 def _logistic(x):
@@ -495,6 +553,7 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
     deposit = impact_deposit(law, cond, clearance, num.nodes, num.sweep_deg)
     points = cond.measure_points()
     h = np.zeros(num.nodes)
+    state = np.zeros(num.nodes)  # a law with memory's per-node state (0: a new surface)
     hidden = np.zeros(num.nodes)
     e = None
     done, updates, out = 0.0, 0, []
@@ -508,6 +567,10 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
             factor = law.rate_factor(p, cyc.speed, h, done * float(cyc.slide.sum()))
             base = rate.sum(axis=0)
             dh = base if factor is None else (rate * factor).sum(axis=0)
+            dstate, mfactor = law.memory_step(p, cyc.slide, cyc.dt, state)
+            if dstate is not None:
+                dh = dh * mfactor
+                state = state + block * dstate
             dh = dh + deposit
             hidden += block * (dh - base)
             h = h + block * dh  # eq 23

@@ -43,15 +43,20 @@ sys.path.insert(0, str(ROOT))
 import shape_validation as sv  # noqa: E402
 
 NEW = ("pv_tanh", "worn_soft", "running_pressure", "impact_load")
-CASES = NEW + ("impact", "threshold", "two_variable", "null")
-sv.OUTSIDE = sv.OUTSIDE + NEW  # made by the generator, not by `jaxwear synth`
+MEMORY = ("fatigue", "film")  # laws with memory (issue 48 item 4)
+CASES = NEW + ("impact", "threshold", "two_variable", "null") + MEMORY
+sv.OUTSIDE = sv.OUTSIDE + NEW + MEMORY  # made by the generator, not by `jaxwear synth`
 EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
           "worn_soft": "factor of the worn depth: h²/(h² + (3 µm)²)",
           "running_pressure": "factor (p/1.5 MPa)²/(1 + S/20 m)",
           "impact_load": "deposit at the reversals ∝ (ω − ω0)² tanh(W/40 N)",
           "impact": "deposit at the reversals ∝ (ω − ω0)²",
           "threshold": "factor: logistic step at 1.5 MPa",
-          "two_variable": "factor: logistic step at p v = 0.08 MPa·m/s", "null": "nothing"}
+          "two_variable": "factor: logistic step at p v = 0.08 MPa·m/s", "null": "nothing",
+          "fatigue": "damage dD/dN = max(p_max/0.7 MPa − 1, 0)²/6000, K_d (1 + 1.5 (1 − "
+                     "exp(−D³)))",
+          "film": "film df/dN = 3e-4 (1 − f)² sqrt(t_off/0.1 s) − 3e-4 f (w/8 kJ/m²)^1.5, "
+                  "K_d (1 − 0.6 f)"}
 
 
 def with_law(study: Path, law_file: Path, out: Path) -> Path:

@@ -34,6 +34,8 @@ class WearResult(eqx.Module):
       signed sum of local error estimates; inf if the adaptive loop ran out of attempts).
       Adaptive: the embedded pair's; paper (eq 23): Euler's (M/2) Δrate between updates.
     - `steps`: accepted steps (updates); `rejected_steps`: steps the controller redid.
+    - `memory`: the effects' hidden per-node states at the end (states, nodes) [-]
+      (`Effect.memory_states`; None where no effect has any).
     """
 
     depth: NodeArray
@@ -48,6 +50,7 @@ class WearResult(eqx.Module):
     error_estimate: Scalar
     steps: Array
     rejected_steps: Array
+    memory: object = None
 
 
 def node_area(p: Params, nodes: int) -> Scalar:
@@ -67,11 +70,25 @@ def run_history(p: Params, cfg: ModelConfig) -> LoadHistory:
     return hist
 
 
+def memory_size(cfg: ModelConfig) -> int:
+    """Hidden per-node states of the configuration's effects (`Effect.memory_states`)."""
+    return sum(get_effect(n).memory_states for n in cfg.effects)
+
+
 def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
-                start=None):
+                start=None, memory=None):
     """Wear of each step of one cycle on the frozen profile `h` [m] (steps, nodes), with the
     contact solution: K_d p_ij dS_i (eq 21), then every effect's hook, then the shape
-    correction (`effects.shape`) where the configuration carries one."""
+    correction (`effects.shape`) where the configuration carries one. `memory` (states,
+    nodes): the effects' hidden states (`memory_size`; None: 0, a new surface)."""
+    rate, sol, _ = _cycle(p, cfg, hist, regime, h, sliding, start, memory)
+    return rate, sol
+
+
+def _cycle(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding, start,
+           memory):
+    """(`cycle_rates`' rate and contact, ds/dN (states, nodes) of the hidden states or
+    None where no effect has any)."""
     effects = [get_effect(n) for n in cfg.effects]
     load, angle = hist.load[regime], hist.angle[regime]
     slide, dt, sense = hist.slide[regime], hist.dt[regime], hist.sense[regime]
@@ -85,18 +102,29 @@ def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, slidi
     sol = solve_contact(load, angle, h, p.clearance, k, area, contact=cfg.contact,
                         friction=friction, iterations=cfg.newton_iterations, start=start)
     rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
+    ds = None
     if effects:
-        ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load, h,
-                          None if hist.swept is None else hist.swept[regime])
+        m_total = memory_size(cfg)
+        if m_total and memory is None:
+            memory = jnp.zeros((m_total, cfg.nodes))
+        parts, off = [], 0
         for eff in effects:
+            m = eff.memory_states
+            ctx = RateContext(sol.pressure, slide, dt, sliding, angle, load, h,
+                              None if hist.swept is None else hist.swept[regime],
+                              memory[off:off + m] if m else None)
+            if m:
+                parts.append(eff.memory_rate(p, ctx))
+                off += m
             rate = eff.local_rate(p, rate, ctx)
+        ds = jnp.concatenate(parts) if parts else None
     if cfg.shape is not None:
         g, deposit = shape_terms(cfg.shape, p, sol.pressure, slide, dt, sliding, angle, load,
                                  hist.shape_pre, regime, h)
         rate = rate * jnp.exp(g)
         if deposit is not None:
             rate = rate + deposit
-    return rate, sol
+    return rate, sol, ds
 
 
 def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
@@ -105,13 +133,22 @@ def cycle_increment(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, s
 
     Returns (Δh per cycle [m] (nodes,), Σ_i (Σ_j p_ij A_j) dS_i [N·m], contact solution).
     """
-    rate, sol = cycle_rates(p, cfg, hist, regime, h, sliding, start)
+    dh, _, work, sol = cycle_step(p, cfg, hist, regime, h, sliding, start)
+    return dh, work, sol
+
+
+def cycle_step(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
+               start=None, memory=None):
+    """`cycle_increment` with the hidden states: (Δh per cycle [m] (nodes,), ds/dN per
+    cycle (states, nodes) or None, work [N·m], contact solution); `memory` (states, nodes)
+    the states the cycle starts from (`memory_size`; None: 0)."""
+    rate, sol, ds = _cycle(p, cfg, hist, regime, h, sliding, start, memory)
     slide = hist.slide[regime]
     area = node_area(p, cfg.nodes)
     # Sums over the steps as matrix-vector products: XLA:CPU's reductions of a
     # (steps, nodes) array cost ~3x (measured, 360 x 360: 0.09 ms against ~0.03 ms a cycle).
     work = area * jnp.sum(slide @ sol.pressure)
-    return jnp.ones_like(slide) @ rate, work, sol
+    return jnp.ones_like(slide) @ rate, ds, work, sol
 
 
 def _cold_starts(hist: LoadHistory):

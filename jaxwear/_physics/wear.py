@@ -25,7 +25,8 @@ from jaxwear._physics.cycle import (
     WearResult,
     _cold_starts,
     _warm_start,
-    cycle_increment,
+    cycle_step,
+    memory_size,
     node_area,
     run_history,
 )
@@ -57,6 +58,7 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
     area = node_area(p, n)
     per_cycle_slide = jnp.sum(hist.slide, axis=1)  # (regimes,)
     h0 = jnp.zeros(n) if h0 is None else h0
+    m = memory_size(cfg)  # the effects' hidden per-node states (0 on a new bore)
 
     # Warm starts: each regime's offsets from its previous update (the profile moves little
     # per update), the first update of each regime cold.
@@ -68,10 +70,12 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         return lax.cond(x[0] > 0, live, lambda c, _: c, carry, x), None
 
     def live(carry, x):
-        h, S, snaps, vol, res, its, worn, starts, h_seen, prev, err, steps = carry
+        h, S, snaps, vol, res, its, worn, starts, h_seen, prev, err, steps, mem = carry
         M, regime, snap, end = x
         warm = _warm_start(cfg, hist, starts, h_seen, regime, h)
-        dh, work, sol = cycle_increment(p, cfg, hist, regime, h, S, warm)
+        dh, ds, work, sol = cycle_step(p, cfg, hist, regime, h, S, warm, mem if m else None)
+        if m:  # the hidden states: Euler over the M cycles too
+            mem = mem + M * ds
         starts = starts.at[regime].set(lax.stop_gradient(sol.offset))
         h_seen = h_seen.at[regime].set(lax.stop_gradient(h))
         s_cyc = per_cycle_slide[regime]
@@ -96,7 +100,8 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         its = jnp.maximum(its, sol.iterations)
         hit = (M > 0) & jnp.any(h_new >= p.layer_thickness) & (worn < 0)
         worn = jnp.where(hit, end, worn)
-        return (h_new, S_new, snaps, vol, res, its, worn, starts, h_seen, prev, err, steps + 1)
+        return (h_new, S_new, snaps, vol, res, its, worn, starts, h_seen, prev, err, steps + 1,
+                mem)
 
     U = schedule.updates
     inner = max(1, int(math.ceil(math.sqrt(U))))
@@ -117,15 +122,16 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
     carry0 = (h0, jnp.zeros(()), jnp.zeros((schedule.n_snapshots, n)), jnp.zeros(()),
               jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0,
               jnp.broadcast_to(lax.stop_gradient(h0), (n_reg, n)), prev0, jnp.zeros(n),
-              jnp.zeros((), jnp.int32))
-    (h, S, snaps, vol, res, its, worn, _, _, _, err, steps), _ = lax.scan(block, carry0, xs)
+              jnp.zeros((), jnp.int32), jnp.zeros((m, n)))
+    (h, S, snaps, vol, res, its, worn, _, _, _, err, steps, mem), _ = lax.scan(block, carry0,
+                                                                               xs)
     if schedule.order and list(schedule.order) != list(range(schedule.n_snapshots)):
         snaps = snaps[jnp.asarray(schedule.order)]
     return WearResult(depth=h, snapshots=snaps, sliding_distance=S,
                       worn_volume=jnp.sum(h) * area, archard_volume=vol, max_residual=res,
                       max_iterations=its, worn_through_cycle=worn, history=hist,
                       error_estimate=jnp.max(jnp.abs(err)), steps=steps,
-                      rejected_steps=jnp.zeros((), jnp.int32))
+                      rejected_steps=jnp.zeros((), jnp.int32), memory=mem if m else None)
 
 
 _wear_loop_jit = jit(wear_loop)

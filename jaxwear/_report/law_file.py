@@ -14,11 +14,13 @@ import math
 import textwrap
 
 from jaxwear._physics.effects.law import SYMBOLS, LawSpec, formula, term_formula
+from jaxwear._report.law_memory_file import memory_file_source
 
 EFFECT_NAME = "found_law"
 _UNIT_KEY = {"-": "", "MPa": "_MPa", "m/s": "_m_per_s", "m": "_m", "deg/s": "_deg_per_s",
              "deg/deg": "_deg_per_deg", "N": "_N", "µm": "_um",
-             "nm·rad per step": "_nm_rad_per_step", "MPa·m/s": "_MPa_m_per_s"}
+             "nm·rad per step": "_nm_rad_per_step", "MPa·m/s": "_MPa_m_per_s",
+             "1/cycle": "_per_cycle"}
 
 
 def parameter_key(name: str, unit: str) -> str:
@@ -66,9 +68,10 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
         err = f" ± {s:.3g}" if s is not None and math.isfinite(s) and s > 0 else ""
         what = "reference, fixed" if n in refs else f"key {keys[n]}"
         lines_c.append(f"    {n} = {v:.6g}{err} {'' if u == '-' else u}  ({what})")
+    memory = getattr(law, "memory", False)  # a law with memory: `law_memory_file`
     params = []
-    strength = "A" if law.form == "factor" else "D"
-    for n, (v, s, u) in fitted.items():
+    strength = "D" if law.form == "deposit" else "A"
+    for n, (v, s, u) in ({} if memory else fitted).items():
         sd = s if s is not None and math.isfinite(s) and s > 0 else max(0.1 * abs(v), 1e-3)
         if n == strength:
             lo, hi, off = 0.0, max(100.0 * abs(v), 1.0), 0.0
@@ -87,18 +90,20 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
                       f'            "{doc}", scale={sd!r}),')
     ref_lines = [f"{SYMBOLS[t.variable].upper()}_REF = {t.ref!r}  # z_s of "
                  f"{t.variable} [{t.unit}]" for t in law.terms if t.kind in
-                 ("power", "hinge", "exp")]
-    phi = " * ".join(_term_code(law, k, keys) for k in range(1, len(law.terms) + 1))
-    if law.form == "factor":
+                 ("power", "hinge", "exp") and not memory]
+    phi = "" if memory else " * ".join(_term_code(law, k, keys)
+                                       for k in range(1, len(law.terms) + 1))
+    if law.form != "deposit":
         ret = f'return rate * (1.0 + e["{keys["A"]}"] * phi)'
     else:
         ret = (f'kernel = (swept_kernel(ctx.load_angle, ctx.pressure.shape[1]) if ctx.swept '
                f'is None\n                  else ctx.swept)\n'
                f'        return rate + e["{keys["D"]}"] * DEPOSIT_UNIT_M * phi * kernel')
     loo = f"{loo_rmse_um:.4f}" if loo_rmse_um is not None else "-"
-    terms = "; ".join(f"φ{k} = {term_formula(t, k)}" for k, t in enumerate(law.terms, 1))
+    terms = "the state s per node, 0 on a new surface" if memory else "; ".join(
+        f"φ{k} = {term_formula(t, k)}" for k, t in enumerate(law.terms, 1))
     warn = f"\n{caveat}\n" if caveat else ""
-    return f'''"""{EFFECT_NAME}: the wear law that `jaxwear diagnose --shape` found (issue 43).
+    header = f'''"""{EFFECT_NAME}: the wear law that `jaxwear diagnose --shape` found (issue 43).
 {warn}
 Study: {study_path}
 
@@ -119,7 +124,10 @@ Load it in a study:
 Its strength {strength} (key {keys[strength]}) is 0 off and the fitted value by default; the
 other constants are parameters too (defaults: the fitted values), which calibrate can refit
 (--fit K_d,clearance,{keys[strength]},...). In Python: `jw.register_effect(FoundLaw())`.
-"""
+"""'''
+    if memory:
+        return memory_file_source(law, consts, keys=keys, header=header)
+    return header + f'''
 
 import jax
 import jax.numpy as jnp

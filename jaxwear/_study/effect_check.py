@@ -18,7 +18,10 @@ and 10 ms a step, at the start of a run and after 5 m of sliding); the answers m
   the Archard rate, never below zero; below zero is material added);
 - `friction`: None, or finite of shape () or (steps,);
 - `block_factor`: a finite scalar >= 0 (a multiplier of wear);
-- `cycles_at`: None, or a finite scalar.
+- `cycles_at`: None, or a finite scalar;
+- for an effect with hidden states (`memory_states` = m > 0, tried at s = 0.5 on every
+  node), `memory_rate`: finite, of shape (m, nodes); `memory_stiffness`: a finite scalar
+  >= 0.
 
 A failure is an `InputError` naming the file, the line (in the file where the hook raised,
 else the class's), the class and hook, the strengths and what was wrong. Each hook is
@@ -97,7 +100,10 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
     # each hook compiled once (the settings share its shapes) and run as the wear loop runs
     # it, traced: Python control flow on a strength fails here, not an hour into a fit
     jitted = {hook: jax.jit(lambda p, *a, hook=hook: getattr(eff, hook)(p, *a))
-              for hook in ("friction", "local_rate", "block_factor", "cycles_at")}
+              for hook in ("friction", "local_rate", "block_factor", "cycles_at",
+                           "memory_rate", "memory_stiffness")}
+    m = int(getattr(eff, "memory_states", 0))
+    memory = jnp.full((m, NODES), 0.5) if m else None
     for label, values in strength_settings(eff):
         p = base.with_values({k: v * eff.parameters[k].to_si for k, v in values.items()})
         at = f"at {label} ({', '.join(f'{k} = {v:g}' for k, v in values.items())})"
@@ -128,7 +134,18 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
             _finite(fail, "friction", mu, "coefficient")
         for slid in SLID_M:
             ctx = RateContext(pressure, slide, dt, jnp.asarray(slid), angle, load,
-                              jnp.zeros(NODES), swept)
+                              jnp.zeros(NODES), swept, memory)
+            if m:
+                ds = _array(call("memory_rate", ctx))
+                if ds is None or ds.shape != (m, NODES):
+                    fail("memory_rate", f"returned {_shape(ds)}; expected ds/dN of its "
+                                        f"states, shape (memory_states, nodes) = ({m}, "
+                                        f"{NODES})")
+                _finite(fail, "memory_rate", ds, "rate [1/cycle]")
+                st = _array(call("memory_stiffness"))
+                if st is None or st.size != 1 or not float(st.reshape(())) >= 0:
+                    fail("memory_stiffness", "expected a finite scalar >= 0 [1/cycle]")
+                _finite(fail, "memory_stiffness", st, "rate [1/cycle]")
             out = _array(call("local_rate", rate, ctx))
             if out is None or out.shape != (STEPS, NODES):
                 fail("local_rate", f"returned {_shape(out)}; expected the wear per step and "

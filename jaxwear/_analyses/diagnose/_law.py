@@ -31,6 +31,8 @@ left-out experiments and BIC.
    data do not determine (`undetermined`); once one passes that test (the misfit left is
    noise), or a law of two variables reaches the shape's refitted RMSE (`as_shape`), the
    rest are not fitted.
+   Then, where the history shows or no law of the present states reaches the noise,
+   laws with memory: a per-node damage or film the cycle drives (`_law_memory`).
 4. **Ranking.** By the left-out-experiment RMSE (a law whose strength is undetermined as
    if `LAW_WORSE` higher); candidates within `LOO_TIE` of the best are ranked by BIC (the
    evidence, which pays for constants). The best, with its constants in their units and
@@ -51,6 +53,7 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._evidence import evidence, loo
 from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
+from jaxwear._analyses.diagnose._law_memory import after, memory_candidates
 from jaxwear._analyses.diagnose._law_result import (  # noqa: F401 (the search's types)
     LAW_WORSE,
     LawFit,
@@ -228,13 +231,16 @@ def law_model(model: Model, fit: Fit, law: LawSpec) -> Model:
     compilation for the search). Call inside `effects.law.searching()`."""
     st = model.study
     vals = law.values()
-    held = {k: v for k, v in vals.items() if k not in LAW_KEYS}
+    # a law with memory is its own effect and columns (`_law_memory`)
+    effects, cols = getattr(law, "model_effects", (LAW_EFFECT,)), getattr(law, "columns",
+                                                                          LAW_KEYS)
+    held = {k: v for k, v in vals.items() if k not in cols}
     study = dataclasses.replace(
-        st, config=st.config.replace(effects=tuple(st.config.effects) + (LAW_EFFECT,)),
+        st, config=st.config.replace(effects=tuple(st.config.effects) + tuple(effects)),
         parameters={**st.parameters, **held})
     start = {n: float(v) for n, v, m in zip(model.names, fit.values, model.base_mask) if m}
-    start.update({k: vals[k] for k in LAW_KEYS})
-    return Model(study, keys=list(model.keys) + list(LAW_KEYS), start=start, candidates=[],
+    start.update({k: vals[k] for k in cols})
+    return Model(study, keys=list(model.keys) + list(cols), start=start, candidates=[],
                  defect_um=model.ext.defect)
 
 
@@ -282,13 +288,18 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     fitted = []
     pairs = neighbour_pairs(model)
     with searching():
-        for drop, law, src in todo:
+        # then the laws with memory, where the history shows or no law of the present
+        # states reaches the noise (`_law_memory`)
+        for drop, law, src in after(todo, lambda: memory_candidates(
+                model, fit, prefer, correction, law_model, fitted, noise_um,
+                verbose=verbose, skip=any(f.at_noise for f in fitted),
+                as_shape=as_shape(fitted, shape_rmse_um))):
             if fitted and any(f.at_noise for f in fitted):
                 # a law already fits to noise by diagnose's own tests: the others can at
                 # most tie with it (each fit costs ~10 runs of the wear loop)
                 _log(verbose, f"    {law.label}: not fitted (a law already fits to noise)")
                 continue
-            if fitted and as_shape(fitted, shape_rmse_um):
+            if fitted and as_shape(fitted, shape_rmse_um) and src != "memory":
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
                 # fitted after the step in p·v (0.316 µm, the shape 0.317) reached 0.400
@@ -428,6 +439,8 @@ def undetermined(law: LawSpec, se: dict) -> tuple:
     standard error that is not finite. Why: a law whose constants trade off against each
     other (the PV step's load hinge: A = 26.64 ± 2.5e+03, W0 = 218 ± 713 N, a1 = 1.98 ±
     80) fits a misfit without measuring anything; the report says so."""
+    if getattr(law, "memory", False):
+        return law.undetermined(se)
     names = list(constants(law))
     out = []
 
@@ -493,7 +506,7 @@ def rank(fitted) -> list:
 
     def key(f):
         k = f.loo_rmse_um if f.loo_rmse_um is not None else f.rmse_um
-        strength = "A" if f.law.form == "factor" else "D"
+        strength = "D" if f.law.form == "deposit" else "A"
         return k * (1 + LAW_WORSE) if strength in f.undetermined else k
 
     best = min(key(f) for f in fitted)

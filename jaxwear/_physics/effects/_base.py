@@ -50,7 +50,9 @@ class RateContext(eqx.Module):
     (steps, nodes) [1/rad] is that kernel computed once per run, where the effect sets
     `uses_swept_kernel = True` (else None): it depends on the load history only, and
     computed in the hook it is recomputed at every stage of every step (the law search's
-    deposit evaluations: 5.7 s against 0.6 s for a factor at 48 x 72).
+    deposit evaluations: 5.7 s against 0.6 s for a factor at 48 x 72). `memory`
+    (states, nodes) [-]: the effect's own hidden per-node states (`Effect.memory_states`
+    of them) at this cycle, None for an effect without.
     """
 
     pressure: object
@@ -61,6 +63,7 @@ class RateContext(eqx.Module):
     load: object = None
     worn_depth: object = None
     swept: object = None
+    memory: object = None
 
 
 class Effect(eqx.Module):
@@ -83,12 +86,19 @@ class Effect(eqx.Module):
       is the adaptive wear loop's clock: the loop steps in τ, where dh/dτ has no factor, so
       a large, fast-decaying factor (running-in) costs no steps (`_wear._adaptive_trace`).
       Only one such effect at a time is a clock.
+    - `memory_rate(p, ctx)`: for an effect with `memory_states` = m > 0 hidden per-node
+      states s (a damage, a film: docs/effects.md, "Laws with memory"), ds/dN per cycle
+      (m, nodes) at the states `ctx.memory` (m, nodes) and this cycle's contact. The wear
+      loop integrates them with the depth (the same steps; states 0 on a new bore), and
+      `local_rate` reads them in `ctx.memory`. `memory_stiffness(p)` bounds |∂(ds/dN)/∂s|
+      [1/cycle] (the explicit integrator's stability limit counts it).
     """
 
     name: ClassVar[str] = ""
     parameters: ClassVar[dict[str, EffectParameter]] = {}
     signature: ClassVar[str] = ""
     structural: ClassVar[bool] = False
+    memory_states: ClassVar[int] = 0
 
     def friction(self, p, sense):
         """Coulomb coefficient times sliding sense per step, or None (no friction)."""
@@ -105,6 +115,14 @@ class Effect(eqx.Module):
     def cycles_at(self, p, sliding_start, sliding_per_cycle, clock):
         """Cycles n whose clock n · block_factor(p, S₀, s, n) is `clock`, or None (no clock)."""
         return None
+
+    def memory_rate(self, p, ctx: RateContext):
+        """ds/dN (memory_states, nodes) [1/cycle] of the hidden states (none by default)."""
+        return jnp.zeros((0, ctx.pressure.shape[1]))
+
+    def memory_stiffness(self, p):
+        """Bound on |∂(ds/dN)/∂s| [1/cycle] (0: the states do not feed back on themselves)."""
+        return jnp.zeros(())
 
     @classmethod
     def strength_keys(cls) -> tuple[str, ...]:

@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._physics.effects._base import Effect, register_effect, safe_power, unregister_effect
+from jaxwear._physics.effects.law_memory import LAW_MEMORY, MEMORY_EFFECT
 from jaxwear._physics.effects.parameter import EffectParameter
 from jaxwear._physics.effects.shape import DEPOSIT_UNIT_M, VARIABLES, state_variables, swept_kernel
 
@@ -166,12 +167,15 @@ LAW_SEARCH = LawSearch()
 
 @contextlib.contextmanager
 def searching():
-    """`LAW_SEARCH` registered for the duration (module docstring: never a candidate)."""
+    """`LAW_SEARCH` and the laws with memory (`effects.law_memory`) registered for the
+    duration (module docstring: never a candidate)."""
     register_effect(LAW_SEARCH)
+    register_effect(LAW_MEMORY)
     try:
         yield LAW_SEARCH
     finally:
         unregister_effect(LAW_EFFECT)
+        unregister_effect(MEMORY_EFFECT)
 
 
 @dataclass(frozen=True)
@@ -252,6 +256,8 @@ def constants(law: LawSpec, se: dict | None = None) -> dict:
     normalised ones times z_s; delta method for the errors), the strength first and each
     reference as a fixed constant (stderr 0: chosen, not fitted). `se`: standard errors
     of the study keys (absent: NaN)."""
+    if getattr(law, "memory", False):  # a law with memory (`effects.law_memory`)
+        return law.constants(se)
     se = se or {}
 
     def s(key, factor=1.0):
@@ -302,6 +308,8 @@ def term_formula(t: Term, k: int) -> str:
 
 def formula(law: LawSpec) -> str:
     """The law in words: the local rate with its constants named (`constants`)."""
+    if getattr(law, "memory", False):
+        return law.formula()
     phi = " · ".join(term_formula(t, k) for k, t in enumerate(law.terms, 1))
     where = ", ".join(f"{SYMBOLS[t.variable]} = {t.variable}" for t in law.terms)
     if law.form == "factor":
