@@ -43,17 +43,18 @@ from jaxwear._analyses.diagnose._shape_design import (
 )
 from jaxwear._physics.effects.law import (
     DERIVED,
-    LawSpec,
-    Term,
     derived_states,
 )
 
-STATE_FRACTIONS = (0.0, 0.5, 1.0)  # of each experiment's sliding and final depth
+STATE_FRACTIONS = (0.0, 0.25, 0.5, 0.75, 1.0)  # of each experiment's sliding and final depth
 
 
-def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s")):
+def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s"),
+                 deposit: bool = False):
     """({name: (n,)}, weights (n,), summing to 1) of the states met at `fit`'s answer where
-    there is wear (module docstring)."""
+    there is wear (module docstring); `deposit`: weighted by the steps instead (every
+    step of every revolution alike: a deposit is made per step, where Archard wears
+    little too: `_shape_design.state_knots`)."""
     ext = model.ext
     cfg = ext.cfg.replace(shape=None)
     P = ext.batched_params(jnp.asarray(fit.ev.u))
@@ -70,14 +71,17 @@ def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s")):
             for f in STATE_FRACTIONS:
                 z, rate = _cycle_states(p, cfg, hist, r, jnp.asarray(f * last * 1e-6),
                                         jnp.asarray(f * total))
-                w_e.append(np.asarray(rate).ravel())
+                w_e.append(np.ones(np.asarray(rate).size) if deposit
+                           else np.asarray(rate).ravel())
                 for n in names:
                     z_e[n].append(np.asarray(z[n]).ravel())
         w_e = np.clip(np.concatenate(w_e), 0.0, None)
         s = float(w_e.sum())
         if not s > 0:
             continue
-        ws.append(w_e * (max(float(last.sum()), 1e-12) / s))
+        # an experiment weighs as the wear it made (a deposit: as its sliding, the
+        # revolutions it ran times their length)
+        ws.append(w_e * (max(total if deposit else float(last.sum()), 1e-12) / s))
         for n in names:
             zs[n].append(np.concatenate(z_e[n]))
     if not ws:
@@ -85,6 +89,19 @@ def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s")):
     w = np.concatenate(ws)
     keep = w > 0
     return {n: np.concatenate(v)[keep] for n, v in zs.items()}, w[keep] / w[keep].sum()
+
+
+def resample(Z: dict, w, size: int, seed: int = 0) -> dict:
+    """`size` states drawn from the weighted states `Z` ({name: (n,)}, weights `w`) by
+    systematic resampling: equal weights after, so a least-squares fit over them is one
+    over the weighted distribution."""
+    if len(w) == 0:
+        return {k: np.zeros(0) for k in Z}
+    c = np.cumsum(np.asarray(w, float))
+    c /= c[-1]
+    u = (np.random.default_rng(seed).random() + np.arange(size)) / size
+    idx = np.minimum(np.searchsorted(c, u), len(c) - 1)
+    return {k: np.asarray(v)[idx] for k, v in Z.items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,26 +138,6 @@ def derived_variables(Z: dict, w) -> dict:
         span = max(float(zq[-1] - zq[0]), abs(float(zq[0])) * 1e-3, 1e-12)
         zq = np.maximum.accumulate(zq) + np.arange(len(zq)) * span * 1e-9
         out[name] = DerivedVariable(name, tuple(float(v) for v in zq))
-    return out
-
-
-def pv_laws(var) -> list[LawSpec]:
-    """The factor laws of p·v screened by a forward run each: a smooth step (a PV limit)
-    at the 25, 50, 75 and 90 % wear-weighted quantiles of p·v, 2 % of its range wide, of
-    strength 0.5 and 1.5 (the rate ×1.5 and ×2.5 above it), and a power law of exponent 1
-    and 2 of strength 0.5. Why these: the pre-screen cannot see p·v (the shape has no
-    columns along it), and a forward run is exact in the strength where the pre-screen is
-    first order."""
-    ref = max(float(var.at_coordinate(0.5)), 1e-12)
-    span = (var.hi - var.lo) / ref
-    out = []
-    for q in (0.25, 0.5, 0.75, 0.9):
-        x0 = float(var.at_coordinate(q)) / ref
-        for A in (0.5, 1.5):
-            out.append(LawSpec("factor", (Term("step", var.name, ref, x0=x0,
-                                               w=max(0.02 * span, 1e-3)),), A))
-    for a in (1.0, 2.0):
-        out.append(LawSpec("factor", (Term("power", var.name, ref, a=a),), 0.5))
     return out
 
 
