@@ -43,15 +43,65 @@ sys.path.insert(0, str(ROOT))
 import shape_validation as sv  # noqa: E402
 
 NEW = ("pv_tanh", "worn_soft", "running_pressure", "impact_load")
-CASES = NEW + ("impact", "threshold", "two_variable", "null")
-sv.OUTSIDE = sv.OUTSIDE + NEW  # made by the generator, not by `jaxwear synth`
+# laws of the grammar itself, written in the generator (issue 48 item 6: recovery)
+GRAMMAR = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
+CASES = NEW + ("impact", "threshold", "two_variable", "null") + GRAMMAR
+sv.OUTSIDE = sv.OUTSIDE + NEW + GRAMMAR  # made by the generator, not by `jaxwear synth`
 EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
           "worn_soft": "factor of the worn depth: h²/(h² + (3 µm)²)",
           "running_pressure": "factor (p/1.5 MPa)²/(1 + S/20 m)",
           "impact_load": "deposit at the reversals ∝ (ω − ω0)² tanh(W/40 N)",
           "impact": "deposit at the reversals ∝ (ω − ω0)²",
           "threshold": "factor: logistic step at 1.5 MPa",
-          "two_variable": "factor: logistic step at p v = 0.08 MPa·m/s", "null": "nothing"}
+          "two_variable": "factor: logistic step at p v = 0.08 MPa·m/s", "null": "nothing",
+          "g_power_p": "grammar: factor (p/1.5 MPa)^2",
+          "g_exp_h": "grammar: factor 0.5 exp((h − 5 µm)/6 µm)",
+          "g_hinge_v": "grammar: factor 1.5 (max(v − 0.04, 0)/0.04 m/s)^2",
+          "g_step_S": "grammar: factor 0.8 S((S − 40 m)/5 m)",
+          "g_step_p_power_v": "grammar: factor S((p − 1.5 MPa)/0.1 MPa) (v/0.04 m/s)"}
+
+
+def truth_constants(case: str, law: dict, found: dict) -> dict:
+    """{NAME: true value} of the found law's constants (`found`: shape.law.constants), in
+    the grammar's parametrisation: the strength referred to the found law's own references
+    (A (z_ref/z1)^q for a power, A exp((z_ref − z1)/z_e) for an exponential); {} where
+    the found law is not of the hidden law's structure."""
+    c = found
+    a_key = next((k for k in c if k.startswith("a") and k[1:].isdigit()), None)
+    A = law["strength"]
+    if case == "g_power_p" and "p_ref" in c and a_key:
+        q = law["g_exponent"]
+        return {"A": A * (c["p_ref"]["value"] / law["g_p1_MPa"]) ** q, a_key: q}
+    if case == "g_exp_h" and "h_e" in c:
+        he = law["g_he_um"]
+        return {"A": A * math.exp((c["h_ref"]["value"] - law["g_h1_um"]) / he), "h_e": he}
+    if case == "g_hinge_v" and "v0" in c and a_key:
+        q = law["g_exponent"]
+        return {"A": A * (c["v_ref"]["value"] / law["g_v1_m_per_s"]) ** q,
+                "v0": law["g_v0_m_per_s"], a_key: q}
+    if case == "g_step_S" and "S0" in c:
+        return {"A": A, "S0": law["g_S0_m"], "S_width": law["g_Sw_m"]}
+    if case == "g_step_p_power_v" and "p0" in c and "v_ref" in c and a_key:
+        q = law["g_exponent2"]
+        return {"A": A * (c["v_ref"]["value"] / law["g_v1_m_per_s"]) ** q,
+                "p0": law["g_p0_MPa"], "p_width": law["g_pw_MPa"], a_key: q}
+    return {}
+
+
+def recovery(case: str, train: Path, law: dict) -> dict:
+    """The found law's constants against the truth: each within 2 standard errors
+    (`truth_constants`; structure: the hidden law's kinds and variables)."""
+    truth = json.loads((train.parent / "truth.json").read_text())["law"]
+    found = law.get("constants") or {}
+    want = truth_constants(case, truth, found)
+    out = {"structure": bool(want), "constants": {}}
+    for k, v in want.items():
+        f = found.get(k, {})
+        se = f.get("stderr")
+        z = (abs(f["value"] - v) / se) if se and math.isfinite(se) and se > 0 else math.inf
+        out["constants"][k] = {"true": v, "found": f.get("value"), "stderr": se, "z": z}
+    out["within_2se"] = bool(want) and all(x["z"] <= 2.0 for x in out["constants"].values())
+    return out
 
 
 def with_law(study: Path, law_file: Path, out: Path) -> Path:
@@ -113,7 +163,14 @@ def run_case(case: str, seed: int, work: Path, numerics) -> dict:
                law_rmse=law.get("rmse_um"), law_loo=law.get("loo_rmse_um"),
                law_candidates=[(c["label"], c["rmse_um"], c["loo_rmse_um"])
                                for c in law.get("candidates", [])],
-               law_wall_s=law.get("wall_s"), summary=doc["verdict"]["summary"])
+               law_wall_s=law.get("wall_s"), summary=doc["verdict"]["summary"],
+               law_status=law.get("status"), law_front=law.get("front"),
+               law_loo_before=law.get("loo_rmse_before_um"),
+               law_evaluations=law.get("model_evaluations"),
+               law_refused=law.get("refused"),
+               law_against_library=doc["verdict"].get("law_against_library"))
+    if case in GRAMMAR:
+        row["recovery"] = recovery(case, train, law)
     rmse_other, _ = sv.calibrate_rmse(other, work / f"{case}-other-cal")
     row["rmse_other_base"] = rmse_other
     lf = out / "law.py"
