@@ -523,3 +523,29 @@ def test_calibrate_flags_a_loaded_law_beyond_the_states_it_was_fitted_on(thresho
     assert wide == []
     assert beyond({"h": (0.0, 10.0)}, {"h": (0.0, 10.4)}) == []  # within 5 % of the span
     assert beyond({"h": (0.0, 10.0)}, {"h": (0.0, 10.6)})
+
+
+def test_a_law_against_library_names_is_weighed_where_the_answer_is_a_pair_or_narrow():
+    """DESIGN §7: an effect found is weighed against the grammar's laws where it is a pair
+    or its combined test passes by less than 10 x α; the law wins only where its left-out
+    RMSE is lower by more than one standard error of the paired difference (by hand: the
+    law 0.310 against 0.424, differences of squares 0.07, 0.08, 0.10, SE 0.012)."""
+    from jaxwear._analyses.diagnose._stats import ALPHA, Tests
+    from jaxwear._analyses.diagnose._verdict import contested, predicts_better
+
+    def tests(p):
+        return Tests(0.3, 0.3, 1.0, p, 0.0, 0.0, 1.0)
+
+    assert contested("effect_found", ["speed_dependence", "creep"], tests(0.5))
+    assert contested("effect_found", ["creep"], tests(5 * ALPHA / 3))  # p_min = 5 α
+    assert not contested("effect_found", ["creep"], tests(20 * ALPHA / 3))
+    assert not contested("partly_explained", ["a", "b"], tests(0.5))
+    law = {"a": 0.30, "b": 0.31, "c": 0.32}
+    lib = {"a": 0.40, "b": 0.42, "c": 0.45}
+    r_lib, r_law, se, wins = predicts_better(law, lib)
+    d = np.array([0.40 ** 2 - 0.30 ** 2, 0.42 ** 2 - 0.31 ** 2, 0.45 ** 2 - 0.32 ** 2])
+    assert se == pytest.approx(np.std(d, ddof=1) / np.sqrt(3) / (r_lib + r_law))
+    assert wins and r_lib - r_law > se
+    # lower on average but not by one standard error: the library keeps its name
+    assert not predicts_better({"a": 0.30, "b": 0.50, "c": 0.32},
+                               {"a": 0.40, "b": 0.32, "c": 0.35})[3]

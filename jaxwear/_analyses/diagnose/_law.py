@@ -281,7 +281,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             tests = _tests_for(lm, f, noise_um, nu, pairs)
             lf = LawFit(found, f.rmse, lo, ev, f.status, f.evaluations, constants(found, se),
                         drop, not tests.systematic, tests.p_min, undetermined(found, se),
-                        "screen", per, bound(found))
+                        "screen", per, bound(found), _rms(loo(lm, f, noise_um)))
             (refused if lf.refused else fitted).append(lf)
             _log(verbose, f"    {found.label}: RMSE {f.rmse:.4f} µm (start {r_start:.4f}), "
                           f"left-out {_fmt(lo)} µm, evidence {ev:.1f} ({f.status}, "

@@ -40,6 +40,7 @@ class LawFit:
     start: str = "prescreen"  # where its fit started: "prescreen" or "shape" (`_law_start`)
     loo_per_experiment: dict = field(default_factory=dict)  # µm, the left-out error of each
     refused: str = ""  # why the law is refused (unbounded where a prediction goes), or ""
+    loo_linear_um: float | None = None  # the left-out RMSE of one unchecked Gauss-Newton step
 
     @property
     def complexity(self) -> int:
@@ -60,7 +61,8 @@ class LawFit:
                 "prescreen_chi2_drop": _num(self.prescreen_drop),
                 "at_noise_level": bool(self.at_noise), "p_combined": _num(self.p_combined),
                 "undetermined": list(self.undetermined), "start": self.start,
-                "complexity": self.complexity, "refused": self.refused or None}
+                "complexity": self.complexity, "refused": self.refused or None,
+                "loo_linearised_um": _num(self.loo_linear_um)}
 
 
 @dataclass(frozen=True)
