@@ -1,44 +1,33 @@
-"""From the shape to a law (issue 43 item 2): a small grammar of physical laws over the
-state variables (`effects.law`), pre-screened on the shape's linearised system, the best
-few fitted through the wear loop by the one least-squares core, ranked by the error on
-left-out experiments and BIC.
+"""From the shape to a law (issue 43 item 2, issue 48): a small grammar of physical laws
+over the state variables (`effects.law`), screened whole on the shape's linearised system,
+the best few of distinct structure fitted through the wear loop by the one least-squares
+core, guarded, and ranked by their error on left-out experiments.
 
-1. **Pre-screen** (no model run). For every single-term law of the grammar (each kind
-   along each variable, each form, on a grid of its constants) its Φ(z) is projected on
-   the shape's B-splines of that variable and form (least squares over the wear-weighted
-   range of z, `ShapeVariable.at_coordinate`); the shape's columns (whitened, the fit's own
-   parameters and the numerical error projected off: `ShapeResult.linear`) then give its
-   linearised change of the rows, and one least-squares amplitude (≥ 0) the χ² it removes.
-   For a factor that is first order in A (1 + AΦ ≈ exp(AΦ), the shape's factor) and the
-   level of Φ is K_d's (the shape's factor columns sum to zero). Per variable and form the
-   best law is kept.
-2. **Starts by a forward run** (`screened_starts`, `_law_start`; the shape's answer a
-   factor): the pre-screen's best law along the shape's best variable at a few fractions
-   of its first-order strength, and, where the shape carries both the pressure and the speed,
-   a few laws of the derived p·v (the PV factor: `effects.law.DERIVED`; the shape has no
-   columns along it), each run forward once with K_d scaled to the data; the best start
-   of each is fitted through the loop (p·v's first where its start fits better), then
-   the product of the single law with the shape's other carrier (else the pre-screen's
-   best other variable), started from the single law as fitted (`from_fitted`).
-   Otherwise (a deposit): the best single law of the pre-screen along the shape's
-   variable, its product with the best other variable of its form (`candidates`) and
-   the pre-screen's own best where it differs.
-3. **Through the loop.** Each candidate fitted with the fit's own parameters (K_d, the
-   clearances) by `fit_masked` (the one least-squares core, `jaxwear._inference.lsq`), on
-   one compiled model for all of them (the law's structure is held data: `effects.law`).
-   Each gets its RMSE, its leave-one-experiment-out RMSE (`loo`), its BIC evidence
-   against the base fit, diagnose's combined test of its residuals and the constants its
-   data do not determine (`undetermined`); once one passes that test (the misfit left is
-   noise), or a law of two variables reaches the shape's refitted RMSE (`as_shape`), the
-   rest are not fitted.
-4. **Ranking.** By the left-out-experiment RMSE (a law whose strength is undetermined as
-   if `LAW_WORSE` higher); candidates within `LOO_TIE` of the best are ranked by BIC (the
-   evidence, which pays for constants). The best, with its constants in their units and
-   standard errors (delta method through the packing), is `LawResult.best`.
-5. **Against the shape.** Where the best law's RMSE is more than `LAW_WORSE` above the
-   shape's refitted correction's, no law of the grammar explains the misfit as well as
-   the shape: the sentence, the JSON (`worse_than_shape`) and `law.py` say so, and it is
-   not called the law found.
+1. **Screen** (no model run, `_law_screen`): every one- and two-term law of the grammar
+   (each kind along each variable and the derived p·v, both forms, constants on the grids
+   of `single_laws`), projected on the shape's splines over the states met at the fit
+   (`states_met`), its linearised χ² drop at its least-squares strength ≥ 0; laws
+   unbounded where a prediction goes (`unbounded`) are not screened. The best of each
+   structure, ranked by the drop less ln(n) per constant, the first `PICKS` (a one-term
+   law among them) go on. (`prescreen`: the one-term part on the shape's own grid of z,
+   kept for the law model's warm-up, `warm`.)
+2. **Through the loop**, simplest first: a factor's strength chosen among
+   `START_STRENGTHS` of the screen's by forward runs (`start_of`: the screen is first
+   order), a product started from a one-term law fitted before it where it holds one
+   (`from_fitted`); each fitted with the fit's own parameters (K_d, the clearances) by
+   `fit_masked`, on one compiled model for all of them (the law's structure is held
+   data). Each gets its RMSE, its left-out-experiment RMSE (`_evidence.loo_refined`: the
+   Gauss-Newton step without the experiment checked by a forward run), its BIC evidence,
+   diagnose's combined test, the constants its data do not determine (`undetermined`),
+   and is refused where its fitted constants make it unbounded. Once one passes the
+   combined test, or a law of two variables reaches the shape's refitted RMSE
+   (`as_shape`), the rest are not fitted.
+3. **Ranking** (`rank`): the simplest law within one standard error (`loo_se`) of the best
+   left-out RMSE; `LawResult.front` is complexity against left-out RMSE.
+4. **Found or a lead** (`LawResult.status`, DESIGN §7): found only where the law's
+   left-out RMSE is below the base model's (by the same checked rule, through the law
+   model with the law off: `law_off`), its RMSE within `LAW_WORSE` of the shape's refitted
+   correction's and every constant determined.
 """
 
 from __future__ import annotations

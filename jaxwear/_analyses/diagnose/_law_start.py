@@ -1,29 +1,11 @@
-"""Starts of the law search's fits through the loop, screened by one forward run each
-(issue 43), and the derived state p·v's range.
-
-Why: the pre-screen (`_law.prescreen`) is first order in the law's strength (1 + AΦ ≈
-exp(AΦ)) and sees one shape variable at a time. A law that doubles the rate (the
-generator's PV step: A = 1) is far outside the first order: on the PV step (paper's five
-experiments, study 48 x 72) the step in the sliding speed started from the pre-screen's
-constants at an RMSE of 0.852 µm (its linearised strength overshoots) and ended at 0.412
-after its ten evaluations, where the shape's correction reached 0.317. And the derived
-state p·v (`effects.law.DERIVED`) has no columns in the shape at all. One forward run of
-the law model (no Jacobian), with K_d's level scaled to the data by least squares, is
-exact in the strength: `forward_rmse` ranks a few starts (a strength grid of the
-pre-screen's best law, `pv_laws`), and the best is fitted through the loop.
-
-Tried and dropped: fitting the grammar to the shape's refitted factor exp(Σ g_k(z_k))
-over the states met (no model run). On the PV step that curve spans 0.16 to 20 (its
-splines along p and v, each of one variable, push their ends far out to follow a step in
-their product): the laws fitted to it pointed elsewhere (a hinge in p·v at 0.20 MPa·m/s,
-the hidden step is at 0.08) and the product it chose started at 0.462 µm through the
-loop, its first step a trial that failed (a stiff corner, 85 s).
-
-`joint_states`: every state variable at every step and node of one cycle at the start,
-half-way and the end of each experiment at the fit's answer (the cycles of the shape's
-knots, `_shape_design.state_knots`), weighted by its wear rate, scaled so that an
-experiment's states weigh as much as the wear it made: the range of a derived state
-(jointly, since p·v is met where p and v occur together).
+"""The states met at a fit, for the law search (issue 43, 48): `joint_states` (every state
+variable at every step and node of one cycle at five points of each experiment at the fit's
+answer, the cycles of the shape's knots, `_shape_design.state_knots`; weighted by the wear
+rate, or by the steps for a deposit, scaled so that an experiment's states weigh as much as
+the wear it made), `resample` (equal weights), the derived p·v's range (`derived_variables`:
+p·v is met where p and v occur together, so its range is the joint one), and
+`forward_rmse`, one forward run of a law model with K_d's level scaled to the data (a
+start's check: the screen is first order in the strength).
 """
 
 from __future__ import annotations
