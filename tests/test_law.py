@@ -185,6 +185,16 @@ def test_law_fit_through_the_loop_recovers_a_threshold(threshold_study):
     assert unit == "MPa" and 0 < se < 0.1 * true, (p0, se, f.status)
     assert abs(p0 - true) < 3 * se + 0.1, (p0, se, f.status)
     assert f.rmse < 1.1 * 0.3 < base.rmse, (f.rmse, base.rmse)
+    # its left-out-experiment error, each step checked by a forward run (issue 48: the
+    # unchecked step of a sharp law blew up): a law at the noise predicts the experiment
+    # left out near the noise too, and better than the base model
+    from jaxwear._analyses.diagnose._evidence import loo_refined
+    from jaxwear._analyses.diagnose._law import _rms
+
+    with searching():
+        per, runs = loo_refined(lm, f, 0.3)
+    assert len(per) == len(study.experiments) and len(per) <= runs <= 4 * len(per)
+    assert _rms(per) < 1.2 * 0.3 < base.rmse, per
 
 
 def test_shape_law_json_is_the_design_contract():
