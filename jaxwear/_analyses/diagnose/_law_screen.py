@@ -45,7 +45,7 @@ from jaxwear._physics.effects.law import (
 )
 
 SAMPLES = 3000  # states the projection is fitted over (resampled to equal weights)
-PICKS = 4  # laws of distinct structure fitted through the loop at most
+PICKS = 3  # laws of distinct structure fitted through the loop at most (the cost: each ~20 runs)
 
 
 def structure(law: LawSpec) -> tuple:
