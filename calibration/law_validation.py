@@ -195,10 +195,20 @@ def _pct(x, noise):
     return "" if x is None or not math.isfinite(x) else f" ({x / noise - 1:+.1%})"
 
 
+def _recovered(r) -> str:
+    rec = r.get("recovery")
+    if not rec:
+        return ""
+    if not rec["structure"]:
+        return "; recovery: another structure"
+    zs = ", ".join(f"{k} {v['z']:.2f}" for k, v in rec["constants"].items())
+    return f"; |found − true|/SE: {zs} ({'all' if rec['within_2se'] else 'NOT all'} ≤ 2)"
+
+
 def table(rows) -> str:
-    out = ["| case (hidden) | verdict | law found | RMSE base → shape → law [µm] | left-out "
+    out = ["| case (hidden) | verdict | law (status) | RMSE base → shape → law [µm] | left-out "
            "base → law | other conditions: base → with law.py | diagnose wall [s] (law "
-           "search) |", "|---|---|---|---|---|---|---|"]
+           "search; its model runs) |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
             out.append(f"| {r['case']} | error: {r['error']} | | | | | |")
@@ -207,7 +217,8 @@ def table(rows) -> str:
         cs = ", ".join(f"{k} = {v['value']:.4g}" + (f" ± {v['stderr']:.2g}" if v.get("stderr")
                                                      else "") + f" {v['unit']}"
                        for k, v in (r.get("law_constants") or {}).items())
-        law = f"`{r['law_formula']}` ({cs})" if r.get("law_formula") else "none"
+        law = (f"`{r['law_formula']}` ({cs}) **{r.get('law_status')}**{_recovered(r)}"
+               if r.get("law_formula") else "none")
         verdict = r["verdict"] + (f" ({', '.join(r['partial'])})" if r.get("partial") else "")
         out.append(f"| {r['case']}: {r['expect']} | {verdict} | {law} | "
                    f"{_f(r.get('rmse_base'))} → {_f(r.get('rmse_shape'))} → "
@@ -215,7 +226,7 @@ def table(rows) -> str:
                    f"{_f(r.get('loo_base'))} → {_f(r.get('law_loo'))} | "
                    f"{_f(r.get('rmse_other_base'))} → {_f(r.get('rmse_other_law'))}"
                    f"{_pct(r.get('rmse_other_law'), n)} | {_f(r.get('diagnose_wall_s'), '.0f')}"
-                   f" ({_f(r.get('law_wall_s'), '.0f')}) |")
+                   f" ({_f(r.get('law_wall_s'), '.0f')}; {r.get('law_evaluations') or '-'}) |")
     return "\n".join(out)
 
 
@@ -227,7 +238,14 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="markdown table (JSON beside it)")
     ap.add_argument("--quick", action="store_true",
                     help="cheap numerics (generator 96 x 144, M 100; study 48 x 72)")
+    ap.add_argument("--table", action="store_true",
+                    help="only the table of the cases' JSON already in --work")
     a = ap.parse_args(argv)
+    if a.table:
+        rows = [json.loads((Path(a.work) / f"{c}.json").read_text())
+                for c in a.cases.split(",") if (Path(a.work) / f"{c}.json").exists()]
+        print(table(rows))
+        return
     numerics = ({"generator": ["--nodes", "96", "--steps", "144", "--M", "100"],
                  "study": "48x72"} if a.quick else {})
     work = Path(a.work)
