@@ -47,7 +47,9 @@ def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s"),
         p = jax.tree_util.tree_map(lambda x: x[e], P)
         hist = _load_history_jit(p, cfg)
         total = float(fit.ev.sliding_m[e])
-        last = np.clip(snaps[e, -1], 0.0, None)
+        # the last snapshot computed (a forecast's layout leaves later ones NaN)
+        done = [k for k in range(snaps.shape[1]) if np.all(np.isfinite(snaps[e, k]))]
+        last = np.clip(snaps[e, done[-1]] if done else np.zeros(snaps.shape[2]), 0.0, None)
         w_e, z_e = [], {n: [] for n in names}
         for r in range(hist.load.shape[0]):
             for f in STATE_FRACTIONS:
