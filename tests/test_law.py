@@ -559,3 +559,21 @@ def test_a_law_against_library_names_is_weighed_where_the_answer_is_a_pair_or_na
     # lower on average but not by one standard error: the library keeps its name
     assert not predicts_better({"a": 0.30, "b": 0.50, "c": 0.32},
                                {"a": 0.40, "b": 0.32, "c": 0.35})[3]
+
+
+def test_starts_are_the_screens_best_of_a_structure_at_distinct_thresholds():
+    """The loop starts a law from the screen's best few of its structure with distinct
+    thresholds (a step's width aside): a sharp step's threshold does not move far in a fit.
+    Laws of another structure are not among them."""
+    from jaxwear._analyses.diagnose._law import variants
+
+    def step(x0, w, drop):
+        return (drop, LawSpec("factor", (Term("step", "pv_MPa_m_per_s", 0.1, x0=x0, w=w),),
+                              1.0))
+
+    screened = [step(1.2, 0.02, 9.0), step(1.2, 0.1, 8.5),
+                (8.4, LawSpec("factor", (Term("power", "pv_MPa_m_per_s", 0.1, a=1.0),), 1.0)),
+                step(0.8, 0.02, 8.0), step(1.0, 0.02, 7.0), step(1.5, 0.02, 6.0)]
+    out = variants(screened, screened[0][1])
+    assert [law.terms[0].x0 for law in out] == [1.2, 0.8, 1.0]
+    assert all(law.terms[0].kind == "step" for law in out)

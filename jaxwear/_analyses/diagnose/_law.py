@@ -47,7 +47,13 @@ from jaxwear._analyses.diagnose._law_result import (  # noqa: F401 (the search's
     _fmt,
     law_sentence,
 )
-from jaxwear._analyses.diagnose._law_screen import PICKS, SAMPLES, picks, screen_grammar
+from jaxwear._analyses.diagnose._law_screen import (
+    PICKS,
+    SAMPLES,
+    picks,
+    screen_grammar,
+    structure,
+)
 from jaxwear._analyses.diagnose._law_start import forward_rmse, joint_states, resample
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._refit import _tests_for
@@ -249,8 +255,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 _log(verbose, f"    {law.label}: not fitted (a law of two variables already "
                               f"fits as well as the shape)")
                 continue
-            law = from_fitted(law, fitted, linear)
-            law, r_start = start_of(model, fit, law)
+            started = from_fitted(law, fitted, linear)
+            law, r_start = start_of(model, fit, [started] if started is not law
+                                    else variants(screened, law))
             found, f, lm = fit_law(model, fit, law, noise_um, nu,
                                    max_evaluations=max_evaluations, verbose=verbose)
             if f.status == "unusable" or f.values is None:
@@ -335,16 +342,43 @@ def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
 START_STRENGTHS = (1.0, 0.3)
 
 
-def start_of(model: Model, fit: Fit, law: LawSpec) -> tuple[LawSpec, float]:
-    """A factor law's start: the strength among `START_STRENGTHS` of the screen's whose
-    forward run (K_d scaled to the data, `_law_start.forward_rmse`) fits best, and that
-    RMSE. Why: the screen is first order in the strength (1 + AΦ ≈ exp(AΦ)); on the
-    generator's PV step (a doubling of the rate) the step in the sliding speed started
-    from the screen's strength at 0.852 µm and ended its ten evaluations at 0.412 where
-    the shape reached 0.317. A deposit is linear in its strength: as screened."""
-    if law.form != "factor":
-        return law, math.nan
-    trials = [dataclasses.replace(law, strength=law.strength * f) for f in START_STRENGTHS]
+VARIANTS = 3  # the screen's best laws of one structure with distinct constants, tried
+
+
+def variants(screened, law: LawSpec, n: int = VARIANTS) -> list[LawSpec]:
+    """The screen's best `n` laws of `law`'s structure with distinct thresholds, exponents
+    or rates (a step's width aside), best first: the starts `start_of` tries. Why: the
+    screen is first order and a sharp step's threshold does not move far in a fit (no
+    gradient where no state is met): on the generator's PV step the step in p·v from the
+    screen's best threshold stalled at 0.386 µm (pv0 0.118 MPa·m/s, the truth 0.08)."""
+    out, seen = [], set()
+    key0 = structure(law)
+    for _, cand in screened:
+        if structure(cand) != key0:
+            continue
+        k = tuple((round(t.x0, 3), round(t.a, 3), round(t.b, 3)) for t in cand.terms)
+        if k not in seen:
+            seen.add(k)
+            out.append(cand)
+            if len(out) >= n:
+                break
+    return out or [law]
+
+
+def start_of(model: Model, fit: Fit, laws) -> tuple[LawSpec, float]:
+    """The start among `laws` (`variants`; a factor's at the strengths `START_STRENGTHS`
+    of the screen's) whose forward run (K_d scaled to the data,
+    `_law_start.forward_rmse`) fits best, and that RMSE. Why: the screen is first order in
+    the strength (1 + AΦ ≈ exp(AΦ)); on the generator's PV step (a doubling of the rate)
+    the step in the sliding speed started from the screen's strength at 0.852 µm and ended
+    its ten evaluations at 0.412 where the shape reached 0.317. A deposit is linear in its
+    strength: as screened."""
+    trials = []
+    for law in laws:
+        trials += ([dataclasses.replace(law, strength=law.strength * f)
+                    for f in START_STRENGTHS] if law.form == "factor" else [law])
+    if len(trials) == 1:
+        return trials[0], math.nan
     rm = [(forward_rmse(law_model(model, fit, t), model.measured), t) for t in trials]
     r, t = min(rm, key=lambda x: x[0])
     return t, r
@@ -480,9 +514,9 @@ def from_fitted(law: LawSpec, fitted, linear: dict) -> LawSpec:
         # the single law fitted along the product's other variable: that term first
         first = next((s for s in singles if s.terms[0].variable == law.terms[1].variable),
                      None)
+        if first is None:
+            return law
         law = dataclasses.replace(law, terms=law.terms[::-1])
-    if first is None:
-        return law
     t2 = law.terms[1]
     if t2.kind in NEUTRAL:
         # a second term that is 1 at its start (a power of exponent 0, an exponential of
