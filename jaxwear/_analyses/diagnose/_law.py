@@ -54,7 +54,7 @@ from jaxwear._analyses.diagnose._law_screen import (
     screen_grammar,
     structure,
 )
-from jaxwear._analyses.diagnose._law_start import forward_rmse, joint_states, resample
+from jaxwear._analyses.diagnose._law_start import forward_rmse, resample, states_by_form
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._refit import _tests_for
 from jaxwear._analyses.diagnose._shape_design import RANGE_QUANTILES
@@ -392,8 +392,7 @@ def states_met(model: Model, fit: Fit, forms) -> tuple[dict, dict]:
     names = tuple(dict.fromkeys(v for n in LAW_VARIABLES for v in
                                 (DERIVED[n][1] if n in DERIVED else (n,))))
     samples, ranges = {}, {}
-    for form in forms:
-        Z, w = joint_states(model, fit, names, deposit=form == "deposit")
+    for form, (Z, w) in states_by_form(model, fit, names, tuple(forms)).items():
         if len(w) == 0:
             continue
         Z = derived_states(resample(Z, w, SAMPLES))

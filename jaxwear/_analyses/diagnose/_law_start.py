@@ -37,12 +37,19 @@ def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s"),
     there is wear (module docstring); `deposit`: weighted by the steps instead (every
     step of every revolution alike: a deposit is made per step, where Archard wears
     little too: `_shape_design.state_knots`)."""
+    form = "deposit" if deposit else "factor"
+    return states_by_form(model, fit, names, (form,)).get(form, ({}, np.zeros(0)))
+
+
+def states_by_form(model, fit, names, forms=("factor", "deposit")) -> dict:
+    """{form: (states, weights)} as `joint_states` for each of `forms`, the cycles solved
+    once for all of them."""
     ext = model.ext
     cfg = ext.cfg.replace(shape=None)
     P = ext.batched_params(jnp.asarray(fit.ev.u))
     snaps = np.asarray(fit.ev.snaps)  # (E, S, N) µm
     zs = {n: [] for n in names}
-    ws = []
+    ws = {f: [] for f in forms}
     for e in range(snaps.shape[0]):
         p = jax.tree_util.tree_map(lambda x: x[e], P)
         hist = _load_history_jit(p, cfg)
@@ -50,29 +57,34 @@ def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s"),
         # the last snapshot computed (a forecast's layout leaves later ones NaN)
         done = [k for k in range(snaps.shape[1]) if np.all(np.isfinite(snaps[e, k]))]
         last = np.clip(snaps[e, done[-1]] if done else np.zeros(snaps.shape[2]), 0.0, None)
-        w_e, z_e = [], {n: [] for n in names}
+        rates, z_e = [], {n: [] for n in names}
         for r in range(hist.load.shape[0]):
             for f in STATE_FRACTIONS:
                 z, rate = _cycle_states(p, cfg, hist, r, jnp.asarray(f * last * 1e-6),
                                         jnp.asarray(f * total))
-                w_e.append(np.ones(np.asarray(rate).size) if deposit
-                           else np.asarray(rate).ravel())
+                rates.append(np.asarray(rate).ravel())
                 for n in names:
                     z_e[n].append(np.asarray(z[n]).ravel())
-        w_e = np.clip(np.concatenate(w_e), 0.0, None)
-        s = float(w_e.sum())
-        if not s > 0:
+        rates = np.clip(np.concatenate(rates), 0.0, None)
+        if not float(rates.sum()) > 0:
             continue
-        # an experiment weighs as the wear it made (a deposit: as its sliding, the
-        # revolutions it ran times their length)
-        ws.append(w_e * (max(total if deposit else float(last.sum()), 1e-12) / s))
+        for form in forms:
+            w_e = np.ones(len(rates)) if form == "deposit" else rates
+            # an experiment weighs as the wear it made (a deposit: as its sliding, the
+            # revolutions it ran times their length)
+            size = total if form == "deposit" else float(last.sum())
+            ws[form].append(w_e * (max(size, 1e-12) / float(w_e.sum())))
         for n in names:
             zs[n].append(np.concatenate(z_e[n]))
-    if not ws:
-        return {}, np.zeros(0)
-    w = np.concatenate(ws)
-    keep = w > 0
-    return {n: np.concatenate(v)[keep] for n, v in zs.items()}, w[keep] / w[keep].sum()
+    out = {}
+    for form in forms:
+        if not ws[form]:
+            continue
+        w = np.concatenate(ws[form])
+        keep = w > 0
+        out[form] = ({n: np.concatenate(v)[keep] for n, v in zs.items()},
+                     w[keep] / w[keep].sum())
+    return out
 
 
 def resample(Z: dict, w, size: int, seed: int = 0) -> dict:
