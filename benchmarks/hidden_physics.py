@@ -59,11 +59,16 @@ import numpy_reference as ref  # noqa: E402
 TWO_PI = 2.0 * math.pi
 DEG = math.pi / 180.0
 LAWS = ("impact", "threshold", "two_variable", "null", "pv_tanh", "worn_soft",
-        "running_pressure", "impact_load", "fatigue", "film", "damage_step")
+        "running_pressure", "impact_load", "fatigue", "film", "damage_step",
+        "g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
+# laws of jaxwear's grammar (issue 48 item 6: recovery), written here from their formulas
+# (docs/design.md §7 `shape.law`) in plain NumPy: each kind along a variable, and a product
+GRAMMAR_LAWS = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
 # laws whose structure neither jaxwear's shape basis nor its law grammar contains exactly
 # (issue 43 item 5): two variables at once, the surface's own state, an event's size
 # depending on two quantities
-FACTOR_LAWS = ("threshold", "two_variable", "pv_tanh", "worn_soft", "running_pressure")
+FACTOR_LAWS = ("threshold", "two_variable", "pv_tanh", "worn_soft", "running_pressure",
+               *GRAMMAR_LAWS)
 # laws with memory (issue 48 item 4): a hidden per-node state that each revolution drives,
 # of other forms than jaxwear's grammar (`effects.law_memory`)
 MEMORY_LAWS = ("fatigue", "film", "damage_step")
@@ -116,8 +121,15 @@ class Law:
     - `damage_step`: the grammar's own damage (for recovery): dD/dN = (p_max/p_r)^m /
       N_f, p_r = `damage_ref_MPa`, m = `fatigue_exponent`, N_f = `fatigue_cycles`; K_d →
       K_d (1 + a S((D − 1)/w)), S the logistic function, w = `damage_width`.
-    All three states move by explicit Euler over each update of M revolutions (the profile and
-    the state frozen within it).
+    - the grammar's laws (`GRAMMAR_LAWS`), K_d → K_d (1 + a Φ), a = `strength`:
+      `g_power_p` Φ = (p/p1)^q (p1 = `g_p1_MPa`, q = `g_exponent`); `g_exp_h` Φ =
+      exp((h − h1)/h_e) (h the depth worn at the node, h1 = `g_h1_um`, h_e = `g_he_um`);
+      `g_hinge_v` Φ = (max(v − v0, 0)/v1)^q (v0 = `g_v0_m_per_s`, v1 = `g_v1_m_per_s`);
+      `g_step_S` Φ = S((S − S0)/w) (the logistic of the sliding distance, S0 = `g_S0_m`,
+      w = `g_Sw_m`); `g_step_p_power_v` Φ = S((p − p0)/w_p) (v/v1)^q' (p0 = `g_p0_MPa`,
+      w_p = `g_pw_MPa`, q' = `g_exponent2`): two states together.
+    The states of the three laws with memory move by explicit Euler over each update of M
+    revolutions (the profile and the state frozen within it).
     """
 
     name: str = "null"
@@ -145,6 +157,17 @@ class Law:
     film_work_kJ_per_m2: float = 8.0
     damage_ref_MPa: float = 2.0
     damage_width: float = 0.15
+    g_p1_MPa: float = 1.5
+    g_exponent: float = 2.0
+    g_h1_um: float = 5.0
+    g_he_um: float = 6.0
+    g_v0_m_per_s: float = 0.04
+    g_v1_m_per_s: float = 0.04
+    g_S0_m: float = 40.0
+    g_Sw_m: float = 5.0
+    g_p0_MPa: float = 1.5
+    g_pw_MPa: float = 0.1
+    g_exponent2: float = 1.0
 
     def __post_init__(self):
         if self.name not in LAWS:
@@ -159,7 +182,8 @@ class Law:
                     "pv_p_MPa", "pv_v_m_per_s", "soft_depth_um", "rp_p_MPa",
                     "rp_distance_m", "impact_load_N", "fatigue_endurance_MPa",
                     "fatigue_exponent", "fatigue_cycles", "film_formation", "film_removal",
-                    "film_time_s", "film_work_kJ_per_m2", "damage_ref_MPa", "damage_width")
+                    "film_time_s", "film_work_kJ_per_m2", "damage_ref_MPa", "damage_width",
+                    "g_p1_MPa", "g_he_um", "g_v1_m_per_s", "g_Sw_m", "g_pw_MPa")
         for k in positive:
             if not getattr(self, k) > 0:
                 raise BadInput(f"law constant {k} must be > 0, got {getattr(self, k):g}")
@@ -208,15 +232,38 @@ class Law:
             h2 = (np.zeros(pressure.shape[1]) if depth is None else depth * 1e6) ** 2
             return np.broadcast_to(1.0 + self.strength * h2 / (h2 + self.soft_depth_um ** 2),
                                    pressure.shape)
-        else:  # running_pressure
+        elif self.name == "running_pressure":
             return 1.0 + self.strength * (p_mpa / self.rp_p_MPa) ** 2 / (
                 1.0 + sliding / self.rp_distance_m)
+        else:
+            return 1.0 + self.strength * np.broadcast_to(
+                self.grammar_phi(p_mpa, speed, depth, sliding), pressure.shape)
         return 1.0 + self.strength * _logistic(x)
+
+    def grammar_phi(self, p_mpa, speed, depth, sliding):
+        """Φ of a grammar law (`GRAMMAR_LAWS`) from p [MPa] (steps, nodes), v [m/s]
+        (steps,), h [m] (nodes,) or None, S [m]."""
+        v = speed[:, None]
+        if self.name == "g_power_p":
+            return (p_mpa / self.g_p1_MPa) ** self.g_exponent
+        if self.name == "g_exp_h":
+            h_um = (np.zeros(p_mpa.shape[1]) if depth is None else depth * 1e6)[None, :]
+            return np.exp((h_um - self.g_h1_um) / self.g_he_um)
+        if self.name == "g_hinge_v":
+            return (np.maximum(v - self.g_v0_m_per_s, 0.0) / self.g_v1_m_per_s) \
+                ** self.g_exponent
+        if self.name == "g_step_S":
+            return np.full((1, 1), _logistic((sliding - self.g_S0_m) / self.g_Sw_m))
+        # g_step_p_power_v
+        return _logistic((p_mpa - self.g_p0_MPa) / self.g_pw_MPa) \
+            * (v / self.g_v1_m_per_s) ** self.g_exponent2
 
 
 DEFAULT_STRENGTH = {"impact": 0.05, "threshold": 1.0, "two_variable": 1.0, "null": 0.0,
                     "pv_tanh": 1.0, "worn_soft": 1.5, "running_pressure": 2.0,
-                    "impact_load": 0.16, "fatigue": 1.5, "film": 0.6, "damage_step": 1.5}
+                    "impact_load": 0.16, "fatigue": 1.5, "film": 0.6, "damage_step": 1.5,
+                    "g_power_p": 1.0, "g_exp_h": 0.5, "g_hinge_v": 1.5, "g_step_S": 0.8,
+                    "g_step_p_power_v": 1.0}
 
 
 def _logistic(x):

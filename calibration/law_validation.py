@@ -44,8 +44,10 @@ import shape_validation as sv  # noqa: E402
 
 NEW = ("pv_tanh", "worn_soft", "running_pressure", "impact_load")
 MEMORY = ("fatigue", "film")  # laws with memory (issue 48 item 4)
-CASES = NEW + ("impact", "threshold", "two_variable", "null") + MEMORY
-sv.OUTSIDE = sv.OUTSIDE + NEW + MEMORY  # made by the generator, not by `jaxwear synth`
+# laws of the grammar itself, written in the generator (issue 48 item 6: recovery)
+GRAMMAR = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
+CASES = NEW + ("impact", "threshold", "two_variable", "null") + GRAMMAR + MEMORY
+sv.OUTSIDE = sv.OUTSIDE + NEW + GRAMMAR + MEMORY  # made by the generator, not by `jaxwear synth`
 EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
           "worn_soft": "factor of the worn depth: h²/(h² + (3 µm)²)",
           "running_pressure": "factor (p/1.5 MPa)²/(1 + S/20 m)",
@@ -56,7 +58,55 @@ EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
           "fatigue": "damage dD/dN = max(p_max/0.7 MPa − 1, 0)²/6000, K_d (1 + 1.5 (1 − "
                      "exp(−D³)))",
           "film": "film df/dN = 3e-4 (1 − f)² sqrt(t_off/0.1 s) − 3e-4 f (w/8 kJ/m²)^1.5, "
-                  "K_d (1 − 0.6 f)"}
+                  "K_d (1 − 0.6 f)",
+          "g_power_p": "grammar: factor (p/1.5 MPa)^2",
+          "g_exp_h": "grammar: factor 0.5 exp((h − 5 µm)/6 µm)",
+          "g_hinge_v": "grammar: factor 1.5 (max(v − 0.04, 0)/0.04 m/s)^2",
+          "g_step_S": "grammar: factor 0.8 S((S − 40 m)/5 m)",
+          "g_step_p_power_v": "grammar: factor S((p − 1.5 MPa)/0.1 MPa) (v/0.04 m/s)"}
+
+
+def truth_constants(case: str, law: dict, found: dict) -> dict:
+    """{NAME: true value} of the found law's constants (`found`: shape.law.constants), in
+    the grammar's parametrisation: the strength referred to the found law's own references
+    (A (z_ref/z1)^q for a power, A exp((z_ref − z1)/z_e) for an exponential); {} where
+    the found law is not of the hidden law's structure."""
+    c = found
+    a_key = next((k for k in c if k.startswith("a") and k[1:].isdigit()), None)
+    A = law["strength"]
+    if case == "g_power_p" and "p_ref" in c and a_key:
+        q = law["g_exponent"]
+        return {"A": A * (c["p_ref"]["value"] / law["g_p1_MPa"]) ** q, a_key: q}
+    if case == "g_exp_h" and "h_e" in c:
+        he = law["g_he_um"]
+        return {"A": A * math.exp((c["h_ref"]["value"] - law["g_h1_um"]) / he), "h_e": he}
+    if case == "g_hinge_v" and "v0" in c and a_key:
+        q = law["g_exponent"]
+        return {"A": A * (c["v_ref"]["value"] / law["g_v1_m_per_s"]) ** q,
+                "v0": law["g_v0_m_per_s"], a_key: q}
+    if case == "g_step_S" and "S0" in c:
+        return {"A": A, "S0": law["g_S0_m"], "S_width": law["g_Sw_m"]}
+    if case == "g_step_p_power_v" and "p0" in c and "v_ref" in c and a_key:
+        q = law["g_exponent2"]
+        return {"A": A * (c["v_ref"]["value"] / law["g_v1_m_per_s"]) ** q,
+                "p0": law["g_p0_MPa"], "p_width": law["g_pw_MPa"], a_key: q}
+    return {}
+
+
+def recovery(case: str, train: Path, law: dict) -> dict:
+    """The found law's constants against the truth: each within 2 standard errors
+    (`truth_constants`; structure: the hidden law's kinds and variables)."""
+    truth = json.loads((train.parent / "truth.json").read_text())["law"]
+    found = law.get("constants") or {}
+    want = truth_constants(case, truth, found)
+    out = {"structure": bool(want), "constants": {}}
+    for k, v in want.items():
+        f = found.get(k, {})
+        se = f.get("stderr")
+        z = (abs(f["value"] - v) / se) if se and math.isfinite(se) and se > 0 else math.inf
+        out["constants"][k] = {"true": v, "found": f.get("value"), "stderr": se, "z": z}
+    out["within_2se"] = bool(want) and all(x["z"] <= 2.0 for x in out["constants"].values())
+    return out
 
 
 def with_law(study: Path, law_file: Path, out: Path) -> Path:
@@ -118,7 +168,14 @@ def run_case(case: str, seed: int, work: Path, numerics) -> dict:
                law_rmse=law.get("rmse_um"), law_loo=law.get("loo_rmse_um"),
                law_candidates=[(c["label"], c["rmse_um"], c["loo_rmse_um"])
                                for c in law.get("candidates", [])],
-               law_wall_s=law.get("wall_s"), summary=doc["verdict"]["summary"])
+               law_wall_s=law.get("wall_s"), summary=doc["verdict"]["summary"],
+               law_status=law.get("status"), law_front=law.get("front"),
+               law_loo_before=law.get("loo_rmse_before_um"),
+               law_evaluations=law.get("model_evaluations"),
+               law_refused=law.get("refused"),
+               law_against_library=doc["verdict"].get("law_against_library"))
+    if case in GRAMMAR:
+        row["recovery"] = recovery(case, train, law)
     rmse_other, _ = sv.calibrate_rmse(other, work / f"{case}-other-cal")
     row["rmse_other_base"] = rmse_other
     lf = out / "law.py"
@@ -143,10 +200,20 @@ def _pct(x, noise):
     return "" if x is None or not math.isfinite(x) else f" ({x / noise - 1:+.1%})"
 
 
+def _recovered(r) -> str:
+    rec = r.get("recovery")
+    if not rec:
+        return ""
+    if not rec["structure"]:
+        return "; recovery: another structure"
+    zs = ", ".join(f"{k} {v['z']:.2f}" for k, v in rec["constants"].items())
+    return f"; |found − true|/SE: {zs} ({'all' if rec['within_2se'] else 'NOT all'} ≤ 2)"
+
+
 def table(rows) -> str:
-    out = ["| case (hidden) | verdict | law found | RMSE base → shape → law [µm] | left-out "
+    out = ["| case (hidden) | verdict | law (status) | RMSE base → shape → law [µm] | left-out "
            "base → law | other conditions: base → with law.py | diagnose wall [s] (law "
-           "search) |", "|---|---|---|---|---|---|---|"]
+           "search; its model runs) |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
             out.append(f"| {r['case']} | error: {r['error']} | | | | | |")
@@ -155,7 +222,8 @@ def table(rows) -> str:
         cs = ", ".join(f"{k} = {v['value']:.4g}" + (f" ± {v['stderr']:.2g}" if v.get("stderr")
                                                      else "") + f" {v['unit']}"
                        for k, v in (r.get("law_constants") or {}).items())
-        law = f"`{r['law_formula']}` ({cs})" if r.get("law_formula") else "none"
+        law = (f"`{r['law_formula']}` ({cs}) **{r.get('law_status')}**{_recovered(r)}"
+               if r.get("law_formula") else "none")
         verdict = r["verdict"] + (f" ({', '.join(r['partial'])})" if r.get("partial") else "")
         out.append(f"| {r['case']}: {r['expect']} | {verdict} | {law} | "
                    f"{_f(r.get('rmse_base'))} → {_f(r.get('rmse_shape'))} → "
@@ -163,7 +231,7 @@ def table(rows) -> str:
                    f"{_f(r.get('loo_base'))} → {_f(r.get('law_loo'))} | "
                    f"{_f(r.get('rmse_other_base'))} → {_f(r.get('rmse_other_law'))}"
                    f"{_pct(r.get('rmse_other_law'), n)} | {_f(r.get('diagnose_wall_s'), '.0f')}"
-                   f" ({_f(r.get('law_wall_s'), '.0f')}) |")
+                   f" ({_f(r.get('law_wall_s'), '.0f')}; {r.get('law_evaluations') or '-'}) |")
     return "\n".join(out)
 
 
@@ -175,7 +243,14 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="markdown table (JSON beside it)")
     ap.add_argument("--quick", action="store_true",
                     help="cheap numerics (generator 96 x 144, M 100; study 48 x 72)")
+    ap.add_argument("--table", action="store_true",
+                    help="only the table of the cases' JSON already in --work")
     a = ap.parse_args(argv)
+    if a.table:
+        rows = [json.loads((Path(a.work) / f"{c}.json").read_text())
+                for c in a.cases.split(",") if (Path(a.work) / f"{c}.json").exists()]
+        print(table(rows))
+        return
     numerics = ({"generator": ["--nodes", "96", "--steps", "144", "--M", "100"],
                  "study": "48x72"} if a.quick else {})
     work = Path(a.work)

@@ -15,6 +15,7 @@ jaxwear, and its laws against their own definitions (docs/hidden_physics.md).
 
 import csv
 import json
+import math
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -144,3 +145,22 @@ def test_cli_refuses_bad_input_and_never_replaces_the_conditions(tmp_path, capsy
     assert (study.config.nodes, study.config.steps_per_rev) == (48, 36)
     truth = json.loads((tmp_path / "o" / "truth.json").read_text())
     assert truth["law"]["name"] == "impact" and truth["hidden_volume_fraction"]["a"] > 0
+
+
+def test_the_grammars_laws_are_their_formulas():
+    """The generator's grammar laws (issue 48 recovery) at chosen states, by hand: a power
+    of p, an exponential of the worn depth, a hinge of the speed, a step of the sliding
+    distance and a step of p times a power of v, each 1 + a Φ."""
+    p = np.array([[1.0e6, 3.0e6]])  # Pa
+    v = np.array([0.06])  # m/s
+    h = np.array([2e-6, 11e-6])  # m
+    want = {"g_power_p": [1 + (1 / 1.5) ** 2, 1 + 2.0 ** 2],
+            "g_exp_h": [1 + 0.5 * math.exp(-0.5), 1 + 0.5 * math.exp(1.0)],
+            "g_hinge_v": [1 + 1.5 * 0.5 ** 2] * 2,
+            "g_step_S": [1 + 0.8 / (1 + math.exp(-2.0))] * 2,
+            "g_step_p_power_v": [1 + 1.5 / (1 + math.exp(5.0)),
+                                 1 + 1.5 / (1 + math.exp(-15.0))]}
+    for name, w in want.items():
+        law = hp.Law(name, hp.DEFAULT_STRENGTH[name])
+        np.testing.assert_allclose(law.rate_factor(p, v, h, 50.0)[0], w, rtol=1e-12,
+                                   err_msg=name)

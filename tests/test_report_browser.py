@@ -127,7 +127,7 @@ def _shape(diag, law_fit_rows, status):
     loo_each = {n: 1.05 * rmse for n in m.exp_names}
     fit = LawFit(law, rmse, 1.05 * rmse, 40.0, "converged", 9, constants(law, se), 50.0,
                  status == "found", 0.2, (), "shape", residual_um=law_fit_rows,
-                 loo_per_experiment_um=loo_each)
+                 loo_per_experiment=loo_each)
     res = LawResult(fit, (fit,), 120, diag.noise_um, diag.base.rmse,
                     float(np.sqrt(np.mean(np.square(list(diag.loo_before.values()))))), 12.0,
                     shape_rmse_um=shape_rmse)

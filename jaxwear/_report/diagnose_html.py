@@ -329,7 +329,7 @@ def error_table(diag, doc: dict) -> str:
         per = (rmse_per_experiment(m, lb.residual_um) if lb.residual_um is not None
                else {})
         cols.append(("law" if st == "found" else f"law ({st})", per,
-                     lb.loo_per_experiment_um, lb.rmse_um, lb.loo_rmse_um,
+                     lb.loo_per_experiment, lb.rmse_um, lb.loo_rmse_um,
                      answer(diag) == "law"))
     has_loo = any(c[2] or c[4] is not None for c in cols)
     per = 2 if has_loo else 1

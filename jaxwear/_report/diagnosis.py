@@ -95,7 +95,8 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
             b = law.best
             out.write_text("law.py", law_file_source(
                 b.law, b.constants, study_path=str(diag.study.path), rmse_um=b.rmse_um,
-                loo_rmse_um=b.loo_rmse_um, noise_um=law.noise_um, caveat=law_caveat(law)))
+                loo_rmse_um=b.loo_rmse_um, noise_um=law.noise_um, caveat=law_caveat(law),
+                status=law.status, ranges=law.ranges))
             doc[key]["law"].update(file="law.py", effect=EFFECT_NAME)
     out.write_json("diagnosis.json", doc)
     header, rows = residual_table(diag)

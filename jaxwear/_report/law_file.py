@@ -56,10 +56,14 @@ HINGE_MIN = 0.5  # as `effects.law.HINGE_MIN_EXPONENT`
 
 
 def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: float,
-                    loo_rmse_um: float | None, noise_um: float, caveat: str = "") -> str:
+                    loo_rmse_um: float | None, noise_um: float, caveat: str = "",
+                    status: str = "found", ranges: dict | None = None) -> str:
     """The text of `law.py` for a fitted `law` and its `consts` ({NAME: (value, stderr,
     unit)}, `effects.law.constants`); `caveat`: what the search found wanting in it (worse
-    than the shape, constants undetermined), written at the top of its docstring."""
+    than the shape, constants undetermined), written at the top of its docstring;
+    `status`: "found" or "lead" (`_law.LawResult.status`), said in the first line;
+    `ranges`: {variable: (lo, hi)} the states it was fitted on, carried by the effect
+    (`state_range`) so that calibrate and predict flag its use beyond them."""
     fitted = {n: c for n, c in consts.items() if not n.endswith("_ref")}
     refs = {n: c for n, c in consts.items() if n.endswith("_ref")}
     keys = {n: parameter_key(n, u) for n, (_, _, u) in fitted.items()}
@@ -103,7 +107,18 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
     terms = "the state s per node, 0 on a new surface" if memory else "; ".join(
         f"φ{k} = {term_formula(t, k)}" for k, t in enumerate(law.terms, 1))
     warn = f"\n{caveat}\n" if caveat else ""
-    header = f'''"""{EFFECT_NAME}: the wear law that `jaxwear diagnose --shape` found (issue 43).
+    first = ("the wear law that `jaxwear diagnose --shape` found (issue 43)." if status ==
+             "found" else "a LEAD, not a law found: the best law of the grammar that "
+             "`jaxwear diagnose --shape` tried does not predict the left-out experiments as "
+             "a found law must (DESIGN §7).")
+    rng = {k: (float(lo), float(hi)) for k, (lo, hi) in (ranges or {}).items()}
+    met = ", ".join(f"{k} {lo:.4g} to {hi:.4g}" for k, (lo, hi) in rng.items()) or "-"
+    # a law with memory reads the cycle's own variables (time out of contact, contact
+    # work), not the state variables calibrate and predict check a range of
+    range_note = "" if memory else (f"Fitted on the states (the range met, STATE_RANGE): "
+                                    f"{met}.\ncalibrate and predict flag this law used "
+                                    f"beyond them.\n\n")
+    header = f'''"""{EFFECT_NAME}: {first}
 {warn}
 Study: {study_path}
 
@@ -121,9 +136,9 @@ Load it in a study:
     effect_files = ["law.py"]    # path relative to the study file
     effects = ["{EFFECT_NAME}"]
 
-Its strength {strength} (key {keys[strength]}) is 0 off and the fitted value by default; the
-other constants are parameters too (defaults: the fitted values), which calibrate can refit
-(--fit K_d,clearance,{keys[strength]},...). In Python: `jw.register_effect(FoundLaw())`.
+{range_note}Its strength {strength} (key {keys[strength]}) is 0 off and the fitted value by default;
+the other constants are parameters too (defaults: the fitted values), which calibrate can
+refit (--fit K_d,clearance,{keys[strength]},...). In Python: `jw.register_effect(FoundLaw())`.
 """'''
     if memory:
         return memory_file_source(law, consts, keys=keys, header=header)
@@ -136,6 +151,8 @@ import jaxwear as jw
 from jaxwear.effects import safe_power, state_variables, swept_kernel
 
 DEPOSIT_UNIT_M = 1e-9  # D = 1 is 1 nm·rad of depth per step (volume D R_b B)
+# the states the law was fitted on: variable -> (lo, hi) in its unit
+STATE_RANGE = {rng!r}
 {chr(10).join(ref_lines)}
 
 
@@ -146,6 +163,7 @@ class FoundLaw(jw.Effect):
     }}
     signature = {("the law found by diagnose --shape: " + law.label)!r}
     uses_swept_kernel = {law.form == "deposit"!r}  # the kernel once per run: ctx.swept
+    state_range = STATE_RANGE  # read by calibrate and predict (a flag beyond it)
 
     def local_rate(self, p, rate, ctx):
         e = p.effect_params
@@ -180,4 +198,6 @@ def law_caveat(res) -> str:
     if b is not None and b.undetermined:
         out.append(f"Constants not determined by the data (standard errors above their "
                    f"values): {', '.join(b.undetermined)}.")
+    if b is not None and res.status == "lead":
+        out.append("A lead, not a law found: " + "; ".join(res.lead_reasons) + ".")
     return "\n".join(textwrap.fill(x, 88) for x in out)

@@ -30,13 +30,14 @@ def law_section(shape, _table) -> list[str]:
               "yes" if f.at_noise else "no", f.status) for f in res.fitted]
     head = ("The law found" if law_status(res) == "found" else
             "The best law tried: worse than the shape, a lead" if res.worse_than_shape
-            else "The best law tried: a lead")
+            else "A lead, not a law found")
     return [f"<h3>{head}</h3>", f"<p>{html.escape(res.sentence)}</p>",
             _table(steps, ["model", "RMSE [µm]", "left-out-experiment RMSE [µm]"]),
             _table(consts, ["constant", "value", "SE", "unit"]),
             "<p>Laws of the grammar (power law, hinge, smooth step, exponential and "
-            f"products of two, in the factor and deposit forms) pre-screened: {res.screened};"
-            " fitted through the wear loop with K_d and the clearances (best first: by the "
-            "left-out-experiment error, ties by BIC):</p>",
+            f"products of two, in the factor and deposit forms) screened: {res.screened};"
+            " the best of distinct structure fitted through the wear loop with K_d and the "
+            "clearances (best first: the simplest within one standard error of the best "
+            "left-out-experiment error):</p>",
             _table(tried, ["law", "RMSE [µm]", "left-out [µm]", "evidence (ln BF)",
                            "at noise level", "fit"])]

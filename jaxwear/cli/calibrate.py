@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from jaxwear._analyses.state_range import range_flags
 from jaxwear._core.errors import InputError
 from jaxwear._inference.calibrate import build_problem, fit_study, study_fit_keys, unit_of
 from jaxwear._inference.result import FitResult
@@ -231,6 +232,9 @@ class Calibrate(Verb):
         # the one fit path: refusals before any evaluation, the core, the integration
         # error and the resolution checked at the answer
         result = fit_study(study, keys, verbose=True)
+        # a loaded law (law.py) used beyond the states it was fitted on
+        result.flags += [f for f in range_flags(study, result.problem, result.evaluation)
+                         if f not in result.flags]
         res = result.resolution or {}
         if res.get("auto"):  # tables and plots at the nodes the answer was computed on
             study = at_level(study, (res["nodes"], res["steps_per_rev"]))

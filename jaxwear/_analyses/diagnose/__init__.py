@@ -46,10 +46,12 @@ The steps, each a function below:
    on the bore it is made (`_shape_map`), and an effect file (`_effect_file`).
 7. **The law** (`_law`, where the shape finds a significant variable): a small grammar of
    physical laws over the state variables (`effects.law`: power, hinge, smooth step,
-   exponential and products of two, in both forms), pre-screened on the shape's
-   linearised columns, the leading ones fitted through the wear loop by the one
-   least-squares core, ranked by the left-out-experiment error and BIC; `law.py`
-   (`_law_file`) is the best as an effect file.
+   exponential and products of two, in both forms), screened whole on the shape's
+   linearised columns (`_law_screen`), the best few of distinct structure fitted through
+   the wear loop by the one least-squares core, the simplest within one standard error of
+   the best left-out-experiment error answering; `found` only where it predicts, else a
+   lead; `law.py` (`_law_file`) is the best as an effect file. Where the effect found is
+   a pair or passes its test narrowly, that law is weighed against it (`_verdict`).
 
 Why one extended model: compiling the wear loop costs far more than evaluating it, so the
 base model, every candidate and every pair of candidates are evaluated by the same

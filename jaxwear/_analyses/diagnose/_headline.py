@@ -360,7 +360,8 @@ def shape_adds(first, after) -> bool:
 def details(diag: Diagnosis, verdict_text: str) -> str:
     """The long text (design.md §7 `verdict.details`): the verdict's paragraph
     (`_text.summarize_verdict`), the shape's sentence, the shape on top of the effect
-    where it adds something (`shape_adds`) and the law's sentence."""
+    where it adds something (`shape_adds`), the law's sentence and its weighing against the
+    library's names (`Diagnosis.law_contest`)."""
     shp, after = diag.shape, diag.shape_after_effect
     parts = [verdict_text]
     if shp is not None:
@@ -373,6 +374,9 @@ def details(diag: Diagnosis, verdict_text: str) -> str:
     law = _law_of(diag)
     if law is not None:
         parts.append(law.sentence)
+    contest = getattr(diag, "law_contest", None)
+    if contest:  # a law weighed against library names (issue 48 item 3)
+        parts.append(contest.get("sentence", ""))
     return " ".join(p for p in parts if p)
 
 

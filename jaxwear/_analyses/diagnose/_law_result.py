@@ -19,6 +19,9 @@ from jaxwear._physics.effects.law import LawSpec, formula
 # issue's bars gave up to the shape (+1.3 % at most on the four outside laws), a third of
 # the issue's 15 % bar; the PV step's load hinge was +21 %.
 LAW_WORSE = 0.05
+# DESIGN §7: a law is "found" only where it predicts: its left-out-experiment RMSE below the
+# base model's and within this fraction of the shape's, every constant determined
+FOUND_WITHIN = LAW_WORSE
 
 
 @dataclass(frozen=True)
@@ -37,10 +40,17 @@ class LawFit:
     p_combined: float = math.nan  # that test's p
     undetermined: tuple = ()  # names of constants the data do not determine (`undetermined`)
     start: str = "prescreen"  # where its fit started: "prescreen" or "shape" (`_law_start`)
-    # its rows' residuals (model - measured) [µm] (rows,) and its left-out-experiment
-    # RMSE per experiment [µm], for the report's error table and profiles
+    # its rows' residuals (model - measured) [µm] (rows,), for the report's error table
+    # and profiles
     residual_um: np.ndarray | None = field(default=None, repr=False, compare=False)
-    loo_per_experiment_um: dict = field(default_factory=dict, repr=False, compare=False)
+    loo_per_experiment: dict = field(default_factory=dict)  # µm, the left-out error of each
+    refused: str = ""  # why the law is refused (unbounded where a prediction goes), or ""
+    loo_linear_um: float | None = None  # the left-out RMSE of one unchecked Gauss-Newton step
+
+    @property
+    def complexity(self) -> int:
+        """The number of fitted constants (the strength and each term's)."""
+        return len(self.law.free_keys())
 
     @property
     def formula(self) -> str:
@@ -55,7 +65,9 @@ class LawFit:
                 "model_evaluations": self.evaluations,
                 "prescreen_chi2_drop": _num(self.prescreen_drop),
                 "at_noise_level": bool(self.at_noise), "p_combined": _num(self.p_combined),
-                "undetermined": list(self.undetermined), "start": self.start}
+                "undetermined": list(self.undetermined), "start": self.start,
+                "complexity": self.complexity, "refused": self.refused or None,
+                "loo_linearised_um": _num(self.loo_linear_um)}
 
 
 @dataclass(frozen=True)
@@ -75,6 +87,9 @@ class LawResult:
     sentence: str = ""
     extra: dict = field(default_factory=dict)
     shape_rmse_um: float | None = None  # the shape's refitted correction's RMSE
+    shape_loo_um: float | None = None  # its left-out-experiment RMSE, where computed
+    refused: tuple = ()  # `LawFit`s fitted but refused (unbounded: `LawFit.refused`)
+    ranges: dict = field(default_factory=dict)  # variable -> (lo, hi): the states met
 
     @property
     def worse_than_shape(self) -> bool:
@@ -83,6 +98,52 @@ class LawResult:
         b, s = self.best, self.shape_rmse_um
         return bool(b is not None and s is not None and math.isfinite(s) and s > 0
                     and b.rmse_um > s * (1 + LAW_WORSE))
+
+    @property
+    def lead_reasons(self) -> tuple:
+        """Why the best law is a lead and not the law found (DESIGN §7), () where found:
+        its left-out-experiment RMSE not below the base model's, more than `FOUND_WITHIN`
+        above the shape's (its left-out RMSE where known, else its refitted RMSE against
+        the law's own), or constants the data do not determine."""
+        b = self.best
+        if b is None:
+            return ("no law could be fitted",)
+        out = []
+        lb = self.loo_before_um
+        if b.loo_rmse_um is None or lb is None or not b.loo_rmse_um < lb:
+            out.append(f"its left-out-experiment RMSE ({_fmt(b.loo_rmse_um)} µm) is not below "
+                       f"the base model's ({_fmt(lb)} µm)")
+        sl = self.shape_loo_um
+        if (sl is not None and math.isfinite(sl) and b.loo_rmse_um is not None
+                and b.loo_rmse_um > sl * (1 + FOUND_WITHIN)):
+            out.append(f"its left-out-experiment RMSE ({b.loo_rmse_um:.4f} µm) is "
+                       f"{b.loo_rmse_um / sl - 1:+.0%} from the shape's ({sl:.4f} µm)")
+        elif self.worse_than_shape:
+            out.append(f"its RMSE ({b.rmse_um:.4f} µm) is {b.rmse_um / self.shape_rmse_um - 1:+.0%}"
+                       f" from the shape's refitted correction ({self.shape_rmse_um:.4f} µm)")
+        if b.undetermined:
+            out.append(f"constants not determined by the data: {', '.join(b.undetermined)}")
+        return tuple(out)
+
+    @property
+    def status(self) -> str:
+        """"found" where the best law predicts (`lead_reasons` empty), else "lead"."""
+        return "found" if self.best is not None and not self.lead_reasons else "lead"
+
+    @property
+    def front(self) -> list:
+        """The fitted laws' complexity (number of fitted constants) against their left-out
+        error, simplest first: at each complexity the law with the lowest left-out RMSE,
+        kept where it is lower than every simpler law's (a Pareto front, as PySR's)."""
+        out, best = [], math.inf
+        ok = [f for f in self.fitted if f.loo_rmse_um is not None
+              and math.isfinite(f.loo_rmse_um)]
+        for k in sorted({f.complexity for f in ok}):
+            f = min((f for f in ok if f.complexity == k), key=lambda f: f.loo_rmse_um)
+            if f.loo_rmse_um < best:
+                out.append(f)
+                best = f.loo_rmse_um
+        return out
 
     def to_json(self) -> dict:
         b = self.best
@@ -93,15 +154,25 @@ class LawResult:
                 if b is not None else {"formula": None, "file": None, "effect": None,
                                        "constants": {}, "rmse_um": None,
                                        "loo_rmse_um": None})
-        return {**head, "form": None if b is None else b.law.form,
+        return {**head, "status": self.status, "lead_reasons": list(self.lead_reasons),
+                "form": None if b is None else b.law.form,
+                "front": [{"formula": f.formula, "complexity": f.complexity,
+                           "loo_rmse_um": _num(f.loo_rmse_um)} for f in self.front],
                 "rmse_before_um": _num(self.rmse_before_um),
                 "loo_rmse_before_um": _num(self.loo_before_um),
                 "noise_um": _num(self.noise_um),
                 "shape_rmse_um": _num(self.shape_rmse_um),
+                "shape_loo_rmse_um": _num(self.shape_loo_um),
                 "worse_than_shape": self.worse_than_shape,
                 "undetermined": [] if b is None else list(b.undetermined),
                 "candidates": [f.to_json() for f in self.fitted],
-                "screened": self.screened, "wall_s": self.wall_s,
+                "refused": [{"formula": f.formula, "reason": f.refused}
+                            for f in self.refused],
+                "fitted_range": {k: [_num(lo), _num(hi)] for k, (lo, hi)
+                                 in self.ranges.items()},
+                "screened": self.screened,
+                "model_evaluations": self.extra.get("model_evaluations"),
+                "wall_s": self.wall_s,
                 "cpu_s": self.extra.get("cpu_s"), "summary": self.sentence}
 
 
@@ -112,11 +183,14 @@ def _fmt(x) -> str:
 def law_sentence(res: LawResult) -> str:
     """The law found, in one or two sentences: its formula, constants and the RMSE it
     reaches in-sample and on left-out experiments against the noise; where it is worse
-    than the shape (`LawResult.worse_than_shape`), that first, and it is not called the
-    law found; constants the data do not determine, named."""
+    than the shape (`LawResult.worse_than_shape`), that first; a law that does not predict
+    (`LawResult.status` "lead") is called a lead with the reasons, never the law found;
+    constants the data do not determine, named; refused laws (unbounded), named."""
     b = res.best
+    refused = ("" if not res.refused else " Refused as unbounded where a prediction goes: "
+               + "; ".join(f"{f.law.label} ({f.refused})" for f in res.refused) + ".")
     if b is None:
-        return "No law of the grammar could be fitted through the wear loop."
+        return "No law of the grammar could be fitted through the wear loop." + refused
     cs = ", ".join(f"{k} = {_value(v, s)}{'' if u == '-' else ' ' + u}"
                    for k, (v, s, u) in b.constants.items())
     lo = (f", on left-out experiments {b.loo_rmse_um:.3f} µm (base "
@@ -139,8 +213,11 @@ def law_sentence(res: LawResult) -> str:
                 f"correction ({res.shape_rmse_um:.3f} µm; more than the {LAW_WORSE:.0%} "
                 f"a law may give up to it); {reach}. Keep missing_wear.py as the "
                 f"description of the missing wear; law.py holds this law as a lead only."
-                + und)
-    return f"The law found: {b.formula}, with {cs}; {reach}." + und
+                + und + refused)
+    if res.status == "lead":
+        return (f"A lead, not a law found ({'; '.join(res.lead_reasons)}): {b.formula}, "
+                f"with {cs}; {reach}." + und + refused)
+    return f"The law found: {b.formula}, with {cs}; {reach}." + und + refused
 
 
 def _value(v, s) -> str:

@@ -1,29 +1,11 @@
-"""Starts of the law search's fits through the loop, screened by one forward run each
-(issue 43), and the derived state p·v's range.
-
-Why: the pre-screen (`_law.prescreen`) is first order in the law's strength (1 + AΦ ≈
-exp(AΦ)) and sees one shape variable at a time. A law that doubles the rate (the
-generator's PV step: A = 1) is far outside the first order: on the PV step (paper's five
-experiments, study 48 x 72) the step in the sliding speed started from the pre-screen's
-constants at an RMSE of 0.852 µm (its linearised strength overshoots) and ended at 0.412
-after its ten evaluations, where the shape's correction reached 0.317. And the derived
-state p·v (`effects.law.DERIVED`) has no columns in the shape at all. One forward run of
-the law model (no Jacobian), with K_d's level scaled to the data by least squares, is
-exact in the strength: `forward_rmse` ranks a few starts (a strength grid of the
-pre-screen's best law, `pv_laws`), and the best is fitted through the loop.
-
-Tried and dropped: fitting the grammar to the shape's refitted factor exp(Σ g_k(z_k))
-over the states met (no model run). On the PV step that curve spans 0.16 to 20 (its
-splines along p and v, each of one variable, push their ends far out to follow a step in
-their product): the laws fitted to it pointed elsewhere (a hinge in p·v at 0.20 MPa·m/s,
-the hidden step is at 0.08) and the product it chose started at 0.462 µm through the
-loop, its first step a trial that failed (a stiff corner, 85 s).
-
-`joint_states`: every state variable at every step and node of one cycle at the start,
-half-way and the end of each experiment at the fit's answer (the cycles of the shape's
-knots, `_shape_design.state_knots`), weighted by its wear rate, scaled so that an
-experiment's states weigh as much as the wear it made: the range of a derived state
-(jointly, since p·v is met where p and v occur together).
+"""The states met at a fit, for the law search (issue 43, 48): `joint_states` (every state
+variable at every step and node of one cycle at five points of each experiment at the fit's
+answer, the cycles of the shape's knots, `_shape_design.state_knots`; weighted by the wear
+rate, or by the steps for a deposit, scaled so that an experiment's states weigh as much as
+the wear it made), `resample` (equal weights), the derived p·v's range (`derived_variables`:
+p·v is met where p and v occur together, so its range is the joint one), and
+`forward_rmse`, one forward run of a law model with K_d's level scaled to the data (a
+start's check: the screen is first order in the strength).
 """
 
 from __future__ import annotations
@@ -43,48 +25,79 @@ from jaxwear._analyses.diagnose._shape_design import (
 )
 from jaxwear._physics.effects.law import (
     DERIVED,
-    LawSpec,
-    Term,
     derived_states,
 )
 
-STATE_FRACTIONS = (0.0, 0.5, 1.0)  # of each experiment's sliding and final depth
+STATE_FRACTIONS = (0.0, 0.25, 0.5, 0.75, 1.0)  # of each experiment's sliding and final depth
 
 
-def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s")):
+def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s"),
+                 deposit: bool = False):
     """({name: (n,)}, weights (n,), summing to 1) of the states met at `fit`'s answer where
-    there is wear (module docstring)."""
+    there is wear (module docstring); `deposit`: weighted by the steps instead (every
+    step of every revolution alike: a deposit is made per step, where Archard wears
+    little too: `_shape_design.state_knots`)."""
+    form = "deposit" if deposit else "factor"
+    return states_by_form(model, fit, names, (form,)).get(form, ({}, np.zeros(0)))
+
+
+def states_by_form(model, fit, names, forms=("factor", "deposit")) -> dict:
+    """{form: (states, weights)} as `joint_states` for each of `forms`, the cycles solved
+    once for all of them."""
     ext = model.ext
     cfg = ext.cfg.replace(shape=None)
     P = ext.batched_params(jnp.asarray(fit.ev.u))
     snaps = np.asarray(fit.ev.snaps)  # (E, S, N) µm
     zs = {n: [] for n in names}
-    ws = []
+    ws = {f: [] for f in forms}
     for e in range(snaps.shape[0]):
         p = jax.tree_util.tree_map(lambda x: x[e], P)
         hist = _load_history_jit(p, cfg)
         total = float(fit.ev.sliding_m[e])
-        last = np.clip(snaps[e, -1], 0.0, None)
-        w_e, z_e = [], {n: [] for n in names}
+        # the last snapshot computed (a forecast's layout leaves later ones NaN)
+        done = [k for k in range(snaps.shape[1]) if np.all(np.isfinite(snaps[e, k]))]
+        last = np.clip(snaps[e, done[-1]] if done else np.zeros(snaps.shape[2]), 0.0, None)
+        rates, z_e = [], {n: [] for n in names}
         for r in range(hist.load.shape[0]):
             for f in STATE_FRACTIONS:
                 z, rate = _cycle_states(p, cfg, hist, r, jnp.asarray(f * last * 1e-6),
                                         jnp.asarray(f * total))
-                w_e.append(np.asarray(rate).ravel())
+                rates.append(np.asarray(rate).ravel())
                 for n in names:
                     z_e[n].append(np.asarray(z[n]).ravel())
-        w_e = np.clip(np.concatenate(w_e), 0.0, None)
-        s = float(w_e.sum())
-        if not s > 0:
+        rates = np.clip(np.concatenate(rates), 0.0, None)
+        if not float(rates.sum()) > 0:
             continue
-        ws.append(w_e * (max(float(last.sum()), 1e-12) / s))
+        for form in forms:
+            w_e = np.ones(len(rates)) if form == "deposit" else rates
+            # an experiment weighs as the wear it made (a deposit: as its sliding, the
+            # revolutions it ran times their length)
+            size = total if form == "deposit" else float(last.sum())
+            ws[form].append(w_e * (max(size, 1e-12) / float(w_e.sum())))
         for n in names:
             zs[n].append(np.concatenate(z_e[n]))
-    if not ws:
-        return {}, np.zeros(0)
-    w = np.concatenate(ws)
-    keep = w > 0
-    return {n: np.concatenate(v)[keep] for n, v in zs.items()}, w[keep] / w[keep].sum()
+    out = {}
+    for form in forms:
+        if not ws[form]:
+            continue
+        w = np.concatenate(ws[form])
+        keep = w > 0
+        out[form] = ({n: np.concatenate(v)[keep] for n, v in zs.items()},
+                     w[keep] / w[keep].sum())
+    return out
+
+
+def resample(Z: dict, w, size: int, seed: int = 0) -> dict:
+    """`size` states drawn from the weighted states `Z` ({name: (n,)}, weights `w`) by
+    systematic resampling: equal weights after, so a least-squares fit over them is one
+    over the weighted distribution."""
+    if len(w) == 0:
+        return {k: np.zeros(0) for k in Z}
+    c = np.cumsum(np.asarray(w, float))
+    c /= c[-1]
+    u = (np.random.default_rng(seed).random() + np.arange(size)) / size
+    idx = np.minimum(np.searchsorted(c, u), len(c) - 1)
+    return {k: np.asarray(v)[idx] for k, v in Z.items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,26 +134,6 @@ def derived_variables(Z: dict, w) -> dict:
         span = max(float(zq[-1] - zq[0]), abs(float(zq[0])) * 1e-3, 1e-12)
         zq = np.maximum.accumulate(zq) + np.arange(len(zq)) * span * 1e-9
         out[name] = DerivedVariable(name, tuple(float(v) for v in zq))
-    return out
-
-
-def pv_laws(var) -> list[LawSpec]:
-    """The factor laws of p·v screened by a forward run each: a smooth step (a PV limit)
-    at the 25, 50, 75 and 90 % wear-weighted quantiles of p·v, 2 % of its range wide, of
-    strength 0.5 and 1.5 (the rate ×1.5 and ×2.5 above it), and a power law of exponent 1
-    and 2 of strength 0.5. Why these: the pre-screen cannot see p·v (the shape has no
-    columns along it), and a forward run is exact in the strength where the pre-screen is
-    first order."""
-    ref = max(float(var.at_coordinate(0.5)), 1e-12)
-    span = (var.hi - var.lo) / ref
-    out = []
-    for q in (0.25, 0.5, 0.75, 0.9):
-        x0 = float(var.at_coordinate(q)) / ref
-        for A in (0.5, 1.5):
-            out.append(LawSpec("factor", (Term("step", var.name, ref, x0=x0,
-                                               w=max(0.02 * span, 1e-3)),), A))
-    for a in (1.0, 2.0):
-        out.append(LawSpec("factor", (Term("power", var.name, ref, a=a),), 0.5))
     return out
 
 

@@ -73,6 +73,9 @@ class Diagnosis:
     failed: list = field(default_factory=list)
     # the screen found candidates promising and none was refitted to an answer (`settle`)
     unresolved: bool = False
+    # the library's answer weighed against the grammar's best law (`_verdict.contested`,
+    # `law_against_library`), or None where it was not contested
+    law_contest: dict | None = None
     # what the verdict rests on that a reader must know (the numerics it changed)
     flags: list = field(default_factory=list)
     headline: str = ""  # the answer in one line (`_headline.headline`)
@@ -158,7 +161,10 @@ class Diagnosis:
                         "details": self.details, "effects": list(self.effects),
                         "partial": list(self.partial), "alternatives": list(self.alternatives),
                         "confident": self.confident, "refits_failed": list(self.failed),
-                        "flags": list(self.flags)},
+                        "flags": list(self.flags),
+                        **({"law_against_library": {k: v for k, v in self.law_contest.items()
+                                                    if k != "sentence"}}
+                           if self.law_contest else {})},
             "after": after,
             "outside_model": self.outside_model(base["parameters"], after["parameters"]),
             **({"shape": self.shape.to_json()} if self.shape is not None else {}),

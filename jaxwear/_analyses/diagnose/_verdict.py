@@ -15,6 +15,7 @@ from jaxwear._analyses.diagnose._evidence import (
     evidence,
     evidence_from,
     loo,
+    loo_refined,
 )
 from jaxwear._analyses.diagnose._fit import _log, fit_masked
 from jaxwear._analyses.diagnose._headline import compose
@@ -35,6 +36,7 @@ from jaxwear._analyses.diagnose._shape_design import Background, at_answer, prep
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs
 from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._core.errors import InputError
+from jaxwear._core.jsonfmt import json_float
 from jaxwear._inference.calibrate import fit_study, registered, study_fit_keys
 from jaxwear._inference.residual import traces, traces_since
 from jaxwear._study.resolution import at_level, at_stable_update
@@ -296,7 +298,10 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                      resolution=resolution, failed=failed, unresolved=unresolved,
                      flags=flags)
     summary = summarize_verdict(diag)
-    if shape or (auto_shape and status in ("unexplained", "partly_explained")):
+    # a law against library names (issue 48 item 3): a pair of library effects, or a test
+    # passed narrowly, is weighed against the grammar's best law (the shape runs for it)
+    contest = law and contested(status, effects, final_tests)
+    if shape or contest or (auto_shape and status in ("unexplained", "partly_explained")):
 
         # both analyses' linear parts first, their refits through the loop after (`defer`),
         # so that the figures the refits do not change are drawn while they run
@@ -337,6 +342,17 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                           correction=shp.correction,
                                           shape_rmse_um=shp.rmse_after_um, verbose=verbose))
         diag = replace(diag, shape=shp, shape_after_effect=after)
+        if contest and shp.law is not None and shp.law.best is not None:
+            versus = law_against_library(by_contact(final.contact), final,
+                                         evidence(model, final, base, noise), shp.law, noise)
+            diag = replace(diag, law_contest=versus)
+            if versus["decision"] == "law":
+                # a law of the grammar predicts the left-out experiments better: the
+                # library effects are not named (DESIGN §7), they approximate
+                diag = replace(diag, status="partly_explained", partial=list(effects),
+                               effects=[], alternatives=[])
+                summary = summarize_verdict(diag)
+            _log(verbose, f"  law against library: {versus['sentence']}")
     own = Model.evaluations - evals0
     cost = {"model_evaluations": calibrate_evals + own,
             "calibrate_path_evaluations": calibrate_evals, "diagnose_evaluations": own,
@@ -346,13 +362,67 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     diag = replace(diag, headline=head, summary=short, details=long,
                    wall_s=time.perf_counter() - t0, cost=cost)
     comp = cost["compiles"]
-    _log(verbose, f"  verdict: {status}" + (f" ({', '.join(effects)})" if effects else "")
+    _log(verbose, f"  verdict: {diag.status}" + (f" ({', '.join(diag.effects)})"
+                                                  if diag.effects else "")
                   + f" in {diag.wall_s:.1f} s ({calibrate_evals + own} model evaluations: "
                     f"{calibrate_evals} by calibrate's path, {own} by diagnose, of them "
                     f"{cost['base_fit_evaluations']} for its base fit; "
                     f"{comp['jacobian']} Jacobian and {comp['forward']} forward "
                     f"compilations)")
     return diag
+
+
+NARROW = 10.0  # a combined test passed by less than this factor over α is contested
+
+
+def contested(status: str, effects, tests) -> bool:
+    """Whether the library's answer is weighed against the grammar's laws (DESIGN §7): an
+    effect found that is a pair of library effects, or whose combined test passes by less
+    than `NARROW` x α (issue 48: on a law of two states together the verdict named
+    speed_dependence + creep at 1.06 x the noise)."""
+    return status == "effect_found" and (len(effects) > 1 or tests.p_min < NARROW * ALPHA)
+
+
+def law_against_library(mdl: Model, final, final_evidence: float, law, noise: float) -> dict:
+    """The library's answer (`final`, its model `mdl`) against the law search's best
+    (`LawResult` `law`) by their left-out-experiment errors, both checked by forward runs
+    (`loo_refined`), and their evidence against the base model. The law wins ("law") where
+    its left-out RMSE is lower by more than one standard error of the difference (the
+    experiments' paired spread of squared errors, delta method), else the library
+    ("library")."""
+    b = law.best
+    lib, runs = loo_refined(mdl, final, noise)
+    r_lib, r_law, se, wins = predicts_better(b.loo_per_experiment or {}, lib)
+    names = " + ".join(final.groups) or final.label
+    if wins:
+        text = (f"A law of the grammar predicts the left-out experiments better than "
+                f"{names}: {r_law:.3f} µm against {r_lib:.3f} (one standard error "
+                f"{se:.3f}; evidence {b.evidence:.1f} against {final_evidence:.1f}), so "
+                f"{names} is not named as the missing physics: it approximates it.")
+    else:
+        text = (f"No law of the grammar predicts the left-out experiments better than "
+                f"{names} by more than one standard error ({r_law:.3f} µm against "
+                f"{r_lib:.3f}, one standard error {se:.3f}).")
+    return {"decision": "law" if wins else "library", "law": b.formula,
+            "law_loo_rmse_um": json_float(r_law), "library_loo_rmse_um": json_float(r_lib),
+            "se_um": json_float(se), "law_evidence": json_float(b.evidence),
+            "library_evidence": json_float(final_evidence),
+            "library_loo_forward_runs": runs, "sentence": text}
+
+
+def predicts_better(mine: dict, theirs: dict) -> tuple[float, float, float, bool]:
+    """(their left-out RMSE, mine, one standard error of the difference, mine lower by
+    more than it) over the experiments both have ({experiment: RMSE [µm]}): the paired
+    differences of squared errors, their mean's standard error over the two RMSEs' sum
+    (delta method: d(a² − b²) ≈ (a + b) d(a − b))."""
+    keys = [k for k in theirs if k in mine]
+    if len(keys) < 2:
+        return math.nan, math.nan, math.inf, False
+    r_th = float(np.sqrt(np.mean([theirs[k] ** 2 for k in keys])))
+    r_me = float(np.sqrt(np.mean([mine[k] ** 2 for k in keys])))
+    d = np.array([theirs[k] ** 2 - mine[k] ** 2 for k in keys])
+    se = float(np.std(d, ddof=1) / math.sqrt(len(d)) / max(r_th + r_me, 1e-300))
+    return r_th, r_me, se, bool(r_th - r_me > se)
 
 
 def settle(base_systematic: bool, best, unresolved: bool) -> str:

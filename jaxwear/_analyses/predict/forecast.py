@@ -61,6 +61,7 @@ from jaxwear._analyses.predict.life import (
 )
 from jaxwear._analyses.predict.result import PredictResult
 from jaxwear._analyses.predict.snapshots import fill_past_stop, on_nodes
+from jaxwear._analyses.state_range import law_ranges, range_flags
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
 from jaxwear._core.optional import check_method_packages
@@ -331,6 +332,7 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         f"life of {x.experiment}: after {rnd} refinements the crossings are placed only to "
         f"±{x.numerical_error_bound:.3g} {unit}" for x in res.life
         if any(b - a > LIFE_RTOL * abs(c) for a, b, c in x.brackets))
+    res.flags.extend(f for f in law_range_flags(train, result, res) if f not in res.flags)
     # compilations of the whole answer (fit, checks and every forecast), by kind
     res.extra["compiles"] = traces_since(before)
     # answers outside the model first: the fit's values, forecasts below measured depths
@@ -339,6 +341,29 @@ def predict(study: Study, at, *, train_until: float | None = None, level: float 
         + forecast_flags(res.predictions, res.measured, res.noise_um, res.unit)))
     res.flags[:] = outside + [f for f in res.flags if f not in outside]
     return replace(res, outside=outside)
+
+
+def law_range_flags(train: Study, result: FitResult, res: PredictResult) -> list[str]:
+    """A loaded law (`law.py`) used beyond the states it was fitted on (`state_range`), at
+    the training answer and where the forecasts go: their deepest forecast depth and the
+    sliding distance at their count (each experiment's training sliding scaled by the
+    count over its last trained point)."""
+    if not law_ranges(train):
+        return []
+    deepest = [float(p.depth_um) for p in res.predictions
+               if p.depth_um is not None and math.isfinite(float(p.depth_um))]
+    extra = {"worn_depth_um": (max(deepest), max(deepest))} if deepest else {}
+    names = [e.name for e in train.experiments]
+    sliding = np.asarray(result.evaluation.sliding_m, float)
+    far = []
+    for p in res.predictions:
+        if p.experiment in names:
+            i = names.index(p.experiment)
+            end = max(train.experiments[i].snapshot_points[-1], 1e-300)
+            far.append(float(sliding[i]) * float(p.at) / float(end))
+    if far:
+        extra["sliding_distance_m"] = (max(far), max(far))
+    return range_flags(train, result.problem, result.evaluation, extra)
 
 
 SAMPLING_NODES_SHARE = 0.5  # the importance sampler's level: this share of the fit's nodes
