@@ -45,7 +45,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     import jaxwear as jw
     from jaxwear._analyses.diagnose import diagnose
-    from jaxwear._analyses.diagnose._shape_interaction import leading_pair, pair_interaction
+    from jaxwear._analyses.diagnose.shape.interaction import leading_pair, pair_interaction
 
     if a.study:
         study = Path(a.study)
@@ -61,7 +61,7 @@ def main(argv=None):
     if a.force_surface:
         from dataclasses import replace
 
-        from jaxwear._analyses.diagnose import _shape
+        from jaxwear._analyses.diagnose.shape import analysis as _shape
 
         plain = _shape.interaction_test
         _shape.interaction_test = lambda *x: replace(plain(*x), significant=True)

@@ -102,7 +102,7 @@ def main(argv=None):
                      "min_p": min(ps), "n_variables": len(ps),
                      "numerical_error": shp.numerical, "wall_s": time.perf_counter() - t0})
         if a.interaction:
-            from jaxwear._analyses.diagnose._shape_interaction import pair_interaction
+            from jaxwear._analyses.diagnose.shape.interaction import pair_interaction
 
             fac = sorted(shp.form_variables("factor"), key=lambda v: v.p_value)
             it = pair_interaction(shp, d.model, fac[0].name, fac[1].name, seed=seed)

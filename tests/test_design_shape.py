@@ -20,8 +20,8 @@ from jaxwear._analyses.design import check_between, parse_shape, parse_vary, pla
 from jaxwear._analyses.design.runs import run_candidates
 from jaxwear._analyses.design.tied import tied_pair
 from jaxwear._analyses.diagnose._model import Model
-from jaxwear._analyses.diagnose._shape_result import ShapeResult
-from jaxwear._analyses.diagnose._shape_text import next_test, rival_of
+from jaxwear._analyses.diagnose.shape.result import ShapeResult
+from jaxwear._analyses.diagnose.shape.text import next_test, rival_of
 from jaxwear._core.errors import InputError
 from jaxwear._inference.packing import study_fit_keys
 from jaxwear._physics.effects.shape import ShapeBasis, ShapeVariable

@@ -7,7 +7,7 @@ import math
 from types import SimpleNamespace
 
 from jaxwear._analyses.diagnose._headline import law_status, num, shape_adds
-from jaxwear._analyses.diagnose._shape_text import stand_ins
+from jaxwear._analyses.diagnose.shape.text import stand_ins
 from jaxwear._report.diagnose_html import peak_text, study_name
 
 

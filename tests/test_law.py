@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import jaxwear as jw
-from jaxwear._analyses.diagnose import _shape_linear as lin
-from jaxwear._analyses.diagnose._law import prescreen, rank
+from jaxwear._analyses.diagnose.law.search import prescreen, rank
+from jaxwear._analyses.diagnose.shape import linear as lin
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.cycle import cycle_rates, run_history
 from jaxwear._physics.effects.law import (
@@ -140,7 +140,7 @@ def test_prescreen_finds_a_hinge_from_its_linear_response_among_other_variables(
 
 
 def test_rank_by_left_out_error_then_bic():
-    from jaxwear._analyses.diagnose._law import LawFit
+    from jaxwear._analyses.diagnose.law.search import LawFit
 
     def f(loo, ev):
         return LawFit(PRODUCT, 0.3, loo, ev, "converged", 5, {}, 0.0)
@@ -172,7 +172,7 @@ def test_law_fit_through_the_loop_recovers_a_threshold(threshold_study):
     48 x 72: the grid's own pressure bias), a determined threshold (SE < 10 %), and the
     RMSE within 10 % of the noise."""
     from jaxwear._analyses.diagnose import Model, fit_masked
-    from jaxwear._analyses.diagnose._law import fit_law
+    from jaxwear._analyses.diagnose.law.search import fit_law
 
     study, truth = threshold_study
     model = Model(study, candidates=[])
@@ -189,7 +189,7 @@ def test_law_fit_through_the_loop_recovers_a_threshold(threshold_study):
     # unchecked step of a sharp law blew up): a law at the noise predicts the experiment
     # left out near the noise too, and better than the base model
     from jaxwear._analyses.diagnose._evidence import loo_refined
-    from jaxwear._analyses.diagnose._law import _rms
+    from jaxwear._analyses.diagnose.law.search import _rms
 
     with searching():
         per, runs = loo_refined(lm, f, 0.3)
@@ -201,7 +201,7 @@ def test_shape_law_json_is_the_design_contract():
     """DESIGN §7: `shape.law` = {"formula", "file", "effect", "constants": {NAME: {value,
     stderr, unit}}, "rmse_um", "loo_rmse_um"}; the sentence gives the formula and the RMSE
     it reaches against the noise."""
-    from jaxwear._analyses.diagnose._law import LawFit, LawResult, law_sentence
+    from jaxwear._analyses.diagnose.law.search import LawFit, LawResult, law_sentence
 
     law = LawSpec("factor", (Term("step", "pressure_MPa", 1.0, x0=1.5, w=0.05),), 1.2)
     fit = LawFit(law, 0.31, 0.32, 50.0, "converged", 4,
@@ -222,7 +222,7 @@ def test_a_product_starts_from_the_single_law_fitted_before_it():
     law's strength: the product is then the single law exactly (checked on Φ itself). A
     step's strength is the single law's over the step's mean over the range (by hand: a
     step at x0 = -4 references, width 0.1, is 1 to 1e-17 over z = 0.1..0.3)."""
-    from jaxwear._analyses.diagnose._law import LawFit, from_fitted
+    from jaxwear._analyses.diagnose.law.search import LawFit, from_fitted
 
     single = LawSpec("factor", (Term("power", "pressure_MPa", 2.0, a=1.7),), 0.9)
     fitted = [LawFit(single, 0.31, 0.33, 10.0, "converged", 5, {}, 1.0)]
@@ -245,7 +245,7 @@ def test_a_product_starts_from_the_single_law_fitted_before_it():
 def test_a_deposit_law_is_referred_to_where_the_shape_puts_it():
     """A deposit's laws take the shape's peak as their reference (a factor's keep the
     wear-weighted median): the strength is then the deposit at its events."""
-    from jaxwear._analyses.diagnose._law import reference, single_laws
+    from jaxwear._analyses.diagnose.law.search import reference, single_laws
 
     var = ShapeVariable("load_turn_rate_deg_per_s", 10, tuple(np.geomspace(1.0, 3e4, 33)),
                         "deposit")
@@ -257,7 +257,7 @@ def test_a_deposit_law_is_referred_to_where_the_shape_puts_it():
 
 
 def _fit_of(law, rmse, loo, ev=10.0, se=None):
-    from jaxwear._analyses.diagnose._law import LawFit, undetermined
+    from jaxwear._analyses.diagnose.law.search import LawFit, undetermined
 
     se = se or {}
     return LawFit(law, rmse, loo, ev, "converged", 5, constants(law, se), 1.0,
@@ -275,7 +275,7 @@ def test_a_law_clearly_worse_than_the_shape_is_not_presented_as_the_law_found():
     reached 0.317 (+21 %, over the 5 % allowed): the sentence says no law explains the
     misfit as well as the shape and gives both RMSEs, the JSON flags it, law.py opens with
     a warning; a law 1 % above the shape is the law found."""
-    from jaxwear._analyses.diagnose._law import LAW_WORSE, LawResult, law_sentence
+    from jaxwear._analyses.diagnose.law.search import LAW_WORSE, LawResult, law_sentence
     from jaxwear._report.law_file import law_caveat
 
     worse = _fit_of(HINGE, 0.384, 0.420, se=HINGE_SE)
@@ -308,7 +308,12 @@ def test_constants_the_data_do_not_determine_are_named_and_cost_the_lead():
     """The load hinge's standard errors (A, W0 and a1 each far above what they measure)
     name all three; a determined pressure step none. In the ranking an undetermined
     strength must beat a determined law by more than `LAW_WORSE` on the left-out error."""
-    from jaxwear._analyses.diagnose._law import LAW_WORSE, LawResult, law_sentence, undetermined
+    from jaxwear._analyses.diagnose.law.search import (
+        LAW_WORSE,
+        LawResult,
+        law_sentence,
+        undetermined,
+    )
 
     assert set(undetermined(HINGE, HINGE_SE)) == {"A", "W0", "a1"}
     step = LawSpec("factor", (Term("step", "pressure_MPa", 1.5, x0=1.1, w=0.03),), 1.0)
@@ -330,7 +335,7 @@ def test_the_derived_pv_state_over_the_states_met():
     """p·v's range is the wear-weighted quantiles of pressure × speed over the states met
     (by hand: equal weights on a grid where p·v takes the values 0.01 .. 0.40 evenly, so
     its median is 0.205 and its 0.5 % quantile ≈ 0.012), its coordinate linear in them."""
-    from jaxwear._analyses.diagnose._law_start import derived_variables
+    from jaxwear._analyses.diagnose.law.start import derived_variables
 
     pv = np.linspace(0.01, 0.40, 4001)
     Z = {"pressure_MPa": pv / 0.05, "sliding_speed_m_per_s": np.full_like(pv, 0.05)}
@@ -351,7 +356,7 @@ def test_the_search_stops_once_a_law_of_two_variables_fits_as_well_as_the_shape(
     0.317: the rest are not fitted; the same RMSE by a law of p alone leaves the product
     to be tried (running-in at high pressure: 0.333 alone, 0.316 the product); a law of
     two variables at 0.400 too; no shape, no stop."""
-    from jaxwear._analyses.diagnose._law import as_shape
+    from jaxwear._analyses.diagnose.law.search import as_shape
 
     assert as_shape([_fit_of(PV, 0.316, 0.321)], 0.317)
     assert as_shape([_fit_of(PRODUCT, 0.316, 0.321)], 0.317)
@@ -368,7 +373,7 @@ STEP_SE = {"law_gain": 0.1, "law_x0_1": 0.05, "law_w_1": 0.01}
 
 
 def _result(fit, loo_before=0.40, shape_rmse=0.31, fitted=None):
-    from jaxwear._analyses.diagnose._law import LawResult, law_sentence
+    from jaxwear._analyses.diagnose.law.search import LawResult, law_sentence
 
     res = LawResult(fit, tuple(fitted or (fit,)), 100, 0.30, 0.39, loo_before, 1.0,
                     shape_rmse_um=shape_rmse)
@@ -418,7 +423,7 @@ def test_a_law_unbounded_where_a_prediction_goes_is_refused():
     range met stays away from zero, is not. An exponential that grows more than tenfold
     from the top of the states met to twice it is refused; a slower or decaying one is
     not."""
-    from jaxwear._analyses.diagnose._law import unbounded
+    from jaxwear._analyses.diagnose.law.search import unbounded
 
     ranges = {"sliding_distance_m": (0.0, 40.0), "pressure_MPa": (0.5, 3.0),
               "sliding_speed_m_per_s": (0.0, 0.09), "worn_depth_um": (0.0, 10.0)}
@@ -464,8 +469,8 @@ def test_the_screen_finds_a_product_among_every_law_of_the_grammar():
     times a power of the load) plus white noise. Of the ~1.5e3 laws screened per pair the
     best is that product's structure, its threshold near the truth, and the picks for the
     loop are of distinct structure with a one-term law among them."""
-    from jaxwear._analyses.diagnose._law import single_laws
-    from jaxwear._analyses.diagnose._law_screen import Screen, picks, screen_grammar, structure
+    from jaxwear._analyses.diagnose.law.screen import Screen, picks, screen_grammar, structure
+    from jaxwear._analyses.diagnose.law.search import single_laws
 
     rng = np.random.default_rng(7)
     n, m = 600, 3000
@@ -565,7 +570,7 @@ def test_starts_are_the_screens_best_of_a_structure_at_distinct_thresholds():
     """The loop starts a law from the screen's best few of its structure with distinct
     thresholds (a step's width aside): a sharp step's threshold does not move far in a fit.
     Laws of another structure are not among them."""
-    from jaxwear._analyses.diagnose._law import variants
+    from jaxwear._analyses.diagnose.law.search import variants
 
     def step(x0, w, drop):
         return (drop, LawSpec("factor", (Term("step", "pv_MPa_m_per_s", 0.1, x0=x0, w=w),),

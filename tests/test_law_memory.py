@@ -15,7 +15,7 @@ import pytest
 from helpers import central_fd
 
 import jaxwear as jw
-from jaxwear._analyses.diagnose._law_memory import points_at_history, wanted
+from jaxwear._analyses.diagnose.law.memory import points_at_history, wanted
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.cycle import cycle_rates, run_history
 from jaxwear._physics.effects.law import constants, formula, searching
@@ -191,7 +191,7 @@ def test_a_damage_law_is_recovered_through_the_loop(damage_study):
     36 x 54 from 72 x 108 A came out 1.08 ± 0.12 (3.5 SE): the peak pressure of a node is
     the maximum over the cycle's steps, which a coarse step grid cuts."""
     from jaxwear._analyses.diagnose import Model, fit_masked
-    from jaxwear._analyses.diagnose._law import fit_law
+    from jaxwear._analyses.diagnose.law.search import fit_law
 
     study, truth = damage_study
     model = Model(study, candidates=[])

@@ -94,9 +94,9 @@ def _shape(diag, law_fit_rows, status):
     """A shape on top of the base model built by hand: a step of the rate along the worn
     depth (its band), eight stand-ins, and its law (`status`: "found", else a lead worse
     than the shape)."""
-    from jaxwear._analyses.diagnose._law_result import LawFit, LawResult, law_sentence
-    from jaxwear._analyses.diagnose._shape_result import ShapeResult, VariableShape
-    from jaxwear._analyses.diagnose._shape_text import describe
+    from jaxwear._analyses.diagnose.law.result import LawFit, LawResult, law_sentence
+    from jaxwear._analyses.diagnose.shape.result import ShapeResult, VariableShape
+    from jaxwear._analyses.diagnose.shape.text import describe
     from jaxwear._physics.effects.law import LawSpec, Term, constants
 
     z = np.linspace(0.0, 6.0, 181)

@@ -15,9 +15,9 @@ import pytest
 
 import jaxwear as jw
 from jaxwear._analyses.diagnose import Model
-from jaxwear._analyses.diagnose import _shape_linear as lin
-from jaxwear._analyses.diagnose._shape import choose_best
-from jaxwear._analyses.diagnose._shape_design import make_basis
+from jaxwear._analyses.diagnose.shape import linear as lin
+from jaxwear._analyses.diagnose.shape.analysis import choose_best
+from jaxwear._analyses.diagnose.shape.design import make_basis
 from jaxwear._physics.effects.shape import (
     DEPOSIT_VARIABLES,
     VARIABLES,

@@ -1,6 +1,6 @@
 """Products of variables and the choice among confounded ones in the shape (issue 43 item 1):
-the surface over the leading pair (`effects.shape.ShapeTensor`, `_shape_interaction`) and
-the ranking by unique shares and left-out experiments (`_shape_choice`).
+the surface over the leading pair (`effects.shape.ShapeTensor`, `shape.interaction`) and
+the ranking by unique shares and left-out experiments (`shape.choice`).
 
 The linear-system tests build their own columns from closed forms (a row's response is the
 correction at its states), so the truth is known exactly: a product g1(z1) g2(z2) of two
@@ -16,10 +16,10 @@ import pytest
 
 import jaxwear as jw
 from jaxwear._analyses.diagnose import Model
-from jaxwear._analyses.diagnose import _shape_linear as lin
-from jaxwear._analyses.diagnose._shape_choice import left_out_errors, rank_alternatives
-from jaxwear._analyses.diagnose._shape_interaction import interaction_test, tensor_system
-from jaxwear._analyses.diagnose._shape_text import describe, next_test, next_test_sentence
+from jaxwear._analyses.diagnose.shape import linear as lin
+from jaxwear._analyses.diagnose.shape.choice import left_out_errors, rank_alternatives
+from jaxwear._analyses.diagnose.shape.interaction import interaction_test, tensor_system
+from jaxwear._analyses.diagnose.shape.text import describe, next_test, next_test_sentence
 from jaxwear._physics.effects.shape import (
     ShapeBasis,
     ShapeTensor,
@@ -242,7 +242,7 @@ def test_the_refits_sum_rows_hold_exactly_the_surfaces_of_no_single_variable():
     """The refit's prior rows on a factor surface (each row's and each column's sum of its
     coefficient grid at zero) vanish exactly on the analysis's constrained coefficients
     (Z_a ⊗ Z_b) and on nothing else: their null space has the dimension (5−1)(4−1)."""
-    from jaxwear._analyses.diagnose._shape_refit import _sums
+    from jaxwear._analyses.diagnose.shape.refit import _sums
 
     t = ShapeTensor(_var("pressure_MPa", 5), _var("sliding_speed_m_per_s", 4))
     M = _sums(t)
@@ -257,7 +257,7 @@ def test_the_pair_is_the_leader_and_a_carrier_else_the_two_leading_variables():
     explains less alone; where no other variable carries, the two that explain most
     alone (the leader need not carry itself: the joint fit may give its share to
     another)."""
-    from jaxwear._analyses.diagnose._shape_interaction import leading_pair
+    from jaxwear._analyses.diagnose.shape.interaction import leading_pair
 
     def v(name, share, carries, form="factor", significant=True):
         return V(name=name, form=form, explained_fraction=share, carries=carries,

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from jaxwear._analyses.diagnose._shape_design import LEVEL
+from jaxwear._analyses.diagnose.shape.design import LEVEL
 from jaxwear._physics.config import TIMED_DRIVERS
 from jaxwear._physics.effects.law import law_phi_numpy, variable_unit
 from jaxwear._report.figures import PLOT_POINTS, plt, thinned

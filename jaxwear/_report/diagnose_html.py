@@ -18,7 +18,7 @@ from jaxwear._analyses.diagnose._headline import (
     num,
     shape_adds,
 )
-from jaxwear._analyses.diagnose._shape_text import p_text
+from jaxwear._analyses.diagnose.shape.text import p_text
 from jaxwear._report.answer_plot import law_figure, profile_caption, profile_figure
 from jaxwear._report.figures import plt, thinned, thinned_label
 from jaxwear._report.law_html import law_section
@@ -448,7 +448,7 @@ def _written(path) -> str:
 
 def _shape_section(title: str, res, saved: dict) -> list[str]:
     """The shape analysis: its sentence, a table of the variables in both forms, the figure
-    of the best (or the largest share) and the map of when and where (`_shape`)."""
+    of the best (or the largest share) and the map of when and where (`shape.analysis`)."""
 
     rows = [(v.name, v.form, f"{v.explained_fraction:.0%}", f"{v.unique_fraction:.0%}",
              _num(v.dof, ".1f"), p_text(v.p_value).removeprefix("p "),

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import textwrap
 
-from jaxwear._analyses.diagnose._shape_text import FORM_WORDS
+from jaxwear._analyses.diagnose.shape.text import FORM_WORDS
 from jaxwear._physics.effects.shape import VARIABLES
 
 TEMPLATE = '''"""missing_wear: the shape of the missing wear that `jaxwear diagnose --shape` found.

@@ -1,4 +1,4 @@
-"""`law.py`: the law found from the shape (`_law`) as an effect file (DESIGN §7 `shape.law`).
+"""`law.py`: the law found from the shape (`law.search`) as an effect file (DESIGN §7 `shape.law`).
 
 Self-contained like `missing_wear.py`: the formula in its docstring, each fitted constant
 a parameter of the effect (its key names its unit, its default the fitted value, its
@@ -61,7 +61,7 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
     """The text of `law.py` for a fitted `law` and its `consts` ({NAME: (value, stderr,
     unit)}, `effects.law.constants`); `caveat`: what the search found wanting in it (worse
     than the shape, constants undetermined), written at the top of its docstring;
-    `status`: "found" or "lead" (`_law.LawResult.status`), said in the first line;
+    `status`: "found" or "lead" (`law.search.LawResult.status`), said in the first line;
     `ranges`: {variable: (lo, hi)} the states it was fitted on, carried by the effect
     (`state_range`) so that calibrate and predict flag its use beyond them."""
     fitted = {n: c for n, c in consts.items() if not n.endswith("_ref")}
@@ -186,7 +186,7 @@ def _kind_of(law: LawSpec, name: str) -> str:
 
 
 def law_caveat(res) -> str:
-    """The warning `law.py` opens with (`_law.LawResult` `res`): worse than the shape's
+    """The warning `law.py` opens with (`law.search.LawResult` `res`): worse than the shape's
     refitted correction, and the constants the data do not determine; "" where none."""
     b = res.best
     out = []

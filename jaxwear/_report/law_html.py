@@ -1,4 +1,4 @@
-"""The law found from the shape in the HTML report (`_law`; issue 43): base → shape →
+"""The law found from the shape in the HTML report (`law.search`; issue 43): base → shape →
 law, in-sample and on left-out experiments, and every law fitted through the loop."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ def _n(x, fmt=".3f") -> str:
 
 
 def law_section(shape, _table) -> list[str]:
-    """HTML parts for `shape.law` (a `_law.LawResult`), or [] where there is none;
+    """HTML parts for `shape.law` (a `law.search.LawResult`), or [] where there is none;
     `_table(rows, header)` renders a table (`_html`'s)."""
     res = shape.law
     if res is None or res.best is None:

@@ -8,8 +8,8 @@ import io
 
 import numpy as np
 
-from jaxwear._analyses.diagnose._shape_design import LEVEL
-from jaxwear._analyses.diagnose._shape_text import p_text
+from jaxwear._analyses.diagnose.shape.design import LEVEL
+from jaxwear._analyses.diagnose.shape.text import p_text
 from jaxwear._core.io import FIGURE_DPI
 from jaxwear._report.figures import plt
 

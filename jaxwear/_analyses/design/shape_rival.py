@@ -5,9 +5,9 @@ paper's matrix contact pressure, sliding speed and the load's turn vary together
 then a rival: `--between shape:pressure_MPa,shape:sliding_speed_m_per_s` (a deposit:
 `shape:deposit:load_N`): the study's model plus the shape's correction along that one
 variable, in the same basis and on the same knots the shape analysis uses
-(`_shape_design.state_knots`: the wear-weighted range of the states met in the data, the
+(`shape.design.state_knots`: the wear-weighted range of the states met in the data, the
 correction flat beyond it) and refitted through the wear loop by the same function
-(`_shape_refit._refit`: the one least-squares core, the roughness penalty, the zero sum and
+(`shape.refit._refit`: the one least-squares core, the roughness penalty, the zero sum and
 N(0, FACTOR_SD²) of a factor's coefficients, a deposit ≥ 0). The rival's covariance is that
 refit's (penalty rows included), so the candidates' expected χ² counts the correction's own
 uncertainty where a candidate's states lie beyond the data.
@@ -25,11 +25,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jaxwear._analyses.design.information import _full_information
-from jaxwear._analyses.diagnose import _shape_linear as lin
 from jaxwear._analyses.diagnose._fit import fit_masked
 from jaxwear._analyses.diagnose._model import Model
-from jaxwear._analyses.diagnose._shape_design import SIZE, _map_u, make_basis, state_knots
-from jaxwear._analyses.diagnose._shape_refit import _refit
+from jaxwear._analyses.diagnose.shape import linear as lin
+from jaxwear._analyses.diagnose.shape.design import SIZE, _map_u, make_basis, state_knots
+from jaxwear._analyses.diagnose.shape.refit import _refit
 from jaxwear._core.errors import InputError
 from jaxwear._core.log import log as _log
 from jaxwear._inference.calibrate import registered

@@ -38,16 +38,16 @@ The steps, each a function below:
    alternatives the data cannot tell apart.
 5. **Verdict** (`adequate` / `effect_found` / `partly_explained` / `unexplained`) in the
    design.md §7 JSON (`Diagnosis.to_json`), and a self-contained HTML report (`_html.py`).
-6. **The shape of the missing wear** (`_shape`; always with `shape=True`, else when the
+6. **The shape of the missing wear** (`shape.analysis`; always with `shape=True`, else when the
    verdict is `unexplained`): a smooth correction along each state variable in two forms
    (a factor exp(g(z)) of the local rate, or a deposit e(z) ≥ 0 where the pin presses),
    alone and jointly, against a null that counts noise, correlated noise and the model's
    own numerical error; the best refitted through the loop, when in the cycle and where
-   on the bore it is made (`_shape_map`), and an effect file (`_effect_file`).
-7. **The law** (`_law`, where the shape finds a significant variable): a small grammar of
+   on the bore it is made (`shape.map`), and an effect file (`_effect_file`).
+7. **The law** (`law.search`, where the shape finds a significant variable): a small grammar of
    physical laws over the state variables (`effects.law`: power, hinge, smooth step,
    exponential and products of two, in both forms), screened whole on the shape's
-   linearised columns (`_law_screen`), the best few of distinct structure fitted through
+   linearised columns (`law.screen`), the best few of distinct structure fitted through
    the wear loop by the one least-squares core, the simplest within one standard error of
    the best left-out-experiment error answering; `found` only where it predicts, else a
    lead; `law.py` (`_law_file`) is the best as an effect file. Where the effect found is
@@ -82,9 +82,6 @@ from jaxwear._analyses.diagnose._fit import Fit, fit_masked
 from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._analyses.diagnose._result import METHOD_NOTE, Candidate, Diagnosis
 from jaxwear._analyses.diagnose._screen import SHAPE_GRID, Screen, screen
-from jaxwear._analyses.diagnose._shape import shape_analysis
-from jaxwear._analyses.diagnose._shape_result import ShapeResult, VariableShape
-from jaxwear._analyses.diagnose._shape_text import threshold
 from jaxwear._analyses.diagnose._stats import (
     ALPHA,
     Tests,
@@ -99,6 +96,9 @@ from jaxwear._analyses.diagnose._stats import (
 )
 from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._analyses.diagnose._verdict import diagnose
+from jaxwear._analyses.diagnose.shape.analysis import shape_analysis
+from jaxwear._analyses.diagnose.shape.result import ShapeResult, VariableShape
+from jaxwear._analyses.diagnose.shape.text import threshold
 from jaxwear._core.noise import line_residuals, noise_level
 from jaxwear._inference.evaluation import Evaluation
 from jaxwear._inference.packing import Column

@@ -19,7 +19,6 @@ import math
 import numpy as np
 
 from jaxwear._analyses.diagnose._result import Diagnosis, _mean_sq
-from jaxwear._analyses.diagnose._shape_text import LABEL, where_along
 from jaxwear._analyses.diagnose._stats import ALPHA
 from jaxwear._analyses.diagnose._text import (
     _fmt_value,
@@ -29,6 +28,7 @@ from jaxwear._analyses.diagnose._text import (
     noise_claim,
     p_text,
 )
+from jaxwear._analyses.diagnose.shape.text import LABEL, where_along
 
 MAX_SENTENCES = 5  # of the summary (design.md §7)
 
@@ -51,7 +51,7 @@ def num(x, digits: int = 3) -> str:
 
 
 def law_status(law) -> str | None:
-    """"found" or "lead" of the shape's law (`_law.LawResult`), None where there is none.
+    """"found" or "lead" of the shape's law (`law.search.LawResult`), None where there is none.
     The search's own status where it gives one (design.md §7 `shape.law.status`); else a
     law is a lead where it is worse than the shape, leaves a constant undetermined or does
     not predict the left-out experiments better than the base model."""

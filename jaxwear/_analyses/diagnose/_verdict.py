@@ -19,7 +19,6 @@ from jaxwear._analyses.diagnose._evidence import (
 )
 from jaxwear._analyses.diagnose._fit import _log, fit_masked
 from jaxwear._analyses.diagnose._headline import compose
-from jaxwear._analyses.diagnose._law import search, warm
 from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._analyses.diagnose._refit import (
     _check_derivatives,
@@ -31,10 +30,11 @@ from jaxwear._analyses.diagnose._refit import (
 )
 from jaxwear._analyses.diagnose._result import Candidate, Diagnosis
 from jaxwear._analyses.diagnose._screen import screen
-from jaxwear._analyses.diagnose._shape import shape_analysis
-from jaxwear._analyses.diagnose._shape_design import Background, at_answer, prepare_design
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs
 from jaxwear._analyses.diagnose._text import summarize_verdict
+from jaxwear._analyses.diagnose.law.search import search, warm
+from jaxwear._analyses.diagnose.shape.analysis import shape_analysis
+from jaxwear._analyses.diagnose.shape.design import Background, at_answer, prepare_design
 from jaxwear._core.errors import InputError
 from jaxwear._core.jsonfmt import json_float
 from jaxwear._inference.calibrate import fit_study, registered, study_fit_keys
@@ -58,7 +58,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
 
     `noise_um`: a known measurement noise level [µm]; default: the study's `[fit] noise_um`,
     else estimated from the data. `shape`: always analyse the shape of the missing wear
-    (`_shape`); without it, only when the verdict is `unexplained` (design.md §7), unless
+    (`shape.analysis`); without it, only when the verdict is `unexplained` (design.md §7), unless
     `auto_shape` is False (the verdict alone, e.g. a validation script's many studies: the
     shape never changes the verdict and costs more than it); `seed` of its null
     simulations. `figures`: None, or a function [ShapeResult | None] -> [{label: PNG bytes}]
@@ -77,7 +77,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     finely; the verdict's `flags` and the first sentence of its summary say so.
 
     `law`: where the shape finds a significant variable, search the grammar of laws for
-    the one that explains it (`_law.search`, `ShapeResult.law`).
+    the one that explains it (`law.search.search`, `ShapeResult.law`).
     """
     if noise_um is None:
         noise_um = study.noise_um
@@ -143,7 +143,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     if shape and start is not None:
         # the shape's design needs the base model's answer only: calibrate's path has it
         # (u = 0 here), so its Jacobian compiles and runs while the verdict's base fit,
-        # screens and refits run (`_shape.Background`)
+        # screens and refits run (`shape.analysis.Background`)
 
         job = Background(prepare_design, model, at_answer(model, r.evaluation),
                          verbose=verbose)
@@ -322,7 +322,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         drawing = None
         if figures is not None:
             drawing = Background(figures, [shp, after])
-        # the law model compiled while the shape's correction is refitted (`_law.warm`)
+        # the law model compiled while the shape's correction is refitted (`law.search.warm`)
         warming = (Background(warm, model, base, shp.linear, (shp.form, shp.best))
                    if law and shp.best is not None and shp.linear else None)
         shp = shp.finished()

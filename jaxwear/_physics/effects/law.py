@@ -1,5 +1,5 @@
 """A small grammar of physical wear laws over the state variables (issue 43 item 2), as one
-effect whose structure is data: the law search (`diagnose._law`) fits every candidate of
+effect whose structure is data: the law search (`diagnose.law.search`) fits every candidate of
 the grammar with one compiled model.
 
 A law is one or two terms φ over state variables z (`effects.shape.state_variables`),

@@ -233,7 +233,7 @@ class MemoryLaw:
                 f"per node]")
 
     def undetermined(self, se: dict) -> tuple:
-        """Names of the constants the data do not determine (`_law.undetermined`): A with
+        """Names of the constants the data do not determine (`law.search.undetermined`): A with
         its standard error above its value; k1, k2, width (fitted in log space: their
         standard errors are the values') above their values; the exponent not known to
         within 1."""

@@ -33,7 +33,7 @@ State variables (`VARIABLES`), per step i of a cycle and node j of the bore:
 
 The two angles are periodic: their basis is cubic B-splines on the circle. The others use
 cubic B-splines uniform in the wear-weighted quantile of z (`ShapeVariable`, the quantiles
-set by `diagnose._shape` from the data's own states): the load turn rate, which spans
+set by `diagnose.shape.analysis` from the data's own states): the load turn rate, which spans
 decades (slow turning through most of the cycle, a jump at a force reversal), and the
 sliding speed, low only near reversals where little wears, get their resolution where the
 wear is.

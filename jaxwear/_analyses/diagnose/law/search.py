@@ -3,7 +3,7 @@ over the state variables (`effects.law`), screened whole on the shape's linearis
 the best few of distinct structure fitted through the wear loop by the one least-squares
 core, guarded, and ranked by their error on left-out experiments.
 
-1. **Screen** (no model run, `_law_screen`): every one- and two-term law of the grammar
+1. **Screen** (no model run, `law.screen`): every one- and two-term law of the grammar
    (each kind along each variable and the derived p·v, both forms, constants on the grids
    of `single_laws`), projected on the shape's splines over the states met at the fit
    (`states_met`), its linearised χ² drop at its least-squares strength ≥ 0; laws
@@ -23,7 +23,7 @@ core, guarded, and ranked by their error on left-out experiments.
    combined test, or a law of two variables reaches the shape's refitted RMSE
    (`as_shape`), the rest are not fitted. Then, where the history shows or no law of the
    present states reaches the noise, laws with memory: a per-node damage or film the
-   cycle drives (`_law_memory`).
+   cycle drives (`law.memory`).
 3. **Ranking** (`rank`): the simplest law within one standard error (`loo_se`) of the best
    left-out RMSE; `LawResult.front` is complexity against left-out RMSE.
 4. **Found or a lead** (`LawResult.status`, DESIGN §7): found only where the law's
@@ -42,26 +42,26 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._evidence import evidence, loo, loo_refined
 from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
-from jaxwear._analyses.diagnose._law_memory import after, memory_candidates
-from jaxwear._analyses.diagnose._law_result import (  # noqa: F401 (the search's types)
+from jaxwear._analyses.diagnose._model import Model
+from jaxwear._analyses.diagnose._refit import _tests_for
+from jaxwear._analyses.diagnose._stats import neighbour_pairs
+from jaxwear._analyses.diagnose.law.memory import after, memory_candidates
+from jaxwear._analyses.diagnose.law.result import (  # noqa: F401 (the search's types)
     LAW_WORSE,
     LawFit,
     LawResult,
     _fmt,
     law_sentence,
 )
-from jaxwear._analyses.diagnose._law_screen import (
+from jaxwear._analyses.diagnose.law.screen import (
     PICKS,
     SAMPLES,
     picks,
     screen_grammar,
     structure,
 )
-from jaxwear._analyses.diagnose._law_start import forward_rmse, resample, states_by_form
-from jaxwear._analyses.diagnose._model import Model
-from jaxwear._analyses.diagnose._refit import _tests_for
-from jaxwear._analyses.diagnose._shape_design import RANGE_QUANTILES
-from jaxwear._analyses.diagnose._stats import neighbour_pairs
+from jaxwear._analyses.diagnose.law.start import forward_rmse, resample, states_by_form
+from jaxwear._analyses.diagnose.shape.design import RANGE_QUANTILES
 from jaxwear._physics.effects.law import (
     DEPOSIT_LAW_VARIABLES,
     DERIVED,
@@ -185,7 +185,7 @@ def law_model(model: Model, fit: Fit, law: LawSpec) -> Model:
     compilation for the search). Call inside `effects.law.searching()`."""
     st = model.study
     vals = law.values()
-    # a law with memory is its own effect and columns (`_law_memory`)
+    # a law with memory is its own effect and columns (`law.memory`)
     effects, cols = getattr(law, "model_effects", (LAW_EFFECT,)), getattr(law, "columns",
                                                                           LAW_KEYS)
     held = {k: v for k, v in vals.items() if k not in cols}
@@ -222,13 +222,13 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     """The law search on the misfit left by `fit` (module docstring); `linear`: the shape
     analysis's linearised system (`ShapeResult.linear`) on top of the same fit; `forms`:
     those the search tries; `n`: laws of distinct structure fitted through the loop at
-    most (`_law_screen.picks`); `shape_rmse_um`: the shape's correction refitted through
+    most (`law.screen.picks`); `shape_rmse_um`: the shape's correction refitted through
     the loop: a best law more than `LAW_WORSE` above it is reported as worse than the
     shape (`LawResult.worse_than_shape`) and is a lead. `prefer` and `correction` (the
     shape's choice and its refitted correction) are reported, not followed: the screen
     weighs every law of the grammar alike (issue 48)."""
     # the whole grammar is screened alike (module docstring); `prefer` and `correction`
-    # only decide whether laws with memory are tried (`_law_memory.wanted`)
+    # only decide whether laws with memory are tried (`law.memory.wanted`)
     t0, c0, e0 = time.perf_counter(), time.process_time(), Model.evaluations
     samples, ranges = states_met(model, fit, forms)
     peaks = linear.get("peaks", {})
@@ -249,7 +249,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     lb_map, runs = {}, 0
     with searching():
         # the screen's picks, then the laws with memory, where the history shows or no law
-        # of the present states reaches the noise (`_law_memory`)
+        # of the present states reaches the noise (`law.memory`)
         for drop, law, src in after([(d, lw, "screen") for d, lw in todo],
                                     lambda: memory_candidates(
                 model, fit, prefer, correction, law_model, fitted, noise_um,
@@ -268,7 +268,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 _log(verbose, f"    {law.label}: not fitted (a law of two variables already "
                               f"fits as well as the shape)")
                 continue
-            if src == "memory":  # its start already chosen by forward runs (`_law_memory`)
+            if src == "memory":  # its start already chosen by forward runs (`law.memory`)
                 r_start = math.nan
             else:
                 started = from_fitted(law, fitted, linear)
@@ -387,7 +387,7 @@ def variants(screened, law: LawSpec, n: int = VARIANTS) -> list[LawSpec]:
 def start_of(model: Model, fit: Fit, laws) -> tuple[LawSpec, float]:
     """The start among `laws` (`variants`; a factor's at the strengths `START_STRENGTHS`
     of the screen's) whose forward run (K_d scaled to the data,
-    `_law_start.forward_rmse`) fits best, and that RMSE. Why: the screen is first order in
+    `law.start.forward_rmse`) fits best, and that RMSE. Why: the screen is first order in
     the strength (1 + AΦ ≈ exp(AΦ)); on the generator's PV step (a doubling of the rate)
     the step in the sliding speed started from the screen's strength at 0.852 µm and ended
     its ten evaluations at 0.412 where the shape reached 0.317. A deposit is linear in its

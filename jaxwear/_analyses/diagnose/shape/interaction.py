@@ -1,7 +1,7 @@
 """Products of variables in the shape (issue 43 item 1): a surface over the leading pair of
 the chosen form, tested on top of the additive fit of the pair and the carriers.
 
-The additive joint fit (`_shape._joint`) can represent Σ_v g_v(z_v) only; a law of two
+The additive joint fit (`shape.analysis._joint`) can represent Σ_v g_v(z_v) only; a law of two
 variables at once (a factor p · tanh(v), an impact whose size follows the load as well as
 the turn rate) is not such a sum. For the leading pair of the form (`leading_pair`: the
 variable that explains most alone and the leading carrier beside it, else the next
@@ -10,20 +10,20 @@ tensor-product B-splines
 (`effects.shape.ShapeTensor`; penalised by second differences along both directions; in the
 factor form its coefficient grid has zero row and column sums, so it holds no function of
 one variable alone, which are the additive terms' and K_d's) has its columns computed
-through the wear loop (`_shape_design.tensor_columns`, one Jacobian, computed in the
+through the wear loop (`shape.design.tensor_columns`, one Jacobian, computed in the
 background from the form's joint fit on) and is tested as the variables are, with the
 additive terms of the pair and of the form's carriers (the variables the refit uses)
 treated as nuisance:
 
     T = ΔRSS/σ² of the penalised surface on the misfit with those additive columns and the
     fit's own columns projected off; its null simulated with the penalty re-chosen in each
-    draw (`_shape_linear.penalised_fit`).
+    draw (`shape.linear.penalised_fit`).
 
 So under a truth additive in those variables (in the linearisation) the misfit tested is
 noise and the test has its level. It is run only where two variables of the form are
 significant alone, so it adds nothing to the family-wise error of a null study, and it is
 significant below the same α / (variable-forms) as each variable. Where it is, the refit
-through the loop carries the surface beside the additive terms (`_shape_refit`).
+through the loop carries the surface beside the additive terms (`shape.refit`).
 
 Why not on top of every variable of the form: on the paper's rig the nine factor variables
 are all functions of the cycle phase, the bore angle and the experiment, and their sum
@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from jaxwear._analyses.diagnose import _shape_linear as lin
+from jaxwear._analyses.diagnose.shape import linear as lin
 from jaxwear._core.jsonfmt import json_float as _num
 
 
@@ -130,7 +130,7 @@ def pair_interaction(result, model, a: str, b: str, form: str = "factor", additi
     p-value on null studies, where no pair is significant and the analysis skips it).
     `additive`: the variables whose additive fit it is tested on top of (default the pair
     and the result's carriers)."""
-    from jaxwear._analyses.diagnose._shape_design import pair_tensor, tensor_columns
+    from jaxwear._analyses.diagnose.shape.design import pair_tensor, tensor_columns
 
     lin_ = result.linear
     Qb = lin_["Qb"]

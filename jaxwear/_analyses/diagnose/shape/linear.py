@@ -1,4 +1,4 @@
-"""The linear algebra of the shape analysis (`_shape`): penalised fits of the correction's
+"""The linear algebra of the shape analysis (`shape.analysis`): penalised fits of the correction's
 coefficients to the misfit, alone and jointly, their GCV penalty, and their null
 distributions by simulation. Pure numpy on the whitened, projected system: rows are data
 rows divided by σ (prewhitened along each scan where the noise is correlated) and prior

@@ -30,7 +30,7 @@ them all. On the host, in the whitened system the fits see:
    form over the variables that carry the misfit is refitted through the wear loop with
    its true Jacobian by the least-squares core (penalty and, for a factor, zero sum as
    prior rows; a deposit ≥ 0 by bounds); its RMSE is the real model's.
-5. **When and where** (`_shape_map`): that correction's extra wear over the cycle and over
+5. **When and where** (`shape.map`): that correction's extra wear over the cycle and over
    the bore, with bands, the load's reversals and peak marked, and a sentence.
 """
 
@@ -43,11 +43,12 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import chi2
 
-from jaxwear._analyses.diagnose import _shape_linear as lin
 from jaxwear._analyses.diagnose._fit import Fit, _log
 from jaxwear._analyses.diagnose._model import Model
-from jaxwear._analyses.diagnose._shape_choice import rank_alternatives
-from jaxwear._analyses.diagnose._shape_design import (
+from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_differences
+from jaxwear._analyses.diagnose.shape import linear as lin
+from jaxwear._analyses.diagnose.shape.choice import rank_alternatives
+from jaxwear._analyses.diagnose.shape.design import (
     JOINT_DRAWS,
     LEVEL,
     SIZE,
@@ -58,17 +59,16 @@ from jaxwear._analyses.diagnose._shape_design import (
     prepare_design,
     tensor_columns,
 )
-from jaxwear._analyses.diagnose._shape_interaction import (
+from jaxwear._analyses.diagnose.shape.interaction import (
     interaction_test,
     leading_pair,
     tensor_system,
 )
-from jaxwear._analyses.diagnose._shape_linear import DRAWS
-from jaxwear._analyses.diagnose._shape_map import when_where
-from jaxwear._analyses.diagnose._shape_refit import _carriers, _correction, _map_u, _refit
-from jaxwear._analyses.diagnose._shape_result import ShapeResult, VariableShape
-from jaxwear._analyses.diagnose._shape_text import describe, next_test, next_test_sentence
-from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_differences
+from jaxwear._analyses.diagnose.shape.linear import DRAWS
+from jaxwear._analyses.diagnose.shape.map import when_where
+from jaxwear._analyses.diagnose.shape.refit import _carriers, _correction, _map_u, _refit
+from jaxwear._analyses.diagnose.shape.result import ShapeResult, VariableShape
+from jaxwear._analyses.diagnose.shape.text import describe, next_test, next_test_sentence
 from jaxwear._physics.effects.shape import FORMS
 
 # -- the range of each variable met in the data ---------------------------------------------
@@ -222,7 +222,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                       f"{v.dof:.1f}, p {v.p_value:.1e}, peak at {v.peak_at:.4g} {v.unit}")
     alpha_each = ALPHA / len(results)
     results = [replace(v, significant=v.p_value < alpha_each) for v in results]
-    # the leading pair's surface (`_shape_interaction`): the form of the variable that
+    # the leading pair's surface (`shape.interaction`): the form of the variable that
     # explains most alone; its columns (one Jacobian) computed in the background from the
     # form's joint fit on (its carriers choose the pair)
     sig0 = [v for v in results if v.significant]
@@ -323,7 +323,7 @@ def choose_best(results):
 def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers, form, rho, n_res,
                  nu, rng, draws, excess, rss0, alpha, verbose):
     """The leading pair's surface tested on top of the additive fit of the pair and the
-    form's carriers (`_shape_interaction`)."""
+    form's carriers (`shape.interaction`)."""
     tensor, job = surface
     cols = job.result()
     A, S, Z, X = tensor_system(tensor, cols, sigma, len(ev.r_prior), model.series, phi, n,

@@ -1,4 +1,4 @@
-"""When in the cycle the missing wear is made and where on the bore it lands (`_shape`).
+"""When in the cycle the missing wear is made and where on the bore it lands (`shape.analysis`).
 
 For the refitted correction, on the experiment that wears most, at its last measured
 profile: the extra wear of one cycle per step i and node j, Δ_ij = (corrected − model's
@@ -14,12 +14,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.stats import norm
 
+from jaxwear._core.jit import jit
 from jaxwear._physics.cycle import cycle_rates, run_history
 from jaxwear._physics.effects.shape import state_variables
 
@@ -112,7 +112,7 @@ def when_where(cm, u, cov, experiment: str, deepest: int, level: float, snaps=No
 
 def compile_maps(cm, deepest: int) -> None:
     """Compile (and run once) the map's function for the model `cm` on experiment
-    `deepest`, so that `when_where` finds it compiled: `_shape` calls this in the
+    `deepest`, so that `when_where` finds it compiled: `shape.analysis` calls this in the
     background while the refit compiles and runs (the map's compilation is ~5 s of the
     analysis). A failure here is left to `when_where` to meet and report."""
     try:
@@ -123,7 +123,7 @@ def compile_maps(cm, deepest: int) -> None:
         pass
 
 
-@eqx.filter_jit
+@jit
 def _jit_maps(ext, u, deepest, h):
 
     cfg = ext.cfg

@@ -7,8 +7,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from jaxwear._analyses.diagnose._shape_linear import trend
-from jaxwear._analyses.diagnose._shape_text import threshold
+from jaxwear._analyses.diagnose.shape.linear import trend
+from jaxwear._analyses.diagnose.shape.text import threshold
 from jaxwear._core.jsonfmt import json_float as _num
 
 
@@ -50,7 +50,7 @@ class VariableShape:
 
     def threshold(self, rising: bool = True) -> float:
         """Where the correction steps up (`rising`; else down), in the variable's unit: the
-        best two-level step fitted to it, weighted by its band (`_shape_text.threshold`).
+        best two-level step fitted to it, weighted by its band (`shape.text.threshold`).
         For a rate that jumps at a threshold, the threshold."""
         return threshold(self, rising)
 
@@ -89,7 +89,7 @@ class ShapeResult:
     forms: dict = field(default_factory=dict)  # form -> joint fit summary
     carriers: tuple = ()  # the variables of the refitted correction
     correction: dict = field(default_factory=dict, repr=False)  # for the effect file
-    when_where: object = None  # _shape_map.WhenWhere
+    when_where: object = None  # shape.map.WhenWhere
     numerical: dict = field(default_factory=dict)
     effect_file: str | None = None
     design: object = field(default=None, repr=False)  # `Design`, for a later analysis
@@ -97,13 +97,13 @@ class ShapeResult:
     pngs: dict = field(default_factory=dict, repr=False)  # figures drawn beforehand
     # the linearised system the variables were tested on (whitened, nuisance projected
     # off): {"blocks": {label: (A, S, Z, cols, var)}, "rho": misfit}, for the law search's
-    # pre-screen (`_law`)
+    # pre-screen (`law.search`)
     linear: dict = field(default_factory=dict, repr=False)
-    law: object = None  # `_law.LawResult`: the law found from the shape, or None
-    # the surface over the leading pair (`_shape_interaction.Interaction`), or None
+    law: object = None  # `law.search.LawResult`: the law found from the shape, or None
+    # the surface over the leading pair (`shape.interaction.Interaction`), or None
     interaction: object = None
-    confounded: tuple = ()  # labels the data cannot tell apart (`_shape_choice`)
-    # the command that tells the best variable from its rival (`_shape_text.next_test`;
+    confounded: tuple = ()  # labels the data cannot tell apart (`shape.choice`)
+    # the command that tells the best variable from its rival (`shape.text.next_test`;
     # `jaxwear design --between shape:A,shape:B`), or None where none is tied with it
     next_test: str | None = None
     # the rows' residuals (model - measured) [µm] (rows,) with the refitted correction,

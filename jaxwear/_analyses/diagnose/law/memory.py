@@ -20,7 +20,7 @@ budget.
 
 **From where.** A law with memory is far from linear in its constants (a damage's step
 comes at a cycle count ∝ 1/k1), so the pre-screen's first-order answer does not reach
-it. Starts are chosen by one forward run each (`_law_start.forward_rmse`, K_d scaled to
+it. Starts are chosen by one forward run each (`law.start.forward_rmse`, K_d scaled to
 the data): a damage driven by the peak pressure or by the contact work (exponent 2, the
 median node giving way at a quarter, half or all of the median experiment's cycles,
 A = 0.5 or 1.5), and a film (formation and removal at 1/N and 5/N per cycle of the median
@@ -38,9 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._analyses.diagnose._fit import _log
-from jaxwear._analyses.diagnose._law_result import LAW_WORSE
-from jaxwear._analyses.diagnose._law_start import STATE_FRACTIONS, forward_rmse
-from jaxwear._analyses.diagnose._shape_design import (
+from jaxwear._analyses.diagnose.law.result import LAW_WORSE
+from jaxwear._analyses.diagnose.law.start import STATE_FRACTIONS, forward_rmse
+from jaxwear._analyses.diagnose.shape.design import (
     _cycle_states,
     _load_history_jit,
     _weighted_quantiles,
@@ -69,7 +69,7 @@ def memory_states(model, fit):
     """({name: (n,)} of `MEMORY_VARIABLES` per node and cycle, weights (n,) summing to 1,
     the median experiment's cycles): at the start, half-way and the end of each experiment
     at `fit`'s answer, weighted by each node's wear per cycle (an experiment as much as
-    the wear it made), as `_law_start.joint_states`."""
+    the wear it made), as `law.start.joint_states`."""
     ext = model.ext
     cfg = ext.cfg.replace(shape=None)
     P = ext.batched_params(jnp.asarray(fit.ev.u))
@@ -160,7 +160,7 @@ def memory_candidates(model, fit, prefer, correction, law_model, fitted, noise_u
     """[(nan, law, "memory")]: the best start of each form of law with memory (module
     docstring), or [] where they are not `wanted` or `skip` (a memoryless law already
     fits to noise). `as_shape`: a memoryless law of two variables fits as well as the
-    shape (`_law.as_shape`). `law_model`: `_law.law_model` (the search's model of a
+    shape (`law.search.as_shape`). `law_model`: `law.search.law_model` (the search's model of a
     candidate); call inside `effects.law.searching()`."""
     if skip or not wanted(prefer, correction, fitted, noise_um, as_shape):
         return []

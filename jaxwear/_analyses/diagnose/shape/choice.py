@@ -7,7 +7,7 @@ follow the crank speed), the share each explains alone differs by noise. Two thi
 data can still say:
 
 1. **Unique share**: what a variable adds to all the others of its form in the joint
-   additive fit (`_shape._joint`); a significant unique share (p < α / variable-forms)
+   additive fit (`shape.analysis._joint`); a significant unique share (p < α / variable-forms)
    says the misfit needs that variable, whatever the others do.
 2. **Left-out experiments**: per variable, its penalised correction (the λ of its alone
    fit) fitted on the other experiments' rows of the linearised system (prior rows always
@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from jaxwear._analyses.diagnose._shape_linear import psolve
+from jaxwear._analyses.diagnose.shape.linear import psolve
 
 
 def left_out_errors(A, S, lam, rho, row_exp, n_data) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The law search's answer (`_law.search`): each candidate fitted through the loop, the
+"""The law search's answer (`law.search.search`): each candidate fitted through the loop, the
 result with its JSON (design.md §7 `shape.law`), and its sentence."""
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ class LawFit:
     at_noise: bool = False  # its residuals pass diagnose's combined test (`Tests`)
     p_combined: float = math.nan  # that test's p
     undetermined: tuple = ()  # names of constants the data do not determine (`undetermined`)
-    start: str = "prescreen"  # where its fit started: "prescreen" or "shape" (`_law_start`)
+    start: str = "prescreen"  # where its fit started: "prescreen" or "shape" (`law.start`)
     # its rows' residuals (model - measured) [µm] (rows,), for the report's error table
     # and profiles
     residual_um: np.ndarray | None = field(default=None, repr=False, compare=False)

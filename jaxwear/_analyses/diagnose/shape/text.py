@@ -1,4 +1,4 @@
-"""The shape of the missing wear in words (`_shape`): one plain sentence a machine designer
+"""The shape of the missing wear in words (`shape.analysis`): one plain sentence a machine designer
 can act on."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from jaxwear._analyses.diagnose._shape_linear import DRAWS, trend
 from jaxwear._analyses.diagnose._stats import ALPHA
+from jaxwear._analyses.diagnose.shape.linear import DRAWS, trend
 
 # cycle phase: the crank angle, the swing's phase, or the phase within a load file's period
 LABELS = {"cycle_phase_deg": "cycle phases", "pressure_MPa": "contact pressures",
@@ -176,7 +176,7 @@ RIVAL_SHARE = 0.9
 def rival_of(best, form, results, alternatives=(), confounded=()) -> str | None:
     """The label of the variable the data tell least from the best: the first other of
     the variables the joint fit and the left-out experiments cannot tell apart
-    (`confounded`, `_shape_choice`), else the stand-in (same form) that explains most,
+    (`confounded`, `shape.choice`), else the stand-in (same form) that explains most,
     where that is at least `RIVAL_SHARE` of the best's share; None where there is none.
     `alternatives` (AIC within ln 20) that the unique shares or the left-out error told
     from the best ("preferred to") are not rivals: the data already decided."""

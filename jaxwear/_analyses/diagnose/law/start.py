@@ -1,6 +1,6 @@
 """The states met at a fit, for the law search (issue 43, 48): `joint_states` (every state
 variable at every step and node of one cycle at five points of each experiment at the fit's
-answer, the cycles of the shape's knots, `_shape_design.state_knots`; weighted by the wear
+answer, the cycles of the shape's knots, `shape.design.state_knots`; weighted by the wear
 rate, or by the steps for a deposit, scaled so that an experiment's states weigh as much as
 the wear it made), `resample` (equal weights), the derived p·v's range (`derived_variables`:
 p·v is met where p and v occur together, so its range is the joint one), and
@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxwear._analyses.diagnose._shape_design import (
+from jaxwear._analyses.diagnose.shape.design import (
     RANGE_QUANTILES,
     _cycle_states,
     _load_history_jit,
@@ -36,7 +36,7 @@ def joint_states(model, fit, names=("pressure_MPa", "sliding_speed_m_per_s"),
     """({name: (n,)}, weights (n,), summing to 1) of the states met at `fit`'s answer where
     there is wear (module docstring); `deposit`: weighted by the steps instead (every
     step of every revolution alike: a deposit is made per step, where Archard wears
-    little too: `_shape_design.state_knots`)."""
+    little too: `shape.design.state_knots`)."""
     form = "deposit" if deposit else "factor"
     return states_by_form(model, fit, names, (form,)).get(form, ({}, np.zeros(0)))
 
@@ -102,7 +102,7 @@ def resample(Z: dict, w, size: int, seed: int = 0) -> dict:
 
 @dataclasses.dataclass(frozen=True)
 class DerivedVariable:
-    """A derived state's range for the grammar's grid (`_law.single_laws` reads `name`,
+    """A derived state's range for the grammar's grid (`law.search.single_laws` reads `name`,
     `lo`, `hi` and `at_coordinate`, as of a `ShapeVariable`): its wear-weighted quantiles
     over the states met, `knots` at t = 0, 1/Q, ..., 1 as the shape's."""
 

@@ -8,17 +8,17 @@ from dataclasses import replace
 
 import numpy as np
 
-from jaxwear._analyses.diagnose import _shape_linear as lin
 from jaxwear._analyses.diagnose._fit import _log
 from jaxwear._analyses.diagnose._model import Model
-from jaxwear._analyses.diagnose._shape_design import (
+from jaxwear._analyses.diagnose.shape import linear as lin
+from jaxwear._analyses.diagnose.shape.design import (
     FACTOR_SD,
     MAX_CARRIERS,
     REFIT_EVALUATIONS,
     Background,
     _map_u,
 )
-from jaxwear._analyses.diagnose._shape_map import compile_maps
+from jaxwear._analyses.diagnose.shape.map import compile_maps
 from jaxwear._inference import lsq
 from jaxwear._physics.effects.shape import ShapeBasis
 
@@ -49,7 +49,7 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     None, the rows' residuals at the answer [µm] (rows,)).
 
     `surface`: the leading pair's surface where it is significant
-    (`_shape_interaction.Interaction.block`: (A, S, Z, X, tensor)), refitted with the
+    (`shape.interaction.Interaction.block`: (A, S, Z, X, tensor)), refitted with the
     carriers: its roughness along both directions and, for a factor, zero row and column
     sums of its coefficients and N(0, FACTOR_SD²) on each as prior rows. `maps`: compile
     the when/where map's functions meanwhile (False for a caller that draws no map:

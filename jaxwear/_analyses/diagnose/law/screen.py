@@ -8,7 +8,7 @@ whitened, the fit's own parameters and the numerical error projected off) give t
 of the rows per B-spline coefficient of a correction along one variable. A law Φ of one or
 two variables (p·v: of p and v) is not a function of one variable, so it is projected on
 the additive space of its variables' splines, Φ(z) ≈ Σ_v B_v(z_v) c_v, by least squares
-over the states met at the fit (`_law_start.joint_states`: every node and step of cycles at
+over the states met at the fit (`law.start.joint_states`: every node and step of cycles at
 five points of each experiment, weighted by the wear for a factor and by the steps for a
 deposit, resampled to equal weights); its response is then Σ_v A_v Z_v' c_v, first order
 in its strength (1 + AΦ ≈ exp(AΦ) for a factor; a factor's level is K_d's, projected off
@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from jaxwear._analyses.diagnose._law_start import derived_variables
+from jaxwear._analyses.diagnose.law.start import derived_variables
 from jaxwear._physics.effects.law import (
     DEPOSIT_LAW_VARIABLES,
     DERIVED,
@@ -127,9 +127,9 @@ def screen_grammar(linear: dict, samples: dict, grids, forms=("factor", "deposit
                    bounded=None) -> list[tuple[float, LawSpec]]:
     """(χ² removed [σ²], the law at its least-squares strength) of every one- and two-term
     law of the grammar (module docstring), best first. `samples`: {form: {variable: (n,)}}
-    states met, equal weights (`_law_start.resample`); `grids`: (variable object, form)
-    -> the one-term laws of the grid (`_law.single_laws`); `bounded`: law -> "" or why it
-    is refused (`_law.unbounded`): refused laws are not screened."""
+    states met, equal weights (`law.start.resample`); `grids`: (variable object, form)
+    -> the one-term laws of the grid (`law.search.single_laws`); `bounded`: law -> "" or why it
+    is refused (`law.search.unbounded`): refused laws are not screened."""
     out = []
     for form in forms:
         Z = samples.get(form)

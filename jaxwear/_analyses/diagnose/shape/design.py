@@ -10,13 +10,13 @@ from dataclasses import dataclass, field
 from dataclasses import replace as dreplace
 from types import SimpleNamespace
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._analyses.diagnose._fit import Fit, _log
 from jaxwear._analyses.diagnose._model import Model
+from jaxwear._core.jit import jit
 from jaxwear._physics.cycle import cycle_increment
 from jaxwear._physics.effects.shape import (
     DEPOSIT_VARIABLES,
@@ -192,7 +192,7 @@ class Background:
         return self._out
 
 
-@eqx.filter_jit
+@jit
 def _cycle_states(p, cfg, hist, regime, h, sliding):
     """Every state variable of one cycle and its wear rate (steps, nodes) [m per step]."""
     _, _, sol = cycle_increment(p, cfg, hist, regime, h, sliding)
@@ -327,7 +327,7 @@ def numerical_error_rows(model: Model, fit: Fit, verbose=False, candidates=None)
 
 
 # eager, the mechanism's load history costs ~0.5 s per experiment
-_load_history_jit = eqx.filter_jit(load_history)
+_load_history_jit = jit(load_history)
 
 
 def _coarse(smodel: Model, groups, basis) -> Model:
