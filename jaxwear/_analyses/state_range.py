@@ -11,8 +11,6 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from jaxwear._analyses.diagnose.law.start import joint_states
-from jaxwear._analyses.diagnose.shape.design import RANGE_QUANTILES, _weighted_quantiles
 from jaxwear._physics.effects._base import get_effect, registered_effects
 from jaxwear._physics.effects.law import DERIVED, derived_states, variable_unit
 
@@ -39,6 +37,11 @@ def met(problem, evaluation, variables, deposit: bool) -> dict:
     """{variable: (lo, hi)}: the range of each of `variables` met by the model `problem`
     (an extended or residual model: `cfg`, `batched_params`) at `evaluation` (its answer:
     `u`, `snaps`, `sliding_m`), as a law's range was measured (`law.search.states_met`)."""
+    # here, not at the top: calibrate and predict import this module, and a plain
+    # `import jaxwear` must not import the diagnose package (only a loaded law needs it)
+    from jaxwear._analyses.diagnose.law.start import joint_states
+    from jaxwear._analyses.diagnose.shape.design import RANGE_QUANTILES, _weighted_quantiles
+
     names = tuple(dict.fromkeys(v for n in variables
                                 for v in (DERIVED[n][1] if n in DERIVED else (n,))))
     Z, w = joint_states(SimpleNamespace(ext=problem), SimpleNamespace(ev=evaluation), names,
