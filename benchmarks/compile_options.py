@@ -48,7 +48,10 @@ VARIANTS = {
     "O1cheap": {"xla_backend_optimization_level": 1, "xla_llvm_disable_expensive_passes": True},
     "split1": {"xla_cpu_parallel_codegen_split_count": 1},
     "noinline": {"xla_llvm_force_inline_before_split": False},
+    "ratesO0": {},  # LLVM's O0 for the work estimate's small rate programs only (_child)
+    "O1ratesO0": {"xla_backend_optimization_level": 1},  # and those two at O0
 }
+RATES_O0 = {"xla_backend_optimization_level": 0}
 
 # Installed in the child before jaxwear compiles anything: XLA's compile CPU per program.
 _PATCH = r"""
@@ -73,11 +76,19 @@ def _child(variant: str, cli: list[str] | None, out: Path, cases: list[str]) -> 
     from jaxwear._core import jit as J
 
     opts = {**J.LEGACY_EMITTERS, **VARIANTS[variant]}
-    J.LEGACY_EMITTERS = opts  # what `_default_options` hands every program (the CLI's too)
+    J.LEGACY_EMITTERS = opts  # what `_default_options` hands every program
+    if variant.endswith("ratesO0"):
+        from jaxwear._inference import attempts
+        from jaxwear._physics import adaptive
+        for prog in (attempts._experiment_rates, adaptive._regime_rates_jit):
+            prog.variant = lambda o, _v=prog.variant: _v({**o, **RATES_O0} if o else o)
     if cli is not None:
         from jaxwear import cli as C
         c0 = time.process_time()
-        rc = C.main(cli)
+        # the command line asks for the legacy emitters process-wide (`configure_xla`), and
+        # then the wrapper passes no per-program options: the variant is forced here
+        with J.options(opts):
+            rc = C.main(cli)
         doc = {"cpu": time.process_time() - c0, "rc": rc,
                "xla_cpu": sum(c[1] for c in compiles), "n_compiles": len(compiles),
                "largest": sorted(([c[0], round(c[1], 3)] for c in compiles),
