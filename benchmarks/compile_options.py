@@ -1,7 +1,9 @@
 """XLA:CPU compiler options for jaxwear's programs: compile CPU time against run CPU time.
 
-Each variant is a set of per-program options added to `jaxwear._core.jit.LEGACY_EMITTERS`
-(the options every jaxwear program is compiled with). Every measurement is a fresh process
+Each variant is a set of per-program options added to `jaxwear._core.jit.LEGACY_EMITTERS`,
+forced on every jaxwear program (`jit.options`); "base" is the legacy emitters alone, "O1"
+what jaxwear adopted (`jit.FAST_COMPILE`: LLVM's O1, and O0 for its `once` programs, which
+every variant that sets a level gets). Every measurement is a fresh process
 (no persistent cache: nothing is compiled before), variants interleaved round by round, and
 process CPU time (all threads), not wall: a loaded machine slows wall time by whatever else
 runs, CPU time much less. Per process:
@@ -49,7 +51,6 @@ VARIANTS = {
     "split1": {"xla_cpu_parallel_codegen_split_count": 1},
     "noinline": {"xla_llvm_force_inline_before_split": False},
     "ratesO0": {},  # LLVM's O0 for the work estimate's small rate programs only (_child)
-    "O1ratesO0": {"xla_backend_optimization_level": 1},  # and those two at O0
 }
 RATES_O0 = {"xla_backend_optimization_level": 0}
 
@@ -76,8 +77,7 @@ def _child(variant: str, cli: list[str] | None, out: Path, cases: list[str]) -> 
     from jaxwear._core import jit as J
 
     opts = {**J.LEGACY_EMITTERS, **VARIANTS[variant]}
-    J.LEGACY_EMITTERS = opts  # what `_default_options` hands every program
-    if variant.endswith("ratesO0"):
+    if variant == "ratesO0":
         from jaxwear._inference import attempts
         from jaxwear._physics import adaptive
         for prog in (attempts._experiment_rates, adaptive._regime_rates_jit):
@@ -85,8 +85,6 @@ def _child(variant: str, cli: list[str] | None, out: Path, cases: list[str]) -> 
     if cli is not None:
         from jaxwear import cli as C
         c0 = time.process_time()
-        # the command line asks for the legacy emitters process-wide (`configure_xla`), and
-        # then the wrapper passes no per-program options: the variant is forced here
         with J.options(opts):
             rc = C.main(cli)
         doc = {"cpu": time.process_time() - c0, "rc": rc,
@@ -104,6 +102,7 @@ def _child(variant: str, cli: list[str] | None, out: Path, cases: list[str]) -> 
     from jaxwear._physics.config import boom_config
     from jaxwear._physics.wear import build_schedule, wear_loop
 
+    J.options(opts).__enter__()  # for the whole process
     assert J.current_options() == opts, J.current_options()
     doc: dict = {"options": opts}
     arrays = {}
