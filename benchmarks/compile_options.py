@@ -31,6 +31,7 @@ the process, XLA's compile CPU summed). Usage:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -50,6 +51,7 @@ VARIANTS = {
     "O1cheap": {"xla_backend_optimization_level": 1, "xla_llvm_disable_expensive_passes": True},
     "split1": {"xla_cpu_parallel_codegen_split_count": 1},
     "noinline": {"xla_llvm_force_inline_before_split": False},
+    "default": None,  # no options forced: what jaxwear asks for by itself
     "ratesO0": {},  # LLVM's O0 for the work estimate's small rate programs only (_child)
 }
 RATES_O0 = {"xla_backend_optimization_level": 0}
@@ -76,7 +78,8 @@ def _child(variant: str, cli: list[str] | None, out: Path, cases: list[str]) -> 
     compiles = ns["COMPILES"]
     from jaxwear._core import jit as J
 
-    opts = {**J.LEGACY_EMITTERS, **VARIANTS[variant]}
+    opts = (J.current_options() if VARIANTS[variant] is None
+            else {**J.LEGACY_EMITTERS, **VARIANTS[variant]})
     if variant == "ratesO0":
         from jaxwear._inference import attempts
         from jaxwear._physics import adaptive
@@ -85,7 +88,7 @@ def _child(variant: str, cli: list[str] | None, out: Path, cases: list[str]) -> 
     if cli is not None:
         from jaxwear import cli as C
         c0 = time.process_time()
-        with J.options(opts):
+        with J.options(opts) if VARIANTS[variant] is not None else contextlib.nullcontext():
             rc = C.main(cli)
         doc = {"cpu": time.process_time() - c0, "rc": rc,
                "xla_cpu": sum(c[1] for c in compiles), "n_compiles": len(compiles),
