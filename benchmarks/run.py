@@ -85,8 +85,9 @@ TARGETS = {  # key: (target, "<=" or ">=", unit)
 TARGETS["sweep_speedup"] = (1, ">=", "x")  # issue 50: batched at least as fast as singles
 
 # XLA:CPU's emitter families, compared in one process: jaxwear's per-program options
-# (`jaxwear._core.jit.LEGACY_EMITTERS`) against none (XLA's default fusion emitters).
-FAMILIES = {"legacy": jwjit.LEGACY_EMITTERS, "fusion": None}
+# (`jaxwear._core.jit`: the legacy emitters at LLVM's O1) against none (XLA's default
+# fusion emitters at O2).
+FAMILIES = {"legacy": {**jwjit.LEGACY_EMITTERS, **jwjit.FAST_COMPILE}, "fusion": None}
 
 
 def log(msg):

@@ -11,14 +11,14 @@ from pathlib import Path
 
 import pytest
 
-# The tests compile at LLVM's O1, not the product's O2. The suite is bound by compilation
-# (most tests run each program a few times, for well under a second); O1 compiles the same
-# programs ~10-20 % faster (measured: a diagnosis test 52 -> 47 s; the shape's 146-column
-# Jacobian: compile 15.4 -> 12.2 s) with the same arithmetic (no fast-math at either level:
-# LLVM may not reorder floating-point operations), and runs them up to ~10 % slower,
-# which a user's long runs (sampling, sweeps) would feel and the tests do not. benchmarks/
-# time the product as shipped. Subprocesses (the CLI tests) inherit it; a user's own
-# XLA_FLAGS setting of it is kept.
+# The tests compile every program at LLVM's O1 (XLA:CPU's default is O2). The product
+# compiles jaxwear's own programs at O1 too, per program (`jaxwear._core.jit`; its rate
+# programs at O0); this flag also covers the tests' other programs. The suite is bound by
+# compilation; O1 compiles ~10-20 % faster (a diagnosis test 52 -> 47 s; the shape's
+# 146-column Jacobian 15.4 -> 12.2 s) with the same arithmetic (no fast-math at either level)
+# and, measured on the wear loop and a Jacobian, the same run time within a few %
+# (docs/performance.md). Subprocesses (the CLI tests) inherit it; a user's own XLA_FLAGS
+# setting of it is kept.
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + " --xla_backend_optimization_level=1").strip()

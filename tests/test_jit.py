@@ -29,12 +29,17 @@ import jaxwear.cli  # the command line imports a verb's module when that verb ru
 heavy = sorted(m for m in sys.modules if m == "scipy.stats"
                or m.startswith(("jaxwear._analyses.diagnose", "jaxwear._report.diagnosis")))
 from jaxwear._core import jit as J
-from jaxwear._physics import wear
-if sys.argv[1:] == ["run"]:
-    jw.simulate(jw.preset("rig"), jw.ModelConfig(nodes=16, steps_per_rev=16), revolutions=50,
-                M=25)
+from jaxwear._core import xla_flags
+from jaxwear._physics import adaptive, wear
+if "cli" in sys.argv[1:]:
+    xla_flags.apply()  # as the command line does first
+if "run" in sys.argv[1:]:
+    p, cfg = jw.preset("rig"), jw.ModelConfig(nodes=16, steps_per_rev=16)
+    jw.simulate(p, cfg, revolutions=50, M=25)
+    adaptive._regime_rates_jit(p, cfg)
 print(json.dumps({"heavy": heavy, "options": J.current_options(),
                   "variants": [dict(k) for k in wear._wear_loop_jit._variants],
+                  "once": [dict(k) for k in adaptive._regime_rates_jit._variants],
                   "diagnose": jw.diagnose.__module__, "xla_flags": __import__("os").environ.get(
                       "XLA_FLAGS", "")}))
 """
@@ -48,21 +53,38 @@ def _plain_process(*args, **env_extra):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+PROGRAM = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
+ONCE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
+
+
 def test_plain_import_is_light_and_runs_the_wear_loop_with_legacy_emitters():
     got = _plain_process("run")
     # neither scipy.stats nor the diagnose package at import, the command line's included
     # (a verb imports what it needs)
     assert got["heavy"] == []
     assert got["diagnose"].startswith("jaxwear._analyses.diagnose")  # the name resolves
-    # the process's flags untouched, the wear loop's program compiled with the option
+    # the process's flags untouched, the wear loop's program compiled with the legacy
+    # emitters at LLVM's O1, a program that runs once at O0 (docs/performance.md)
     assert "xla_cpu_use_fusion_emitters" not in got["xla_flags"]
-    assert got["options"] == {"xla_cpu_use_fusion_emitters": False}
-    assert got["variants"] == [{"xla_cpu_use_fusion_emitters": False}]
+    assert got["options"] == PROGRAM
+    assert got["variants"] == [PROGRAM]
+    assert got["once"] == [ONCE]
+
+
+def test_the_command_lines_process_flag_keeps_the_per_program_options():
+    # `configure_xla`'s own flag is the same choice, not the user's: the options stay
+    got = _plain_process("cli", "run")
+    assert "xla_cpu_use_fusion_emitters=false" in got["xla_flags"]
+    assert got["variants"] == [PROGRAM]
+    assert got["once"] == [ONCE]
 
 
 def test_user_choice_turns_the_per_program_options_off():
     got = _plain_process(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true")
-    assert got["options"] is None
+    assert got["options"] == {"xla_backend_optimization_level": 1}
+    got = _plain_process(XLA_FLAGS="--xla_backend_optimization_level=2")
+    assert got["options"] == {"xla_cpu_use_fusion_emitters": False}
+    assert _plain_process(JAXWEAR_XLA_DEFAULTS="0")["options"] is None
 
 
 def test_options_reach_the_compiler_and_a_refused_one_falls_back_logged(caplog):

@@ -15,8 +15,18 @@ wrapper calls the same function without options, and the program it is part of i
 with the caller's settings. Where the installed jaxlib does not know an option, the first
 compilation says so, the wrapper logs it once and runs without options from then on.
 
-`JAXWEAR_XLA_DEFAULTS=0`, or `xla_cpu_use_fusion_emitters` in the user's own `XLA_FLAGS`,
-turns the options off (the same switches as `configure_xla`).
+LLVM's O1 (`xla_backend_optimization_level=1`) on top: most of XLA's compile time is
+LLVM's optimisation, and O1 compiles a cold rig calibration's programs in 0.88 of the
+time at the same run time (the wear loop's profile and Jacobian bitwise the same; a fit's
+answer within ~1e-15 relative). Programs that run once per evaluation and in well under a
+millisecond (`jit(..., once=True)`: the work estimate's rate bounds) compile at O0 (0.4 of
+their compile time). With both, a cold `jaxwear calibrate` of the 5-experiment rig study
+spent 0.83 of the XLA compile CPU and 0.89 of the CPU time (medians of four pairs;
+benchmarks/compile_options.py, docs/performance.md).
+
+`JAXWEAR_XLA_DEFAULTS=0` turns every option off; `xla_cpu_use_fusion_emitters` in the
+user's own `XLA_FLAGS` turns off the emitters' option (the same switches as
+`configure_xla`), `xla_backend_optimization_level` there the level's.
 """
 
 from __future__ import annotations
@@ -30,9 +40,15 @@ from collections.abc import Callable, Iterator
 import equinox as eqx
 import jax
 
+from jaxwear._core import xla_flags
+
 LEGACY_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
-"""The options jaxwear asks for on its own programs (XLA:CPU; ignored by other backends'
-compilers only if they know the name, so applied on CPU only)."""
+"""XLA:CPU's legacy emitters, asked for on jaxwear's own programs (XLA:CPU options, so
+applied on CPU only)."""
+FAST_COMPILE = {"xla_backend_optimization_level": 1}
+"""LLVM's O1 for jaxwear's programs (XLA:CPU's default is O2)."""
+ONCE_LEVEL = {"xla_backend_optimization_level": 0}
+"""The level of `once` programs, wherever the options set a level."""
 
 _log = logging.getLogger("jaxwear")
 _rejected: set[tuple] = set()  # option sets the installed jaxlib refused (logged once)
@@ -42,11 +58,17 @@ _override: list[dict | None] = []  # `options()` stack (benchmarks, tests)
 def _default_options() -> dict | None:
     if os.environ.get("JAXWEAR_XLA_DEFAULTS", "1") == "0":
         return None
-    if "xla_cpu_use_fusion_emitters" in os.environ.get("XLA_FLAGS", ""):
-        return None  # the user's own choice, process-wide
     if jax.default_backend() != "cpu":
         return None
-    return LEGACY_EMITTERS
+    flags = os.environ.get("XLA_FLAGS", "")
+    opts = {}
+    # the user's own choice, process-wide, is kept (not the flag `configure_xla` set: the
+    # same choice as ours)
+    if "xla_cpu_use_fusion_emitters" not in flags or xla_flags.applied():
+        opts.update(LEGACY_EMITTERS)
+    if "xla_backend_optimization_level" not in flags:
+        opts.update(FAST_COMPILE)
+    return opts or None
 
 
 def current_options() -> dict | None:
@@ -79,10 +101,13 @@ def _traced(args, kwargs) -> bool:
 
 class Jit:
     """`eqx.filter_jit(fun)` that compiles top-level calls with `current_options()`.
-    Arrays are traced, everything else is static (as `eqx.filter_jit`)."""
+    Arrays are traced, everything else is static (as `eqx.filter_jit`). `once`: a program
+    run once per evaluation in well under a millisecond, compiled at `ONCE_LEVEL` wherever
+    the options set an optimisation level."""
 
-    def __init__(self, fun: Callable, **jitkwargs):
+    def __init__(self, fun: Callable, *, once: bool = False, **jitkwargs):
         self.fun = fun
+        self.once = once
         self._jitkwargs = jitkwargs
         self._variants: dict[tuple, Callable] = {}
         functools.update_wrapper(self, fun)
@@ -102,10 +127,17 @@ class Jit:
     def _cached(self):
         """The plain program's compilation cache (`_cached._cache_size()`), as
         `eqx.filter_jit`'s."""
-        return self.variant(current_options())._cached
+        return self.variant(self.options())._cached
+
+    def options(self) -> dict | None:
+        """The options this program's next top-level call is compiled with."""
+        opts = current_options()
+        if opts and self.once and "xla_backend_optimization_level" in opts:
+            opts = {**opts, **ONCE_LEVEL}
+        return opts
 
     def __call__(self, *args, **kwargs):
-        opts = current_options()
+        opts = self.options()
         if opts is None or _traced(args, kwargs):
             return self.variant(None)(*args, **kwargs)
         try:

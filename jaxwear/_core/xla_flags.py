@@ -36,6 +36,14 @@ def _jaxlib_version() -> tuple[int, int] | None:
         return None
 
 
+_APPLIED: list[bool] = []  # `apply` appended FLAG in this process
+
+
+def applied() -> bool:
+    """Whether `FLAG` in `XLA_FLAGS` is this process's `apply` (not the user's choice)."""
+    return bool(_APPLIED) and FLAG in os.environ.get("XLA_FLAGS", "")
+
+
 def apply() -> bool:
     """Append `FLAG` to `XLA_FLAGS`: XLA:CPU's legacy emitters for every program of the
     process (jaxwear's own programs ask for them per program without this; this covers the
@@ -52,4 +60,5 @@ def apply() -> bool:
     if v is None or not (CHECKED[0] <= v <= CHECKED[1]):
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {FLAG}".strip()
+    _APPLIED.append(True)
     return True

@@ -50,7 +50,7 @@ def attempts_needed(model: ResidualModel, u) -> int | float:
     return need
 
 
-@jit
+@jit(once=True)
 def _experiment_rates(model: ResidualModel, u):
     """`_regime_rates` of every experiment at u (experiments, regimes) [1/cycle], one
     compiled call (the model without its schedule: an attempt count is no new program).

@@ -361,4 +361,4 @@ def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) 
     return bucket(int(math.ceil(stiff + acc)) + 4 * int(np.sum(live)))
 
 
-_regime_rates_jit = jit(_regime_rates)
+_regime_rates_jit = jit(_regime_rates, once=True)
