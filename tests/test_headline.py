@@ -108,3 +108,21 @@ def test_a_law_that_predicts_worse_than_the_base_model_is_no_lead():
                            final=base, base=base)
     assert lead(diag) == "law"
     assert lead(SimpleNamespace(shape=None, partial=[], final=base, base=base)) is None
+
+
+def test_a_laws_error_falls_from_the_base_models_left_out_error_by_the_same_rule():
+    """Seen on the fatigue study: the headline said "left-out experiments 0.565 → 0.329 µm"
+    (the base model's one unchecked Gauss-Newton step per experiment against the law's
+    checked one) and the evidence sentence "0.551 → 0.329 µm". Both sides of the arrow are
+    now the law search's checked rule; the diagnosis's own value where the search has none."""
+    from jaxwear._analyses.diagnose._headline import errors
+
+    law = _law(status="found", loo_before_um=0.551)
+    diag = SimpleNamespace(status="partly_explained", base=SimpleNamespace(rmse=0.511),
+                           loo_before={"a": 0.6, "b": 0.53}, shape=SimpleNamespace(law=law),
+                           partial=[], final=None)
+    e = errors(diag)
+    assert (e["before"], e["after"]) == (0.511, 0.31)
+    assert (e["loo_before"], e["loo_after"]) == (0.551, 0.33)
+    diag.shape = SimpleNamespace(law=_law(status="found", loo_before_um=None))
+    assert math.isclose(errors(diag)["loo_before"], math.sqrt((0.6**2 + 0.53**2) / 2))

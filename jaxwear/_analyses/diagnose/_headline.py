@@ -134,7 +134,11 @@ def errors(diag: Diagnosis) -> dict:
         return dict(before=before, after=diag.final.rmse, loo_before=loo_before,
                     loo_after=_mean_sq(diag.loo_after))
     if kind == "law" or lead(diag) == "law":
-        return dict(before=before, after=law.best.rmse_um, loo_before=loo_before,
+        # the base model's left-out error by the law search's own rule (each step checked
+        # by a forward run), so that both sides of the arrow are measured alike
+        lb = law.loo_before_um
+        return dict(before=before, after=law.best.rmse_um,
+                    loo_before=lb if lb is not None and math.isfinite(lb) else loo_before,
                     loo_after=law.best.loo_rmse_um, **({} if kind == "law" else
                                                        {"with": "the law"}))
     shp = _shape_of(diag)
@@ -271,7 +275,8 @@ def _evidence(diag: Diagnosis) -> str:
     if kind == "law":
         b = law.best
         shape = (f"fits as well as the free shape ({num(law.shape_rmse_um)} µm)"
-                 if law.shape_rmse_um is not None else "fits")
+                 if law.shape_rmse_um is not None and math.isfinite(law.shape_rmse_um)
+                 else "fits")
         loo = (f" and predicts the left-out experiments ({num(law.loo_before_um)} → "
                f"{num(b.loo_rmse_um)} µm)" if b.loo_rmse_um is not None
                and law.loo_before_um is not None else "")
