@@ -40,16 +40,22 @@ def loo(model: Model, fit: Fit, noise_um: float) -> dict:
     nominal value), predicting those rows."""
     rw, Jw = whitened_system(fit.ev, fit.mask, noise_um)
     out = {}
+    for name, rows, _, step in _left_out_steps(model, rw, Jw):
+        pred = noise_um * (rw[rows] + Jw[rows] @ step)
+        out[name] = float(np.sqrt(np.mean(pred ** 2)))
+    return out if len(out) > 1 else {}  # one experiment: nothing to leave out
+
+
+def _left_out_steps(model: Model, rw, Jw):
+    """(experiment, its rows, the mask of the rows kept, the Gauss-Newton step of the
+    whitened system `rw`, `Jw` without its rows) for each experiment that has rows."""
     for ei, name in enumerate(model.exp_names):
         rows = np.flatnonzero(model.row_exp == ei)
         if len(rows) == 0:
             continue
         keep = np.ones(len(rw), bool)
         keep[rows] = False
-        step = lsq.gauss_newton(rw[keep], Jw[keep])[0]
-        pred = noise_um * (rw[rows] + Jw[rows] @ step)
-        out[name] = float(np.sqrt(np.mean(pred ** 2)))
-    return out if len(out) > 1 else {}  # one experiment: nothing to leave out
+        yield name, rows, keep, lsq.gauss_newton(rw[keep], Jw[keep])[0]
 
 
 LOO_HALVINGS = 3  # a left-out step that raises the left-in misfit is halved this often
@@ -72,15 +78,9 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
     u0 = np.asarray(fit.ev.u, np.float64)
     measured = np.asarray(model.measured, np.float64)
     out, runs = {}, 0
-    for ei, name in enumerate(model.exp_names):
-        rows = np.flatnonzero(model.row_exp == ei)
-        if len(rows) == 0:
-            continue
-        keep = np.ones(len(rw), bool)
-        keep[rows] = False
+    for name, rows, keep, step in _left_out_steps(model, rw, Jw):
         data_in = np.flatnonzero(keep[:n])
         q0 = float(rw[keep] @ rw[keep])
-        step = lsq.gauss_newton(rw[keep], Jw[keep])[0]
         best = None
         for _ in range(LOO_HALVINGS + 1):
             u = u0.copy()
