@@ -60,15 +60,19 @@ TWO_PI = 2.0 * math.pi
 DEG = math.pi / 180.0
 LAWS = ("impact", "threshold", "two_variable", "null", "pv_tanh", "worn_soft",
         "running_pressure", "impact_load", "fatigue", "film", "damage_step",
-        "g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
+        "g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v",
+        "g_dep_power_W")
 # laws of jaxwear's grammar (issue 48 item 6: recovery), written here from their formulas
 # (docs/design.md §7 `shape.law`) in plain NumPy: each kind along a variable, and a product
-GRAMMAR_LAWS = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
+GRAMMAR_FACTOR_LAWS = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
+# the grammar's deposit form (a deposit per step of the cycle where the pin presses)
+GRAMMAR_DEPOSIT_LAWS = ("g_dep_power_W",)
+GRAMMAR_LAWS = GRAMMAR_FACTOR_LAWS + GRAMMAR_DEPOSIT_LAWS
 # laws whose structure neither jaxwear's shape basis nor its law grammar contains exactly
 # (issue 43 item 5): two variables at once, the surface's own state, an event's size
 # depending on two quantities
 FACTOR_LAWS = ("threshold", "two_variable", "pv_tanh", "worn_soft", "running_pressure",
-               *GRAMMAR_LAWS)
+               *GRAMMAR_FACTOR_LAWS)
 # laws with memory (issue 48 item 4): a hidden per-node state that each revolution drives,
 # of other forms than jaxwear's grammar (`effects.law_memory`)
 MEMORY_LAWS = ("fatigue", "film", "damage_step")
@@ -128,6 +132,15 @@ class Law:
       `g_step_S` Φ = S((S − S0)/w) (the logistic of the sliding distance, S0 = `g_S0_m`,
       w = `g_Sw_m`); `g_step_p_power_v` Φ = S((p − p0)/w_p) (v/v1)^q' (p0 = `g_p0_MPa`,
       w_p = `g_pw_MPa`, q' = `g_exponent2`): two states together.
+    - `g_dep_power_W`: the grammar's deposit form (`GRAMMAR_DEPOSIT_LAWS`): D nm·rad per
+      step of a cycle of N_s = `g_dep_steps` steps, times Φ = (|W|/W1)^q (W1 =
+      `g_W1_N`, q = `g_dep_exponent`, D = `strength`), laid where the pin presses (a
+      Gaussian bump of `g_dep_width_deg` at the load direction, at least 1.5 node spacings,
+      normalised to 1 over the bore in radians). Written per crank angle (N_s/2π steps per
+      radian of crank) over the load direction resolved as it turns (`resolved_sweep`), so
+      that the deposit per revolution is the grammar's at N_s steps and does not depend
+      on the generator's own steps: the grammar's D is per step of the study (N_s its
+      steps per revolution).
     The states of the three laws with memory move by explicit Euler over each update of M
     revolutions (the profile and the state frozen within it).
     """
@@ -168,6 +181,10 @@ class Law:
     g_p0_MPa: float = 1.5
     g_pw_MPa: float = 0.1
     g_exponent2: float = 1.0
+    g_W1_N: float = 150.0
+    g_dep_exponent: float = 2.0
+    g_dep_steps: float = 72.0
+    g_dep_width_deg: float = 5.0
 
     def __post_init__(self):
         if self.name not in LAWS:
@@ -183,7 +200,8 @@ class Law:
                     "rp_distance_m", "impact_load_N", "fatigue_endurance_MPa",
                     "fatigue_exponent", "fatigue_cycles", "film_formation", "film_removal",
                     "film_time_s", "film_work_kJ_per_m2", "damage_ref_MPa", "damage_width",
-                    "g_p1_MPa", "g_he_um", "g_v1_m_per_s", "g_Sw_m", "g_pw_MPa")
+                    "g_p1_MPa", "g_he_um", "g_v1_m_per_s", "g_Sw_m", "g_pw_MPa", "g_W1_N",
+                    "g_dep_steps", "g_dep_width_deg")
         for k in positive:
             if not getattr(self, k) > 0:
                 raise BadInput(f"law constant {k} must be > 0, got {getattr(self, k):g}")
@@ -263,7 +281,7 @@ DEFAULT_STRENGTH = {"impact": 0.05, "threshold": 1.0, "two_variable": 1.0, "null
                     "pv_tanh": 1.0, "worn_soft": 1.5, "running_pressure": 2.0,
                     "impact_load": 0.16, "fatigue": 1.5, "film": 0.6, "damage_step": 1.5,
                     "g_power_p": 1.0, "g_exp_h": 0.5, "g_hinge_v": 1.5, "g_step_S": 0.8,
-                    "g_step_p_power_v": 1.0}
+                    "g_step_p_power_v": 1.0, "g_dep_power_W": 2e-3}
 
 
 def _logistic(x):
@@ -475,6 +493,33 @@ def impact_deposit(law: Law, cond: Condition, clearance: float, nodes: int,
     return weight[keep] @ kernel
 
 
+def grammar_deposit(law: Law, cond: Condition, clearance: float, nodes: int,
+                    sweep_deg: float) -> np.ndarray:
+    """Depth [m] the grammar's deposit law (`GRAMMAR_DEPOSIT_LAWS`) lays per revolution at
+    each node (N,): Σ over the resolved intervals of D 1e-9 (N_s/2π) Δφ Φ(|W|) g(θ_j −
+    θ_W), Δφ the interval's crank angle [rad], θ_W the load direction at its midpoint,
+    g a Gaussian bump normalised so that Σ_j g Δθ = 1 [1/rad] (`Law`'s docstring). Does
+    not depend on the wear: one fixed vector per experiment."""
+    if law.name not in GRAMMAR_DEPOSIT_LAWS or law.strength == 0:
+        return np.zeros(nodes)
+    dt, _, where = resolved_sweep(cond, clearance, sweep_deg)
+    omega = TWO_PI * cond.speed_rpm / 60.0
+    dphi = dt * omega
+    phi_mid = np.cumsum(dphi) - 0.5 * dphi
+    force, _, _ = load_at(phi_mid, omega, clearance, cond.spring_N_per_m,
+                          cond.crank_length_mm * 1e-3)
+    w_mag = np.hypot(force[:, 0], force[:, 1])
+    phi = (w_mag / law.g_W1_N) ** law.g_dep_exponent
+    weight = law.strength * 1e-9 * (law.g_dep_steps / TWO_PI) * dphi * phi
+    d_node = TWO_PI / nodes
+    width = max(law.g_dep_width_deg * DEG, 1.5 * d_node)
+    theta = d_node * np.arange(nodes)
+    gap = np.angle(np.exp(1j * (theta[None, :] - where[:, None])))
+    bump = np.exp(-0.5 * (gap / width) ** 2)
+    bump /= bump.sum(axis=1, keepdims=True) * d_node
+    return weight @ bump
+
+
 # ---- contact: all steps of a revolution at once -------------------------------------------
 
 
@@ -597,7 +642,8 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
     theta = TWO_PI * np.arange(num.nodes) / num.nodes
     normals = np.stack([np.cos(theta), np.sin(theta)], axis=1)
     area = ref.R_B * (TWO_PI / num.nodes) * ref.WIDTH
-    deposit = impact_deposit(law, cond, clearance, num.nodes, num.sweep_deg)
+    deposit = (impact_deposit(law, cond, clearance, num.nodes, num.sweep_deg)
+               + grammar_deposit(law, cond, clearance, num.nodes, num.sweep_deg))
     points = cond.measure_points()
     h = np.zeros(num.nodes)
     state = np.zeros(num.nodes)  # a law with memory's per-node state (0: a new surface)

@@ -21,9 +21,19 @@ Per case:
    with K_d and the clearances: the law is learned on the training conditions only).
 
     python calibration/law_validation.py [--cases pv_tanh,worn_soft,...] [--seed 1]
-        [--quick] [--work DIR] [--out TABLE.md]
+        [--seeds 1,2,3,4] [--design paper|rich] [--quick] [--skip-other] [--work DIR]
+        [--out TABLE.md] [--jobs N [--threads 2] [--budget-s S] [--min-run-s S]]
 
-Not a test (minutes a case): prints a markdown table and writes a JSON of every case.
+Not a test (minutes a case): prints a markdown table and writes a JSON of every case and
+seed (WORK/CASE-sSEED-DESIGN.json) and the combined table (WORK/law_validation-DESIGN.md
+and .json), with the recovery of the grammar's laws counted two ways: the found law's
+constants within 2 SE of the truth, and the truth among the found law and its
+equivalents (laws of another structure the data do not tell from it, `shape.law.
+equivalents`). `--design rich` (`RICH`): a training study that spans the states more
+widely, scanned at six revolution counts. `--jobs N`: cases x seeds in N subprocesses
+(`run_parallel`), each with the repository on PYTHONPATH (no install needed), one XLA host
+device and `--threads` CPUs; `--budget-s`: no run started after the wall budget, runs
+still going at it stopped, the table of what finished written.
 """
 
 from __future__ import annotations
@@ -31,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shutil
 import sys
 import time
@@ -45,7 +56,8 @@ import shape_validation as sv  # noqa: E402
 NEW = ("pv_tanh", "worn_soft", "running_pressure", "impact_load")
 MEMORY = ("fatigue", "film")  # laws with memory (issue 48 item 4)
 # laws of the grammar itself, written in the generator (issue 48 item 6: recovery)
-GRAMMAR = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
+GRAMMAR = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v",
+           "g_dep_power_W")
 CASES = NEW + ("impact", "threshold", "two_variable", "null") + GRAMMAR + MEMORY
 sv.OUTSIDE = sv.OUTSIDE + NEW + GRAMMAR + MEMORY  # made by the generator, not by `jaxwear synth`
 EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
@@ -63,7 +75,8 @@ EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
           "g_exp_h": "grammar: factor 0.5 exp((h − 5 µm)/6 µm)",
           "g_hinge_v": "grammar: factor 1.5 (max(v − 0.04, 0)/0.04 m/s)^2",
           "g_step_S": "grammar: factor 0.8 S((S − 40 m)/5 m)",
-          "g_step_p_power_v": "grammar: factor S((p − 1.5 MPa)/0.1 MPa) (v/0.04 m/s)"}
+          "g_step_p_power_v": "grammar: factor S((p − 1.5 MPa)/0.1 MPa) (v/0.04 m/s)",
+          "g_dep_power_W": "grammar: deposit 0.002 nm·rad per step (of 72) (|W|/150 N)^2"}
 
 
 def truth_constants(case: str, law: dict, found: dict) -> dict:
@@ -90,14 +103,17 @@ def truth_constants(case: str, law: dict, found: dict) -> dict:
         q = law["g_exponent2"]
         return {"A": A * (c["v_ref"]["value"] / law["g_v1_m_per_s"]) ** q,
                 "p0": law["g_p0_MPa"], "p_width": law["g_pw_MPa"], a_key: q}
+    if case == "g_dep_power_W" and "D" in c and "W_ref" in c and a_key:
+        # D per step of the study's cycle: the generator's is per step of `g_dep_steps`
+        # (72, the quick and auto numerics' steps per revolution)
+        q = law["g_dep_exponent"]
+        return {"D": A * (c["W_ref"]["value"] / law["g_W1_N"]) ** q, a_key: q}
     return {}
 
 
-def recovery(case: str, train: Path, law: dict) -> dict:
-    """The found law's constants against the truth: each within 2 standard errors
-    (`truth_constants`; structure: the hidden law's kinds and variables)."""
-    truth = json.loads((train.parent / "truth.json").read_text())["law"]
-    found = law.get("constants") or {}
+def _against(case: str, truth: dict, found: dict) -> dict:
+    """{structure, constants: {NAME: {true, found, stderr, z}}, within_2se} of one fitted
+    law's constants (`found`: shape.law.constants or an equivalent's) against the truth."""
     want = truth_constants(case, truth, found)
     out = {"structure": bool(want), "constants": {}}
     for k, v in want.items():
@@ -106,6 +122,21 @@ def recovery(case: str, train: Path, law: dict) -> dict:
         z = (abs(f["value"] - v) / se) if se and math.isfinite(se) and se > 0 else math.inf
         out["constants"][k] = {"true": v, "found": f.get("value"), "stderr": se, "z": z}
     out["within_2se"] = bool(want) and all(x["z"] <= 2.0 for x in out["constants"].values())
+    return out
+
+
+def recovery(case: str, train: Path, law: dict) -> dict:
+    """The found law's constants against the truth: each within 2 standard errors
+    (`truth_constants`; structure: the hidden law's kinds and variables); and the truth
+    among {the found law and its equivalents} (`shape.law.equivalents`: laws of another
+    structure the data do not tell from it): `among_equivalents` true where any of them
+    is of the hidden law's structure with every constant within 2 SE."""
+    truth = json.loads((train.parent / "truth.json").read_text())["law"]
+    out = _against(case, truth, law.get("constants") or {})
+    eqs = [_against(case, truth, e.get("constants") or {}) | {"formula": e.get("formula")}
+           for e in law.get("equivalents") or []]
+    out["equivalents"] = eqs
+    out["among_equivalents"] = out["within_2se"] or any(e["within_2se"] for e in eqs)
     return out
 
 
@@ -143,15 +174,61 @@ def calibrate_held(study: Path, strength_key: str) -> dict:
         unregister_effect("found_law")
 
 
-def run_case(case: str, seed: int, work: Path, numerics) -> dict:
+# The rich training design (issue 48, recovery where the data determine the law): eight
+# specimens spanning the states a law of the grammar depends on more widely than the
+# paper's five (speeds 120-320 r/min: sliding speeds and turn rates; clearances 0.05-0.15
+# mm and springs 0-1800 N/m, crank lengths 50-90 mm: pressures and loads; 8000-12000
+# revolutions: the worn depth and the sliding distance), each scanned at six revolution
+# counts (1000, 2000, 3500, 5000, 7000 and the end) instead of three or four: a step in
+# the sliding distance at 40 m (about 2500 revolutions) falls between scans, not before
+# the first. Same generator, same noise and numerics as the paper's design.
+RICH = (
+    # name, speed [r/min], revolutions, clearance [mm], spring [N/m], crank length [mm]
+    ("r120-c05", 120.0, 10000.0, 0.05, 1009.4, None),
+    ("r150-c10-k0", 150.0, 12000.0, 0.10, 0.0, None),
+    ("r180-c08-L90", 180.0, 12000.0, 0.08, 1009.4, 90.0),
+    ("r230-c12", 230.0, 10000.0, 0.12, 1009.4, None),
+    ("r260-c15-k1800", 260.0, 10000.0, 0.15, 1800.0, None),
+    ("r276-c05", 276.0, 12000.0, 0.05, 1009.4, None),
+    ("r300-c05-k1800-L50", 300.0, 8000.0, 0.05, 1800.0, 50.0),
+    ("r320-c06-L50", 320.0, 10000.0, 0.06, 1009.4, 50.0),
+)
+RICH_SCANS = (1000.0, 2000.0, 3500.0, 5000.0, 7000.0)  # and the end
+
+
+def rich_conditions(work: Path) -> Path:
+    """The `RICH` design as a conditions file of the generator (`hidden_physics.py
+    --conditions FILE`)."""
+    path = work / "rich-conditions.toml"
+    lines = ["# law_validation.py --design rich (RICH): the generator's conditions", ""]
+    for name, rpm, revs, cl, k, crank in RICH:
+        lines += ["[[experiment]]", f'name = "{name}"', f"speed_rpm = {rpm:g}",
+                  f"revolutions = {revs:g}", f"clearance_mm = {cl:g}",
+                  f"spring_N_per_m = {k:g}",
+                  "interruptions = [" + ", ".join(f"{r:g}" for r in RICH_SCANS) + "]"]
+        if crank is not None:
+            lines.append(f"crank_length_mm = {crank:g}")
+        lines.append("")
+    text = "\n".join(lines)
+    if not path.exists() or path.read_text() != text:
+        path.write_text(text)
+    return path
+
+
+def run_case(case: str, seed: int, work: Path, numerics, design: str = "paper",
+             other: bool = True) -> dict:
+    """One case at one seed in `work` (its own folder): the training study (`design`:
+    "paper" or "rich", `RICH`), `diagnose --shape` on it, the recovery of a grammar law's
+    constants, and (`other`) the law carried to the generator's other conditions."""
     t0 = time.perf_counter()
-    train = sv.make_study(case, "paper", seed, work / f"{case}-train", numerics)
-    other = sv.make_study(case, "other", seed + 100, work / f"{case}-other", numerics)
+    work.mkdir(parents=True, exist_ok=True)
+    conds = "paper" if design == "paper" else str(rich_conditions(work))
+    train = sv.make_study(case, conds, seed, work / f"{case}-train", numerics)
     out = work / f"{case}-diagnose"
     rc, so, se, wall = sv._run([sys.executable, "-m", "jaxwear", "diagnose", str(train),
                                 "--shape", "--out", str(out)])
     row = {"case": case, "expect": EXPECT[case], "noise_um": 0.3, "seed": seed,
-           "diagnose_wall_s": wall}
+           "design": design, "diagnose_wall_s": wall}
     if rc:
         row["error"] = se.strip().splitlines()[-3:]
         return row
@@ -173,9 +250,18 @@ def run_case(case: str, seed: int, work: Path, numerics) -> dict:
                law_loo_before=law.get("loo_rmse_before_um"),
                law_evaluations=law.get("model_evaluations"),
                law_refused=law.get("refused"),
+               law_equivalents=law.get("equivalents"),
+               law_peer_fits=law.get("peer_fits"),
+               law_peer_evaluations=law.get("peer_model_evaluations"),
+               law_peer_cpu_s=law.get("peer_cpu_s"),
+               law_cpu_s=law.get("cpu_s"),
                law_against_library=doc["verdict"].get("law_against_library"))
     if case in GRAMMAR:
         row["recovery"] = recovery(case, train, law)
+    if not other:
+        row["wall_s"] = time.perf_counter() - t0
+        return row
+    other = sv.make_study(case, "other", seed + 100, work / f"{case}-other", numerics)
     rmse_other, _ = sv.calibrate_rmse(other, work / f"{case}-other-cal")
     row["rmse_other_base"] = rmse_other
     lf = out / "law.py"
@@ -204,10 +290,16 @@ def _recovered(r) -> str:
     rec = r.get("recovery")
     if not rec:
         return ""
+    eq = ""
+    if r.get("law_equivalents"):
+        among = rec.get("among_equivalents")
+        eq = ("; equivalents: " + ", ".join(f"`{e['formula']}`" for e in r["law_equivalents"])
+              + f" (truth among them within 2 SE: {'yes' if among else 'no'})")
     if not rec["structure"]:
-        return "; recovery: another structure"
+        return "; recovery: another structure" + eq
     zs = ", ".join(f"{k} {v['z']:.2f}" for k, v in rec["constants"].items())
-    return f"; |found − true|/SE: {zs} ({'all' if rec['within_2se'] else 'NOT all'} ≤ 2)"
+    return (f"; |found − true|/SE: {zs} ({'all' if rec['within_2se'] else 'NOT all'} ≤ 2)"
+            + eq)
 
 
 def table(rows) -> str:
@@ -216,7 +308,7 @@ def table(rows) -> str:
            "search; its model runs) |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            out.append(f"| {r['case']} | error: {r['error']} | | | | | |")
+            out.append(f"| {r['case']} (seed {r.get('seed')}) | error: {r['error']} | | | | | |")
             continue
         n = r["noise_um"]
         cs = ", ".join(f"{k} = {v['value']:.4g}" + (f" ± {v['stderr']:.2g}" if v.get("stderr")
@@ -225,7 +317,8 @@ def table(rows) -> str:
         law = (f"`{r['law_formula']}` ({cs}) **{r.get('law_status')}**{_recovered(r)}"
                if r.get("law_formula") else "none")
         verdict = r["verdict"] + (f" ({', '.join(r['partial'])})" if r.get("partial") else "")
-        out.append(f"| {r['case']}: {r['expect']} | {verdict} | {law} | "
+        out.append(f"| {r['case']} (seed {r.get('seed')}, {r.get('design', 'paper')}): "
+                   f"{r['expect']} | {verdict} | {law} | "
                    f"{_f(r.get('rmse_base'))} → {_f(r.get('rmse_shape'))} → "
                    f"{_f(r.get('law_rmse'))}{_pct(r.get('law_rmse'), n)} | "
                    f"{_f(r.get('loo_base'))} → {_f(r.get('law_loo'))} | "
@@ -235,37 +328,232 @@ def table(rows) -> str:
     return "\n".join(out)
 
 
+def tag(case: str, seed: int, design: str) -> str:
+    """The name of one run's folder, log and JSON in --work."""
+    return f"{case}-s{seed}-{design}"
+
+
+def summary(rows, unfinished=()) -> str:
+    """Recovery over the grammar's cases that finished: the found law's constants within
+    2 SE, and the truth among the found law and its equivalents; runs left unfinished."""
+    g = [r for r in rows if r.get("case") in GRAMMAR and r.get("recovery")]
+    k1 = sum(bool(r["recovery"]["within_2se"]) for r in g)
+    k2 = sum(bool(r["recovery"].get("among_equivalents")) for r in g)
+    found = sum(r.get("law_status") == "found" for r in g)
+    out = [f"- grammar runs finished: {len(g)}; law found: {found}; the found law's constants "
+           f"within 2 SE: **{k1} of {len(g)}**; the truth among the found law and its "
+           f"equivalents: **{k2} of {len(g)}**"]
+    for case in dict.fromkeys(r["case"] for r in g):
+        rc = [r for r in g if r["case"] == case]
+        out.append(f"  - {case}: {sum(r['recovery']['within_2se'] for r in rc)} / "
+                   f"{sum(bool(r['recovery'].get('among_equivalents')) for r in rc)} of "
+                   f"{len(rc)} (seeds {', '.join(str(r['seed']) for r in rc)})")
+    errs = [r for r in rows if "error" in r]
+    if errs:
+        out.append("- errors: " + "; ".join(f"{r['case']} seed {r.get('seed')}: {r['error']}"
+                                             for r in errs))
+    if unfinished:
+        out.append("- not finished within the budget: " + ", ".join(unfinished))
+    cpu = [r["cpu_s"] for r in rows if r.get("cpu_s") is not None]
+    if cpu:
+        out.append(f"- CPU per run (user + sys, the run and its subprocesses): "
+                   f"{min(cpu):.0f}-{max(cpu):.0f} s, total {sum(cpu):.0f} s")
+    return "\n".join(out)
+
+
+def _cpu_s() -> float:
+    """CPU seconds (user + sys) of this process and its waited-for subprocesses."""
+    import resource
+
+    a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+
+def child_env(threads: int) -> dict:
+    """The environment of one run of the parallel runner: the repository on PYTHONPATH (no
+    install needed), the CPU platform unless told otherwise, one XLA host device and
+    `threads` threads for the BLAS and OpenMP pools."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"]
+                                     if env.get("PYTHONPATH") else "")
+    env.setdefault("JAX_PLATFORMS", "cpu")
+    flags = [f for f in env.get("XLA_FLAGS", "").split()
+             if not f.startswith("--xla_force_host_platform_device_count")]
+    env["XLA_FLAGS"] = " ".join(flags + ["--xla_force_host_platform_device_count=1"])
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+              "NUMEXPR_NUM_THREADS"):
+        env[k] = str(threads)
+    return env
+
+
+def run_parallel(cases, seeds, design: str, work: Path, *, jobs: int, threads: int,
+                 budget_s: float | None, quick: bool, other: bool,
+                 min_run_s: float = 0.0) -> tuple[list, list]:
+    """cases x seeds in `jobs` subprocesses (this script with --one), each pinned to its
+    own `threads` CPUs where there are enough (its subprocesses inherit them), seed by
+    seed (every case's first seed first). `budget_s`: no run is launched after
+    `budget_s − min_run_s` seconds of wall, and runs still going at `budget_s` are
+    stopped (their process group terminated) and listed as unfinished. Returns (rows of
+    the runs that wrote their JSON, tags not finished)."""
+    import signal
+    import subprocess
+
+    todo = [(c, s) for s in seeds for c in cases]
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    pin = len(cpus) >= jobs * threads > 0
+    free = list(range(jobs))
+    running, launched, unfinished = {}, [], []
+    t0 = time.monotonic()
+    env = child_env(threads)
+
+    def elapsed():
+        return time.monotonic() - t0
+
+    while todo or running:
+        while (todo and free and (budget_s is None or elapsed() < budget_s - min_run_s)):
+            case, seed = todo.pop(0)
+            slot = free.pop(0)
+            name = tag(case, seed, design)
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--one", f"{case}:{seed}",
+                   "--design", design, "--work", str(work)]
+            cmd += ["--quick"] if quick else []
+            cmd += [] if other else ["--skip-other"]
+            mine = set(cpus[slot * threads:(slot + 1) * threads]) if pin else None
+            log = open(work / f"{name}.log", "w")
+            p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                 start_new_session=True,
+                                 preexec_fn=(lambda m=mine: os.sched_setaffinity(0, m))
+                                 if mine else None)
+            running[name] = (p, slot, log)
+            launched.append((name, case, seed))
+            print(f"[{elapsed():6.0f} s] start {name} (slot {slot}"
+                  + (f", CPUs {sorted(mine)}" if mine else "") + ")", flush=True)
+        for name, (p, slot, log) in list(running.items()):
+            if p.poll() is not None:
+                log.close()
+                free.append(slot)
+                del running[name]
+                print(f"[{elapsed():6.0f} s] done {name} (rc {p.returncode})", flush=True)
+        if budget_s is not None and elapsed() >= budget_s and running:
+            for name, (p, slot, log) in running.items():
+                try:
+                    os.killpg(p.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+            for name, (p, slot, log) in running.items():
+                try:
+                    p.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
+                log.close()
+                unfinished.append(name)
+                print(f"[{elapsed():6.0f} s] stopped {name} (the budget)", flush=True)
+            running.clear()
+        if not running and (not todo or (budget_s is not None
+                                         and elapsed() >= budget_s - min_run_s)):
+            break
+        time.sleep(1.0)
+    unfinished += [tag(c, s, design) + " (not started)" for c, s in todo]
+    rows = []
+    for name, case, seed in launched:
+        f = work / f"{name}.json"
+        if f.exists():
+            rows.append(json.loads(f.read_text()))
+        elif name not in unfinished:
+            rows.append({"case": case, "seed": seed, "design": design,
+                         "error": f"no JSON; see {name}.log"})
+    return rows, unfinished
+
+
+def write_table(rows, unfinished, work: Path, design: str, out=None) -> str:
+    text = table(rows) + "\n\n" + summary(rows, unfinished)
+    print(text)
+    dest = Path(out) if out else work / f"law_validation-{design}.md"
+    dest.write_text(text + "\n")
+    dest.with_suffix(".json").write_text(json.dumps({"rows": rows, "unfinished": unfinished},
+                                                    indent=1, default=str))
+    print(f"wrote {dest} and {dest.with_suffix('.json')}")
+    return text
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default=",".join(CASES))
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=1, help="one seed (see --seeds)")
+    ap.add_argument("--seeds", default=None, help="seeds, e.g. 1,2,3,4 (default: --seed)")
+    ap.add_argument("--design", choices=("paper", "rich"), default="paper",
+                    help="the training study: the paper's matrix, or RICH (8 specimens "
+                         "spanning the states more widely, scans at 6 revolution counts)")
     ap.add_argument("--work", default="out/law_validation")
-    ap.add_argument("--out", default=None, help="markdown table (JSON beside it)")
+    ap.add_argument("--out", default=None, help="markdown table (JSON beside it; default "
+                                                "WORK/law_validation-DESIGN.md)")
     ap.add_argument("--quick", action="store_true",
                     help="cheap numerics (generator 96 x 144, M 100; study 48 x 72)")
+    ap.add_argument("--skip-other", action="store_true",
+                    help="no carrying of law.py to the other conditions (recovery only)")
+    ap.add_argument("--jobs", type=int, default=0,
+                    help="run cases x seeds in N subprocesses (0: one after another here)")
+    ap.add_argument("--threads", type=int, default=2, help="CPUs per subprocess (--jobs)")
+    ap.add_argument("--budget-s", type=float, default=None,
+                    help="wall budget (--jobs): no run started after BUDGET − MIN_RUN, "
+                         "runs still going at BUDGET stopped; the table of what finished "
+                         "is written")
+    ap.add_argument("--min-run-s", type=float, default=0.0,
+                    help="no run started with less than this left of --budget-s")
+    ap.add_argument("--one", default=None, help=argparse.SUPPRESS)  # CASE:SEED (--jobs)
     ap.add_argument("--table", action="store_true",
-                    help="only the table of the cases' JSON already in --work")
+                    help="only the table of the runs' JSON already in --work")
     a = ap.parse_args(argv)
+    # `python -m jaxwear` in the subprocesses finds this repository without an install
+    os.environ["PYTHONPATH"] = str(ROOT) + (os.pathsep + os.environ["PYTHONPATH"]
+                                            if os.environ.get("PYTHONPATH") else "")
+    cases = a.cases.split(",")
+    unknown = [c for c in cases if c not in EXPECT]
+    if unknown:
+        ap.error(f"unknown case(s) {unknown}; expected some of {list(EXPECT)}")
+    seeds = [int(x) for x in (a.seeds.split(",") if a.seeds else [a.seed])]
+    work = Path(a.work)
+    work.mkdir(parents=True, exist_ok=True)
     if a.table:
-        rows = [json.loads((Path(a.work) / f"{c}.json").read_text())
-                for c in a.cases.split(",") if (Path(a.work) / f"{c}.json").exists()]
-        print(table(rows))
+        rows = [json.loads((work / f"{tag(c, s, a.design)}.json").read_text())
+                for s in seeds for c in cases
+                if (work / f"{tag(c, s, a.design)}.json").exists()]
+        write_table(rows, [], work, a.design, a.out)
         return
     numerics = ({"generator": ["--nodes", "96", "--steps", "144", "--M", "100"],
                  "study": "48x72"} if a.quick else {})
-    work = Path(a.work)
-    work.mkdir(parents=True, exist_ok=True)
+    if a.one:
+        case, seed = a.one.rsplit(":", 1)
+        name = tag(case, int(seed), a.design)
+        try:
+            row = run_case(case, int(seed), work / name, numerics, a.design,
+                           other=not a.skip_other)
+        except Exception as e:  # noqa: BLE001 (a run's failure is a row of the table)
+            row = {"case": case, "seed": int(seed), "design": a.design,
+                   "error": f"{type(e).__name__}: {e}"}
+        row["cpu_s"] = _cpu_s()
+        (work / f"{name}.json").write_text(json.dumps(row, indent=1, default=str))
+        return
+    if a.jobs > 0:
+        rows, unfinished = run_parallel(cases, seeds, a.design, work, jobs=a.jobs,
+                                        threads=a.threads, budget_s=a.budget_s,
+                                        quick=a.quick, other=not a.skip_other,
+                                        min_run_s=a.min_run_s)
+        write_table(rows, unfinished, work, a.design, a.out)
+        return
     rows = []
-    for case in a.cases.split(","):
-        print(f"== {case}", flush=True)
-        rows.append(run_case(case, a.seed, work, numerics))
-        print(json.dumps(rows[-1], indent=1, default=str)[:4000], flush=True)
-        (work / f"{case}.json").write_text(json.dumps(rows[-1], indent=1, default=str))
-    text = table(rows)
-    print(text)
-    if a.out:
-        Path(a.out).write_text(text + "\n")
-        Path(a.out).with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str))
+    for seed in seeds:
+        for case in cases:
+            print(f"== {case} seed {seed}", flush=True)
+            name = tag(case, seed, a.design)
+            row = run_case(case, seed, work / name, numerics, a.design,
+                           other=not a.skip_other)
+            row["cpu_s"] = _cpu_s()  # cumulative in this process
+            rows.append(row)
+            print(json.dumps(row, indent=1, default=str)[:4000], flush=True)
+            (work / f"{name}.json").write_text(json.dumps(row, indent=1, default=str))
+    write_table(rows, [], work, a.design, a.out)
 
 
 if __name__ == "__main__":

@@ -164,3 +164,31 @@ def test_the_grammars_laws_are_their_formulas():
         law = hp.Law(name, hp.DEFAULT_STRENGTH[name])
         np.testing.assert_allclose(law.rate_factor(p, v, h, 50.0)[0], w, rtol=1e-12,
                                    err_msg=name)
+
+
+def test_the_grammars_deposit_is_per_step_of_the_studys_cycle():
+    """`g_dep_power_W`: the depth laid over the bore per revolution, Σ_j d_j Δθ, is D 1e-9
+    (N_s/2π) ∫ (|W(φ)|/W1)^q dφ (the grammar's Σ over N_s steps of D Φ_i, its kernel
+    normalised to 1 over the bore), here by the midpoint rule over 20000 crank angles
+    with the generator's load (SCLA); it does not depend on the generator's own sweep
+    resolution or nodes, and is laid where the load points."""
+    cond = hp.PAPER[0]
+    law = hp.Law("g_dep_power_W", 2e-3, g_W1_N=150.0, g_dep_exponent=2.0, g_dep_steps=72.0)
+    omega = 2 * math.pi * cond.speed_rpm / 60.0
+    phi = (np.arange(20000) + 0.5) * 2 * math.pi / 20000
+    force, theta_w, _ = hp.load_at(phi, omega, 0.05e-3, cond.spring_N_per_m,
+                                   cond.crank_length_mm * 1e-3)
+    w = np.hypot(force[:, 0], force[:, 1])
+    want = 2e-3 * 1e-9 * 72.0 / (2 * math.pi) * np.sum((w / 150.0) ** 2) * 2 * math.pi / 20000
+    for nodes, sweep in ((96, 5.0), (180, 1.0)):
+        d = hp.grammar_deposit(law, cond, 0.05e-3, nodes, sweep)
+        assert abs(d.sum() * 2 * math.pi / nodes / want - 1) < 2e-3, (nodes, sweep)
+    # most of it where the load points longest: the node of the largest deposit within
+    # 10° of the load-time-weighted direction's mode
+    d = hp.grammar_deposit(law, cond, 0.05e-3, 180, 1.0)
+    hist, edges = np.histogram(np.mod(np.degrees(theta_w), 360.0), bins=36, range=(0, 360),
+                               weights=w ** 2)
+    mode = edges[np.argmax(hist)] + 5.0
+    peak = np.argmax(d) * 2.0
+    assert abs((peak - mode + 180.0) % 360.0 - 180.0) <= 10.0
+    assert not hp.grammar_deposit(hp.Law("g_power_p", 1.0), cond, 0.05e-3, 96, 5.0).any()

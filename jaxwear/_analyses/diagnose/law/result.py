@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from jaxwear._analyses.diagnose.law.equivalent import equivalents_sentence
 from jaxwear._core.jsonfmt import json_float as _num
 from jaxwear._physics.effects.law import LawSpec, formula
 
@@ -90,6 +91,12 @@ class LawResult:
     shape_loo_um: float | None = None  # its left-out-experiment RMSE, where computed
     refused: tuple = ()  # `LawFit`s fitted but refused (unbounded: `LawFit.refused`)
     ranges: dict = field(default_factory=dict)  # variable -> (lo, hi): the states met
+    # `LawFit`s of another structure whose left-out RMSE is within one standard error of
+    # the best's (`law.equivalent.equivalents`): the data do not tell them from it
+    equivalents: tuple = ()
+    # for each equivalent, where its rate and the best's part most
+    # (`law.equivalent.separation`: a dict, or None)
+    separations: tuple = ()
 
     @property
     def worse_than_shape(self) -> bool:
@@ -130,6 +137,10 @@ class LawResult:
         """"found" where the best law predicts (`lead_reasons` empty), else "lead"."""
         return "found" if self.best is not None and not self.lead_reasons else "lead"
 
+    def _separations(self) -> list:
+        return list(self.separations) + [None] * (len(self.equivalents)
+                                                  - len(self.separations))
+
     @property
     def front(self) -> list:
         """The fitted laws' complexity (number of fitted constants) against their left-out
@@ -164,6 +175,8 @@ class LawResult:
                 "shape_rmse_um": _num(self.shape_rmse_um),
                 "shape_loo_rmse_um": _num(self.shape_loo_um),
                 "worse_than_shape": self.worse_than_shape,
+                "equivalents": [{**_law_json(f), "separation": sep} for f, sep in
+                                zip(self.equivalents, self._separations())],
                 "undetermined": [] if b is None else list(b.undetermined),
                 "candidates": [f.to_json() for f in self.fitted],
                 "refused": [{"formula": f.formula, "reason": f.refused}
@@ -173,7 +186,21 @@ class LawResult:
                 "screened": self.screened,
                 "model_evaluations": self.extra.get("model_evaluations"),
                 "wall_s": self.wall_s,
-                "cpu_s": self.extra.get("cpu_s"), "summary": self.sentence}
+                "cpu_s": self.extra.get("cpu_s"),
+                # the fits after a law at the noise (`law.search.PEERS`) and their cost
+                "peer_fits": self.extra.get("peer_fits"),
+                "peer_model_evaluations": self.extra.get("peer_model_evaluations"),
+                "peer_cpu_s": self.extra.get("peer_cpu_s"), "summary": self.sentence}
+
+
+def _law_json(f: LawFit) -> dict:
+    """An equivalent law (`LawResult.equivalents`) in JSON: its formula, constants ± SE and
+    errors."""
+    return {"formula": f.formula, "label": f.law.label, "form": f.law.form,
+            "constants": {k: {"value": _num(v), "stderr": _num(s), "unit": u}
+                          for k, (v, s, u) in f.constants.items()},
+            "rmse_um": _num(f.rmse_um), "loo_rmse_um": _num(f.loo_rmse_um),
+            "complexity": f.complexity, "undetermined": list(f.undetermined)}
 
 
 def _fmt(x) -> str:
@@ -185,12 +212,17 @@ def law_sentence(res: LawResult) -> str:
     reaches in-sample and on left-out experiments against the noise; where it is worse
     than the shape (`LawResult.worse_than_shape`), that first; a law that does not predict
     (`LawResult.status` "lead") is called a lead with the reasons, never the law found;
-    constants the data do not determine, named; refused laws (unbounded), named."""
+    constants the data do not determine, named; laws of another structure the data do not
+    tell from it (`LawResult.equivalents`), named with where they part; refused laws
+    (unbounded), named."""
     b = res.best
     refused = ("" if not res.refused else " Refused as unbounded where a prediction goes: "
                + "; ".join(f"{f.law.label} ({f.refused})" for f in res.refused) + ".")
     if b is None:
         return "No law of the grammar could be fitted through the wear loop." + refused
+    if res.equivalents:
+        eq = equivalents_sentence(b, list(res.equivalents), res._separations())
+        refused = (" " + eq if eq else "") + refused
     cs = ", ".join(f"{k} = {_value(v, s)}{'' if u == '-' else ' ' + u}"
                    for k, (v, s, u) in b.constants.items())
     lo = (f", on left-out experiments {b.loo_rmse_um:.3f} µm (base "

@@ -21,11 +21,15 @@ core, guarded, and ranked by their error on left-out experiments.
    diagnose's combined test, the constants its data do not determine (`undetermined`),
    and is refused where its fitted constants make it unbounded. Once one passes the
    combined test, or a law of two variables reaches the shape's refitted RMSE
-   (`as_shape`), the rest are not fitted. Then, where the history shows or no law of the
+   (`as_shape`), the rest are not fitted, but for one of the same complexity as the law
+   at the noise (`PEERS`, `peer_pick`: the next of the screen's picks, else the screen's
+   best such structure), which may tie with it. Then, where the history shows or no law of the
    present states reaches the noise, laws with memory: a per-node damage or film the
    cycle drives (`law.memory`).
 3. **Ranking** (`rank`): the simplest law within one standard error (`loo_se`) of the best
-   left-out RMSE; `LawResult.front` is complexity against left-out RMSE.
+   left-out RMSE; `LawResult.front` is complexity against left-out RMSE; the laws of
+   another structure within one standard error of the answer's left-out RMSE are its
+   `equivalents`, each with the state where the two part (`law.equivalent`).
 4. **Found or a lead** (`LawResult.status`, DESIGN §7): found only where the law's
    left-out RMSE is below the base model's (by the same checked rule, through the law
    model with the law off: `law_off`), its RMSE within `LAW_WORSE` of the shape's refitted
@@ -45,6 +49,7 @@ from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._refit import _tests_for
 from jaxwear._analyses.diagnose._stats import neighbour_pairs
+from jaxwear._analyses.diagnose.law.equivalent import equivalents, separation
 from jaxwear._analyses.diagnose.law.memory import after, memory_candidates
 from jaxwear._analyses.diagnose.law.result import (  # noqa: F401 (the search's types)
     LAW_WORSE,
@@ -247,19 +252,40 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     fitted, refused = [], []
     pairs = neighbour_pairs(model)
     lb_map, runs = {}, 0
+    peers = {"fits": 0, "model_evaluations": 0, "cpu_s": 0.0}
+
+    def screen_then_peer():
+        # the screen's picks, then (once one fits to noise) the screen's best structure of
+        # the same complexity not yet fitted (`peer_pick`)
+        yield from ((d, lw, "screen") for d, lw in todo)
+        pk = peer_pick(screened, fitted + refused, len(linear["rho"]))
+        if pk is not None and peers["fits"] < PEERS:
+            yield pk[0], pk[1], "peer"
+
     with searching():
         # the screen's picks, then the laws with memory, where the history shows or no law
         # of the present states reaches the noise (`law.memory`)
-        for drop, law, src in after([(d, lw, "screen") for d, lw in todo],
+        for drop, law, src in after(screen_then_peer(),
                                     lambda: memory_candidates(
                 model, fit, prefer, correction, law_model, fitted, noise_um,
                 verbose=verbose, skip=any(f.at_noise for f in fitted),
                 as_shape=as_shape(fitted, shape_rmse_um))):
+            peer = False
             if fitted and any(f.at_noise for f in fitted):
                 # a simpler law already fits to noise by diagnose's own tests: the others
-                # can at most tie with it and would lose to it by complexity
-                _log(verbose, f"    {law.label}: not fitted (a law already fits to noise)")
-                continue
+                # can at most tie with it and would lose to it by complexity; one of the
+                # same complexity (`PEERS`) is still fitted: it may tie, and then the data
+                # do not tell the two apart (`law.equivalent`)
+                k_noise = min(f.complexity for f in fitted if f.at_noise)
+                peer = (src in ("screen", "peer") and peers["fits"] < PEERS
+                        and len(law.free_keys()) == k_noise
+                        and law.label not in {f.law.label for f in fitted + refused})
+                if not peer:
+                    _log(verbose, f"    {law.label}: not fitted (a law already fits to "
+                                  f"noise)")
+                    continue
+                peers["fits"] += 1
+                c_peer, e_peer = time.process_time(), Model.evaluations
             if fitted and as_shape(fitted, shape_rmse_um) and src != "memory":
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
@@ -300,12 +326,18 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                         loo_per_experiment=per, refused=why,
                         loo_linear_um=_rms(loo(lm, f, noise_um)))
             (refused if lf.refused else fitted).append(lf)
+            if peer:
+                peers["model_evaluations"] += Model.evaluations - e_peer
+                peers["cpu_s"] += time.process_time() - c_peer
             _log(verbose, f"    {found.label}: RMSE {f.rmse:.4f} µm (start {r_start:.4f}), "
                           f"left-out {_fmt(lo)} µm, evidence {ev:.1f} ({f.status}, "
                           f"{f.evaluations} evaluations)"
                           + (f"; refused: {lf.refused}" if lf.refused else ""))
     ranked = rank(fitted)
     best = ranked[0] if ranked else None
+    equal = tuple(equivalents(ranked))
+    seps = tuple(separation(best, f, samples, ranges, getattr(model.study, "path", None))
+                 for f in equal)
     lb = _rms(lb_map) if lb_map else _rms(loo(model, fit, noise_um))
     rng = {}
     if best is not None:
@@ -317,8 +349,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                     time.perf_counter() - t0,
                     extra={"cpu_s": time.process_time() - c0,
                            "model_evaluations": Model.evaluations - e0,
-                           "loo_forward_runs": runs},
-                    shape_rmse_um=shape_rmse_um, refused=tuple(refused), ranges=rng)
+                           "loo_forward_runs": runs, "peer_fits": peers["fits"],
+                           "peer_model_evaluations": peers["model_evaluations"],
+                           "peer_cpu_s": peers["cpu_s"]},
+                    shape_rmse_um=shape_rmse_um, refused=tuple(refused), ranges=rng,
+                    equivalents=equal, separations=seps)
     return dataclasses.replace(res, sentence=law_sentence(res))
 
 
@@ -555,6 +590,32 @@ def from_fitted(law: LawSpec, fitted, linear: dict) -> LawSpec:
         phi = law_phi_numpy(LawSpec(law.form, (t2,)), {t2.variable: z})
         mean = float(np.mean(phi)) if np.all(np.isfinite(phi)) else 1.0
     return LawSpec(law.form, (first.terms[0], t2), first.strength / max(mean, 1e-3))
+
+
+# laws fitted beyond one that fits to noise: the screen's best structure of its complexity
+# not yet fitted (`peer_pick`), at most this many. Why: with the early stop alone, a law
+# of another structure that fits as well was never fitted, and the answer looked unique
+# where the data allow several (the generator's exponential of the worn depth answered by
+# a power h^1.94, the exponential itself not fitted). One fit costs ~10-25 model runs
+# (its start, its fit, its left-out checks) on the model already compiled.
+PEERS = 1
+
+
+def peer_pick(screened, fitted, n_rows: int):
+    """(χ² drop, law) of the screen's best structure (`picks`' score) with as many fitted
+    constants as the simplest law of `fitted` that fits to noise (`LawFit.at_noise`) and
+    not among `fitted`, or None (none fits to noise, or no such structure)."""
+    noise = [f for f in fitted if f.at_noise]
+    if not noise:
+        return None
+    k = min(f.complexity for f in noise)
+    done = {f.law.label for f in fitted}
+    cand = [x for x in picks(screened, n_rows, n=len(screened) or 1)
+            if len(x[1].free_keys()) == k and x[1].label not in done]
+    if not cand:
+        return None
+    price = math.log(max(n_rows, 2))
+    return max(cand, key=lambda x: x[0] - price * len(x[1].free_keys()))
 
 
 def rank(fitted) -> list:
