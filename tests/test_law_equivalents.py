@@ -54,6 +54,13 @@ def test_equivalents_are_other_structures_within_one_standard_error_of_the_answe
     assert ranked[0] is power  # the simplest within one SE; ties of complexity by evidence
     eq = equivalents(ranked)
     assert [f.law.label for f in eq] == [EXP_H.label]
+    # the answer times a term it does not need (nested): the same law, not an equivalent;
+    # the answer nested in a product it ties with: neither
+    prod = LawSpec("factor", POWER_H.terms + (Term("exp", "load_turn_rate_deg_per_s", 36.0,
+                                                    b=-0.002),), 0.19)
+    nested = _fit(prod, 0.3196, {**SE2, "law_b_2": 0.003}, PER)
+    assert [f.law.label for f in equivalents([power, nested, exp])] == [EXP_H.label]
+    assert equivalents([nested, power]) == []
     # a sharper answer: the exponential now 0.0055 above a band of 1 % (0.0032): none
     sharp = [dataclasses.replace(f, loo_per_experiment={}) for f in ranked]
     assert equivalents(sharp) == []

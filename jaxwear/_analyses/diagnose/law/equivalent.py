@@ -44,11 +44,26 @@ def loo_band(f) -> float:
     return max(se, TIE * (lo or 0.0))
 
 
+def _terms(law) -> tuple:
+    return tuple((t.kind, t.variable) for t in getattr(law, "terms", ()))
+
+
+def nests(law, inner) -> bool:
+    """`law` holds every term of `inner` (kind and variable) and more, in one form: it is
+    `inner` times a term the data may not need (on the generator's power of the pressure,
+    (p/p_ref)^a1 · exp((ω − ω_ref)/ω_e) with ω_e = −16500 ± 19100 deg/s, the same left-out
+    error to 4 digits): not another law, and not reported as one."""
+    a, b = _terms(law), _terms(inner)
+    return (law.form == inner.form and bool(b) and len(a) > len(b)
+            and all(a.count(t) >= b.count(t) for t in b))
+
+
 def equivalents(ranked) -> list:
     """The laws of `ranked` (best first, `law.search.rank`) of another structure than the
-    answer (`ranked[0]`; structure: form, kinds and variables, `LawSpec.label`) whose
-    left-out RMSE is within one standard error (`loo_band` of the answer) of the answer's,
-    best left-out first. [] where the answer has no left-out RMSE."""
+    answer (`ranked[0]`; structure: form, kinds and variables, `LawSpec.label`), neither
+    nesting it nor nested in it (`nests`), whose left-out RMSE is within one standard error
+    (`loo_band` of the answer) of the answer's, best left-out first. [] where the answer
+    has no left-out RMSE."""
     if not ranked:
         return []
     best = ranked[0]
@@ -57,6 +72,7 @@ def equivalents(ranked) -> list:
         return []
     band = loo_band(best)
     out = [f for f in ranked[1:] if f.law.label != best.law.label and not f.refused
+           and not nests(f.law, best.law) and not nests(best.law, f.law)
            and f.loo_rmse_um is not None and math.isfinite(f.loo_rmse_um)
            and abs(f.loo_rmse_um - lo) <= band]
     # one per structure (its best left-out), best left-out first
@@ -170,7 +186,9 @@ def equivalents_sentence(best, equivalents_: list, separations: list) -> str:
     for f, sep in zip(equivalents_, separations):
         s = (f"The data do not tell {best.law.label} from {f.law.label} (left-out "
              f"experiments {best.loo_rmse_um:.4f} against {f.loo_rmse_um:.4f} µm, within one "
-             f"standard error, {band:.4f} µm)")
+             f"standard error, {band:.4f} µm)"
+             + (f"; its {', '.join(f.undetermined)} not determined" if f.undetermined
+                else ""))
         if sep:
             sym = SYMBOLS.get(sep["variable"], sep["variable"])
             lo, hi = sep["range_met"]

@@ -284,8 +284,6 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                     _log(verbose, f"    {law.label}: not fitted (a law already fits to "
                                   f"noise)")
                     continue
-                peers["fits"] += 1
-                c_peer, e_peer = time.process_time(), Model.evaluations
             if fitted and as_shape(fitted, shape_rmse_um) and src != "memory":
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
@@ -294,6 +292,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 _log(verbose, f"    {law.label}: not fitted (a law of two variables already "
                               f"fits as well as the shape)")
                 continue
+            if peer:
+                peers["fits"] += 1
+                c_peer, e_peer = time.process_time(), Model.evaluations
+                _log(verbose, f"    {law.label}: fitted after a law at the noise (one of "
+                              f"its complexity, `PEERS`)")
             if src == "memory":  # its start already chosen by forward runs (`law.memory`)
                 r_start = math.nan
             else:
