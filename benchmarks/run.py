@@ -16,8 +16,8 @@ repeats, interleaved where two things are compared, wall time and process CPU ti
 - `adaptive_rig_s` / `adaptive_boom_s`: the default (adaptive) integrator, no M, through
   `jaxwear.simulate`: the rig case above and the boom (25 h of the paper's duty cycle at
   K_d 3.8e-13, 360 x 360), with their errors against eq 23 at M = 1 and the integrator's
-  own estimate; `*_fusion_s` the same with XLA:CPU's default (fusion) emitters, interleaved
-  with the legacy emitters jaxwear's programs ask for (`jaxwear._core.jit`);
+  own estimate; `*_fusion_s` the same on XLA:CPU's fusion emitters with the reassociation
+  jaxwear asks for there, interleaved with the legacy emitters (`jaxwear._core.jit`);
   `adaptive_grad_over_forward`: `jax.grad` of a scalar loss of (K_d, clearance) through it.
 - `grad_over_forward`: `jax.grad` of a 5-experiment calibration loss over its forward time.
 - `sweep_speedup`: a 16x16 speed x clearance sweep, `jit(vmap(wear_loop))` vs 256 calls of
@@ -84,10 +84,13 @@ TARGETS = {  # key: (target, "<=" or ">=", unit)
     "adaptive_grad_over_forward": (3, "<=", "x")}
 TARGETS["sweep_speedup"] = (1, ">=", "x")  # issue 50: batched at least as fast as singles
 
-# XLA:CPU's emitter families, compared in one process: jaxwear's per-program options
-# (`jaxwear._core.jit`: the legacy emitters at LLVM's O1) against none (XLA's default
-# fusion emitters at O2).
-FAMILIES = {"legacy": {**jwjit.LEGACY_EMITTERS, **jwjit.FAST_COMPILE}, "fusion": None}
+# XLA:CPU's emitter families, compared in one process, each with jaxwear's per-program
+# options for it (`jaxwear._core.jit`): the legacy emitters at LLVM's O1, and the fusion
+# emitters (jaxlib >= 0.11 has no other) with reassociation at O1. On a jaxlib without the
+# legacy emitters both columns run the fusion emitters. `python -c` with
+# `jwjit.options(None)` gives XLA's plain defaults (fusion emitters, no reassociation, O2).
+FAMILIES = {"legacy": {**jwjit.LEGACY_EMITTERS, **jwjit.FAST_COMPILE},
+            "fusion": {**jwjit.FUSION_REASSOC, **jwjit.FAST_COMPILE}}
 
 
 def log(msg):
@@ -648,7 +651,7 @@ def main(argv=None):
                 f"M = 1 (estimate {d['estimate_um']:.2g} µm); cpu "
                 f"{fmt(T.cpu(f'adaptive {name} [legacy]'))}")
             extra["how"][f"adaptive_{name}_fusion_s"] = (
-                f"the same, XLA:CPU's default fusion emitters, interleaved; cpu "
+                f"the same, XLA:CPU's fusion emitters with reassociation, interleaved; cpu "
                 f"{fmt(T.cpu(f'adaptive {name} [fusion]'))}")
         extra["how"]["adaptive_grad_over_forward"] = (
             f"Σh³/Σh² of the rig run in (K_d, clearance): grad "

