@@ -130,3 +130,34 @@ def test_equivalents_in_the_json_and_the_sentence():
     assert doc["status"] in ("found", "lead")  # the found/lead rule is the answer's alone
     solo = LawResult(power, (power,), 100, 0.30, 0.39, 0.40, 1.0, shape_rmse_um=0.314)
     assert solo.to_json()["equivalents"] == [] and solo.status == res.status
+
+
+def test_a_lead_best_law_gives_its_determined_neighbours_to_fit():
+    from jaxwear._analyses.diagnose.law.search import pruned
+
+    # the rich design's g_power_p (seed 1): exp(ω)·hinge(p) at the shape's RMSE with ω's
+    # rate and the hinge's threshold undetermined: the power of p alone is its neighbour,
+    # starting at the exponent the lead fitted
+    lead = LawSpec("factor", (Term("exp", "load_turn_rate_deg_per_s", 39.0, b=5e-4),
+                              Term("hinge", "pressure_MPa", 1.08, x0=0.17, a=1.88)), 0.62)
+    se = {"law_gain": 0.28, "law_b_2": 1.0, "law_b_1": 1.0, "law_x0_2": 0.33,
+          "law_a_2": 0.38}
+    f = _fit(lead, 0.3109, se)
+    assert set(f.undetermined) >= {"omega_e", "p0"}
+    got = pruned([f])
+    assert [g.label for g in got] == ["factor: power(pressure_MPa)"]
+    assert got[0].terms[0].a == 1.88 and got[0].terms[0].ref == 1.08
+    # already fitted (its label done): nothing left to try
+    assert pruned([f], done={"factor: power(pressure_MPa)"}) == []
+    # a determined best law, or a lead whose every term is undetermined: nothing
+    assert pruned([_fit(POWER_P, 0.31, {"law_gain": 0.05, "law_a_1": 0.1})]) == []
+    bad = _fit(POWER_P, 0.31, {"law_gain": 0.05, "law_a_1": 3.0})
+    assert bad.undetermined == ("a1",) and pruned([bad]) == []
+    # a product whose one term is undetermined: the other alone
+    two = LawSpec("factor", (Term("step", "pressure_MPa", 1.5, x0=1.06, w=0.09),
+                             Term("step", "load_turn_rate_deg_per_s", 100.0, x0=0.02,
+                                  w=1.1)), 2.4)
+    se2 = {"law_gain": 0.2, "law_x0_1": 0.02, "law_w_1": 0.01, "law_x0_2": 0.16,
+           "law_w_2": 0.3}
+    g = pruned([_fit(two, 0.3126, se2)])
+    assert [x.label for x in g] == ["factor: step(pressure_MPa)"]

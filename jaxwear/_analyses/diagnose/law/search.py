@@ -261,6 +261,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
         pk = peer_pick(screened, fitted + refused, len(linear["rho"]))
         if pk is not None and peers["fits"] < PEERS:
             yield pk[0], pk[1], "peer"
+        # a best law whose constants the data do not determine: its determined neighbours
+        # (`pruned`), so that a lead does not stand where a simpler law predicts as well
+        done = {f.law.label for f in fitted + refused}
+        for lw in pruned(rank(fitted), done)[:PRUNED]:
+            yield math.nan, lw, "pruned"
 
     with searching():
         # the screen's picks, then the laws with memory, where the history shows or no law
@@ -271,7 +276,10 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 verbose=verbose, skip=any(f.at_noise for f in fitted),
                 as_shape=as_shape(fitted, shape_rmse_um))):
             peer = False
-            if fitted and any(f.at_noise for f in fitted):
+            if src == "pruned":
+                _log(verbose, f"    {law.label}: fitted as the determined neighbour of a "
+                              f"law whose constants the data do not determine")
+            elif fitted and any(f.at_noise for f in fitted):
                 # a simpler law already fits to noise by diagnose's own tests: the others
                 # can at most tie with it and would lose to it by complexity; one of the
                 # same complexity (`PEERS`) is still fitted: it may tie, and then the data
@@ -284,7 +292,8 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                     _log(verbose, f"    {law.label}: not fitted (a law already fits to "
                                   f"noise)")
                     continue
-            if fitted and as_shape(fitted, shape_rmse_um) and src != "memory":
+            if fitted and as_shape(fitted, shape_rmse_um) and src not in ("memory",
+                                                                          "pruned"):
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
                 # fitted after the step in p·v (0.316 µm, the shape 0.317) reached 0.400
@@ -299,6 +308,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                               f"its complexity, `PEERS`)")
             if src == "memory":  # its start already chosen by forward runs (`law.memory`)
                 r_start = math.nan
+            elif src == "pruned":
+                # from the constants the lead fitted (the term kept), else the screen's
+                law, r_start = start_of(model, fit, [law] + variants(screened, law))
             else:
                 started = from_fitted(law, fitted, linear)
                 law, r_start = start_of(model, fit, [started] if started is not law
@@ -619,6 +631,50 @@ def peer_pick(screened, fitted, n_rows: int):
         return None
     price = math.log(max(n_rows, 2))
     return max(cand, key=lambda x: x[0] - price * len(x[1].free_keys()))
+
+
+# determined neighbours of an undetermined best law fitted (`pruned`), at most this many.
+# Why: on the rich design's power of the pressure (the generator's (p/1.5 MPa)², two
+# seeds), the screen's first pick was a product, exp(ω)·hinge(p) or step(ω)·power(p), that
+# fitted at the shape's RMSE with ω's and the hinge's constants undetermined: a lead, and
+# the early stop left the power of p alone unfitted.
+PRUNED = 2
+
+
+def pruned(ranked, done=frozenset()) -> list:
+    """The determined neighbours of the best law of `ranked` (`rank`'s order) where its
+    constants are not all determined (`LawFit.undetermined`), simplest first: each term
+    holding an undetermined constant dropped, and a hinge whose threshold is undetermined
+    made the power of its variable (the hinge nests it at z0 = 0). The terms kept start
+    at the lead's fitted constants. Laws labelled in `done` (fitted or refused) are left
+    out; [] where the best law is determined or nothing simpler is left."""
+    if not ranked or not ranked[0].undetermined or getattr(ranked[0].law, "memory", False):
+        return []
+    law, und = ranked[0].law, set(ranked[0].undetermined)
+    kept, changed = [], False
+    for k, t in enumerate(law.terms, 1):
+        sym = SYMBOLS[t.variable]
+        names = {"power": {f"a{k}"}, "hinge": {f"a{k}", f"{sym}0"},
+                 "step": {f"{sym}0", f"{sym}_width"}, "exp": {f"{sym}_e"}}[t.kind]
+        bad = names & und
+        if not bad:
+            kept.append(t)
+        elif t.kind == "hinge" and bad == {f"{sym}0"}:
+            kept.append(dataclasses.replace(t, kind="power", x0=1.0))
+            changed = True
+        else:
+            changed = True
+    if not changed or not kept:
+        return []
+    out = [LawSpec(law.form, tuple(kept), law.strength)]
+    if len(kept) == 2:  # each of the two terms alone too
+        out += [LawSpec(law.form, (t,), law.strength) for t in kept]
+    seen, res = set(done), []
+    for lw in out:
+        if lw.label not in seen:
+            seen.add(lw.label)
+            res.append(lw)
+    return res
 
 
 def rank(fitted) -> list:
