@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import FitError, InputError
+from jaxwear._core.host import to_device
 from jaxwear._core.log import log as _log
 from jaxwear._core.noise import stated_noise
 from jaxwear._inference import lsq
@@ -446,5 +447,10 @@ def at_tolerance(problem: ResidualModel, tol_um: float) -> ResidualModel:
     if not sched.adaptive:
         return problem
 
+    tol = sched.tolerance
+    if getattr(tol, "weak_type", False):  # as built elsewhere: keep its type (one program)
+        return problem.with_schedule(dataclasses.replace(
+            sched, tolerance=jnp.full_like(tol, tol_um * 1e-6)))
+    # on the host: eager `full_like` compiled a program of its own
     return problem.with_schedule(dataclasses.replace(
-        sched, tolerance=jnp.full_like(sched.tolerance, tol_um * 1e-6)))
+        sched, tolerance=to_device(np.full(np.shape(tol), tol_um * 1e-6, np.float64))))
