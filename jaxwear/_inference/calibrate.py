@@ -35,6 +35,7 @@ from jaxwear._inference.attempts import attempts_needed, needs_more_attempts, wo
 from jaxwear._inference.evaluation import (
     Evaluation,
     Forward,
+    compile_forward,
     evaluate,
     forward_run,
     integration_report,
@@ -222,8 +223,14 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
         result = _fit_at(study, keys, start, layout, **kw)
         result.resolution = res.given(study)
     else:
-        result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
-        result = correct_to_finer(study, keys, result, layout, **kw)
+        # the check's forward program at the next level compiles while the coarse fit runs
+        compiling = {1: _compile_level(study, keys, start, layout, 1)}
+        try:
+            result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
+            result = correct_to_finer(study, keys, result, layout, compiling=compiling, **kw)
+        finally:
+            for c in compiling.values():  # no compilation left running past the answer
+                c.wait()
     result.compiles = traces_since(before)
     result.outside = parameter_flags(result.names, result.values, study.preset)
     result.flags[:0] = [f for f in result.outside if f not in result.flags]  # first
@@ -233,8 +240,15 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
 MAX_CORRECTIONS = 4  # defect corrections towards one level before it is called unsettled
 
 
+def _compile_level(study: Study, keys, start, layout, i: int):
+    """The forward program of `study`'s problem at `res.LEVELS[i]`, compiling in the
+    background (`evaluation.compile_forward`)."""
+    return compile_forward(lambda: build_problem(res.at_level(study, res.LEVELS[i]), keys,
+                                                 start, layout=layout))
+
+
 def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | None = None,
-                     **fit_kw) -> FitResult:
+                     compiling: dict | None = None, **fit_kw) -> FitResult:
     """`result` (a fit at the coarsest level) checked against the finer levels, and
     corrected to them where needed, by forward runs there only (design.md §6).
 
@@ -251,7 +265,11 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     with its Jacobian (no recompilation), δ recomputed at the new answer, until the finer
     level moves no parameter by 0.1 SE; the answer is then that level's (its residuals,
     fitted rows and snapshots), and it is checked against the next finer level the same
-    way. The finest level is not checked against a finer one (flagged)."""
+    way. The finest level is not checked against a finer one (flagged).
+
+    `compiling`: level index -> its forward program compiling in the background
+    (`evaluation.Compiling`), waited for before that level's first run; the next level's
+    starts compiling here when a defect correction begins (the check will follow)."""
 
     verbose = fit_kw.get("verbose")
     levels = res.LEVELS
@@ -266,8 +284,11 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     report = None
     t_start = time.perf_counter()
     finest_s, finest_runs = 0.0, 0  # forward runs at the finest level, and their time
+    compiling = {} if compiling is None else compiling
     for i in range(1, len(levels)):
         fine = build_problem(res.at_level(base, levels[i]), keys, start, layout=layout)
+        if i in compiling:
+            compiling[i].wait()
         ratio, tries, still = math.inf, 0, False
         while True:
             t0 = time.perf_counter()
@@ -296,6 +317,8 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
                           + ("" if ok else f" (> {res.FIT_SE_TOL:g}): defect correction"))
             if ok or tries >= MAX_CORRECTIONS or not result.converged:
                 break
+            if i + 1 < len(levels) and i + 1 not in compiling:
+                compiling[i + 1] = _compile_level(base, keys, start, layout, i + 1)
             tries += 1
             corrections += 1
             refit = fit(coarse.with_defect(coarse.defect + shift), result.u,
