@@ -104,8 +104,8 @@ def check_noise_determined(problem: ResidualModel, noise_um: float | None, *, hi
 
 def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
-        label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None
-        ) -> FitResult:
+        label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None,
+        on_start=None) -> FitResult:
     """Least-squares fit through the one core (`_inference.lsq.solve`), then standard errors,
     correlations and flags.
 
@@ -120,6 +120,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
     - `se_tol`: the stop, as a fraction of a standard error (`lsq.solve`).
     - `ev0`: the problem's evaluation at `u0` when known (no start evaluation, no robust
       start: a refit from an answer).
+    - `on_start`: called with no arguments once the checks made before any evaluation
+      have passed (`fit_study` starts compiling the resolution check's program there).
 
     Raises `InputError` before any evaluation when σ is not given and the data rows do not
     outnumber the fitted parameters; `FitError` when no start can be evaluated.
@@ -127,6 +129,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
     given = problem.noise_um if noise_um is None else noise_um
     check_noise_determined(problem, given, hint="[fit] noise_um")
     noise = stated_noise(problem.data, given)
+    if on_start is not None:
+        on_start()
     P = problem.packing.size
     u = np.zeros(P) if u0 is None else np.asarray(u0, np.float64)
     log = (lambda m: _log(True, m)) if verbose else None
@@ -223,10 +227,17 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
         result = _fit_at(study, keys, start, layout, **kw)
         result.resolution = res.given(study)
     else:
-        # the check's forward program at the next level compiles while the coarse fit runs
-        compiling = {1: _compile_level(study, keys, start, layout, 1)}
+        # the check's forward program at the next level compiles while the coarse fit runs,
+        # from when the fit has passed what it refuses before any evaluation (no program
+        # compiled for an answer that is an input error)
+        compiling: dict = {}
+
+        def start_compiling():
+            compiling[1] = _compile_level(study, keys, start, layout, 1)
+
         try:
-            result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
+            result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout,
+                             on_start=start_compiling, **kw)
             result = correct_to_finer(study, keys, result, layout, compiling=compiling, **kw)
         finally:
             for c in compiling.values():  # no compilation left running past the answer
@@ -404,10 +415,10 @@ def at_corrected(result: FitResult, problem: ResidualModel, shift, f: Forward,
 
 
 def _fit_at(study: Study, keys, start, layout=None, *, noise_um, max_evaluations, verbose,
-            se_tol) -> FitResult:
+            se_tol, on_start=None) -> FitResult:
     problem = build_problem(study, keys, start, layout)
     result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
-                 se_tol=se_tol)
+                 se_tol=se_tol, on_start=on_start)
     return recheck_integration(study, result, noise_um=noise_um,
                                max_evaluations=max_evaluations, verbose=verbose,
                                se_tol=se_tol)
