@@ -21,7 +21,7 @@ numerics), the boom joint of the paper (calibration/boom, Table 5), both with th
 `[numerics]` removed so that the defaults decide (adaptive wear integrator, resolution by
 the error), and a one-experiment rig study at 64 x 72 for the posterior samplers.
 
-    python benchmarks/time_to_answer.py [--out benchmarks/TIME_TO_ANSWER.md] [--only TEXT]
+    python benchmarks/time_to_answer.py [--out benchmarks/TIME_TO_ANSWER.md] [--only TEXT|TEXT]
         [--cold-only] [--samplers] [--logs DIR]
 
 Where each answer's time goes (the columns after the wall times): `import` (Python's
@@ -255,7 +255,8 @@ def check_sampler(method, laplace_doc=None):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "TIME_TO_ANSWER.md"))
-    ap.add_argument("--only", default=None, help="run only rows whose label contains this")
+    ap.add_argument("--only", default=None,
+                    help="run only rows whose label contains this (alternatives: A|B)")
     ap.add_argument("--cold-only", action="store_true", help="skip the warm runs")
     ap.add_argument("--logs", default=None,
                     help="folder for each run's log (stderr: where its time went)")
@@ -321,7 +322,7 @@ def main(argv=None) -> int:
                  check_sampler("nuts"))]
         docs = {}
         for i, (label, verb, cmd, before, target, check) in enumerate(cases):
-            if args.only and args.only not in label:
+            if args.only and not any(o in label for o in args.only.split("|")):
                 continue
             cache = tmp / f"cache{i}"
             cache.mkdir()

@@ -34,9 +34,10 @@ LLVM's O1 (`xla_backend_optimization_level=1`) on top: most of XLA's compile tim
 LLVM's optimisation, and O1 compiles a cold rig calibration's programs in 0.88 of the
 time at the same run time (the wear loop's profile and Jacobian bitwise the same; a fit's
 answer within ~1e-15 relative). Programs that run once per evaluation and in well under a
-millisecond (`jit(..., once=True)`: the work estimate's rate bounds) compile at O0 (0.4 of
-their compile time). With both, a cold `jaxwear calibrate` of the 5-experiment rig study
-spent 0.83 of the XLA compile CPU and 0.89 of the CPU time (medians of four pairs;
+millisecond (`jit(..., once=True)`: the work estimate's rate bounds, the least-squares
+core's damped step and trust-region verdict) compile at O0 (0.4 of their compile
+time). With both, a cold `jaxwear calibrate` of the 5-experiment rig study spent 0.83 of
+the XLA compile CPU and 0.89 of the CPU time (medians of four pairs;
 benchmarks/compile_options.py, docs/performance.md).
 
 `JAXWEAR_XLA_DEFAULTS=0` turns every option off; `xla_cpu_use_fusion_emitters` in the

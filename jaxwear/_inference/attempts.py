@@ -8,13 +8,12 @@ import dataclasses
 import math
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import TrialFailed
 from jaxwear._core.jit import jit
 from jaxwear._inference.residual import ResidualModel
-from jaxwear._physics.adaptive import _regime_rates, adaptive_attempts
+from jaxwear._physics.adaptive import _regime_rates, adaptive_attempts, rate_config
 
 # Headroom of a raised attempt count: a fit's first rescale of K_d sets the stiffness to
 # within a small factor. The count is a traced bound in the fits' programs (`_dynamic`), so
@@ -38,8 +37,7 @@ def attempts_needed(model: ResidualModel, u) -> int | float:
     sched = model.schedule
     if not sched.adaptive:
         return 0
-    rates = np.asarray(_experiment_rates(model.with_schedule(None),
-                                         jnp.asarray(u, jnp.float64)))
+    rates = experiment_rates(model, u)
     if not np.all(np.isfinite(rates)):
         return math.inf
     host = jax.tree.map(np.asarray, sched)
@@ -48,6 +46,32 @@ def attempts_needed(model: ResidualModel, u) -> int | float:
         one = dataclasses.replace(jax.tree.map(lambda x: x[i], host), attempts=1)
         need = max(need, adaptive_attempts(None, model.cfg, one, rates=rates[i]))
     return need
+
+
+# The last rates asked for: a fit's trial asks three times at the same u (is the work
+# finite, is it affordable, how many attempts), and the answer depends on the model's
+# parameters, packing and configuration only (not its schedule).
+_last: list = [None]
+
+
+def experiment_rates(model: ResidualModel, u) -> np.ndarray:
+    """`_experiment_rates` of `model` at u (experiments, regimes) [1/cycle], on the host;
+    the last call's answer again where the model's parameters, packing and configuration
+    are the same objects and u the same values."""
+    u = np.asarray(u, np.float64)
+    last = _last[0]
+    if (last is not None and last[0] is model.params and last[1] is model.packing
+            and last[2] is model.cfg and last[3] == u.tobytes()):
+        return last[4].copy()
+    rates = np.asarray(_experiment_rates(rate_model(model), u))
+    _last[0] = (model.params, model.packing, model.cfg, u.tobytes(), rates)
+    return rates.copy()
+
+
+def rate_model(model: ResidualModel) -> ResidualModel:
+    """`model` as `_experiment_rates` takes it: without its schedule (an attempt count is no
+    new program) and in `rate_config` (every resolution of a study one program)."""
+    return dataclasses.replace(model, schedule=None, cfg=rate_config(model.cfg))
 
 
 @jit(once=True)
@@ -86,9 +110,7 @@ def needs_more_attempts(model: ResidualModel, u, factor: float = 4.0) -> bool:
 def work_failure(model: ResidualModel, u) -> str:
     """Why the model cannot be run at u where its work estimate is not finite: the
     experiments whose wear-rate bound K_d k S_cycle [1/cycle] is NaN or inf there."""
-    rates = np.asarray(_experiment_rates(model.with_schedule(None),
-                                         jnp.asarray(u, jnp.float64))).reshape(
-        model.schedule.cycles.shape[0], -1)
+    rates = experiment_rates(model, u).reshape(model.schedule.cycles.shape[0], -1)
     bad = [i for i in range(rates.shape[0]) if not np.all(np.isfinite(rates[i]))]
     which = ", ".join(model.exp_names[i] if i < len(model.exp_names) else str(i)
                       for i in bad)

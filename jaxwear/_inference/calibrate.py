@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import FitError, InputError
+from jaxwear._core.host import to_device
 from jaxwear._core.log import log as _log
 from jaxwear._core.noise import stated_noise
 from jaxwear._inference import lsq
@@ -34,6 +35,7 @@ from jaxwear._inference.attempts import attempts_needed, needs_more_attempts, wo
 from jaxwear._inference.evaluation import (
     Evaluation,
     Forward,
+    compile_forward,
     evaluate,
     forward_run,
     integration_report,
@@ -102,8 +104,8 @@ def check_noise_determined(problem: ResidualModel, noise_um: float | None, *, hi
 
 def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
-        label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None
-        ) -> FitResult:
+        label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None,
+        on_start=None) -> FitResult:
     """Least-squares fit through the one core (`_inference.lsq.solve`), then standard errors,
     correlations and flags.
 
@@ -118,6 +120,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
     - `se_tol`: the stop, as a fraction of a standard error (`lsq.solve`).
     - `ev0`: the problem's evaluation at `u0` when known (no start evaluation, no robust
       start: a refit from an answer).
+    - `on_start`: called with no arguments once the checks made before any evaluation
+      have passed (`fit_study` starts compiling the resolution check's program there).
 
     Raises `InputError` before any evaluation when σ is not given and the data rows do not
     outnumber the fitted parameters; `FitError` when no start can be evaluated.
@@ -125,6 +129,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
     given = problem.noise_um if noise_um is None else noise_um
     check_noise_determined(problem, given, hint="[fit] noise_um")
     noise = stated_noise(problem.data, given)
+    if on_start is not None:
+        on_start()
     P = problem.packing.size
     u = np.zeros(P) if u0 is None else np.asarray(u0, np.float64)
     log = (lambda m: _log(True, m)) if verbose else None
@@ -221,8 +227,21 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
         result = _fit_at(study, keys, start, layout, **kw)
         result.resolution = res.given(study)
     else:
-        result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout, **kw)
-        result = correct_to_finer(study, keys, result, layout, **kw)
+        # the check's forward program at the next level compiles while the coarse fit runs,
+        # from when the fit has passed what it refuses before any evaluation (no program
+        # compiled for an answer that is an input error)
+        compiling: dict = {}
+
+        def start_compiling():
+            compiling[1] = _compile_level(study, keys, start, layout, 1)
+
+        try:
+            result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout,
+                             on_start=start_compiling, **kw)
+            result = correct_to_finer(study, keys, result, layout, compiling=compiling, **kw)
+        finally:
+            for c in compiling.values():  # no compilation left running past the answer
+                c.wait()
     result.compiles = traces_since(before)
     result.outside = parameter_flags(result.names, result.values, study.preset)
     result.flags[:0] = [f for f in result.outside if f not in result.flags]  # first
@@ -232,8 +251,15 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
 MAX_CORRECTIONS = 4  # defect corrections towards one level before it is called unsettled
 
 
+def _compile_level(study: Study, keys, start, layout, i: int):
+    """The forward program of `study`'s problem at `res.LEVELS[i]`, compiling in the
+    background (`evaluation.compile_forward`)."""
+    return compile_forward(lambda: build_problem(res.at_level(study, res.LEVELS[i]), keys,
+                                                 start, layout=layout))
+
+
 def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | None = None,
-                     **fit_kw) -> FitResult:
+                     compiling: dict | None = None, **fit_kw) -> FitResult:
     """`result` (a fit at the coarsest level) checked against the finer levels, and
     corrected to them where needed, by forward runs there only (design.md §6).
 
@@ -250,7 +276,11 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     with its Jacobian (no recompilation), δ recomputed at the new answer, until the finer
     level moves no parameter by 0.1 SE; the answer is then that level's (its residuals,
     fitted rows and snapshots), and it is checked against the next finer level the same
-    way. The finest level is not checked against a finer one (flagged)."""
+    way. The finest level is not checked against a finer one (flagged).
+
+    `compiling`: level index -> its forward program compiling in the background
+    (`evaluation.Compiling`), waited for before that level's first run; the next level's
+    starts compiling here when a defect correction begins (the check will follow)."""
 
     verbose = fit_kw.get("verbose")
     levels = res.LEVELS
@@ -265,8 +295,11 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     report = None
     t_start = time.perf_counter()
     finest_s, finest_runs = 0.0, 0  # forward runs at the finest level, and their time
+    compiling = {} if compiling is None else compiling
     for i in range(1, len(levels)):
         fine = build_problem(res.at_level(base, levels[i]), keys, start, layout=layout)
+        if i in compiling:
+            compiling[i].wait()
         ratio, tries, still = math.inf, 0, False
         while True:
             t0 = time.perf_counter()
@@ -295,6 +328,8 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
                           + ("" if ok else f" (> {res.FIT_SE_TOL:g}): defect correction"))
             if ok or tries >= MAX_CORRECTIONS or not result.converged:
                 break
+            if i + 1 < len(levels) and i + 1 not in compiling:
+                compiling[i + 1] = _compile_level(base, keys, start, layout, i + 1)
             tries += 1
             corrections += 1
             refit = fit(coarse.with_defect(coarse.defect + shift), result.u,
@@ -380,10 +415,10 @@ def at_corrected(result: FitResult, problem: ResidualModel, shift, f: Forward,
 
 
 def _fit_at(study: Study, keys, start, layout=None, *, noise_um, max_evaluations, verbose,
-            se_tol) -> FitResult:
+            se_tol, on_start=None) -> FitResult:
     problem = build_problem(study, keys, start, layout)
     result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
-                 se_tol=se_tol)
+                 se_tol=se_tol, on_start=on_start)
     return recheck_integration(study, result, noise_um=noise_um,
                                max_evaluations=max_evaluations, verbose=verbose,
                                se_tol=se_tol)
@@ -446,5 +481,10 @@ def at_tolerance(problem: ResidualModel, tol_um: float) -> ResidualModel:
     if not sched.adaptive:
         return problem
 
+    tol = sched.tolerance
+    if getattr(tol, "weak_type", False):  # as built elsewhere: keep its type (one program)
+        return problem.with_schedule(dataclasses.replace(
+            sched, tolerance=jnp.full_like(tol, tol_um * 1e-6)))
+    # on the host: eager `full_like` compiled a program of its own
     return problem.with_schedule(dataclasses.replace(
-        sched, tolerance=jnp.full_like(sched.tolerance, tol_um * 1e-6)))
+        sched, tolerance=to_device(np.full(np.shape(tol), tol_um * 1e-6, np.float64))))

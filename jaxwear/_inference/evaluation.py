@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -13,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core.host import to_device
 from jaxwear._core.jit import jit
 from jaxwear._inference import lsq
 from jaxwear._inference.attempts import _dynamic, attempts_needed, enough_attempts, work_failure
@@ -206,6 +208,44 @@ def forward_run(model: ResidualModel, u, *, doublings: int = 3, worn_ok: bool = 
     if (float(worn) >= 0 and not worn_ok) or not np.isfinite(float(err)):
         rows, snaps = np.full(rows.shape, np.nan), np.full(snaps.shape, np.nan)
     return Forward(rows, snaps, float(err), int(steps), model)
+
+
+class Compiling:
+    """`_forward_jit` of a model compiled in a daemon thread (`compile_forward`); `wait()`
+    joins it. Why: a fit at the coarsest resolution then checks its answer by one forward
+    run at the next finer level (design.md §6), a program of its own (~1.3-1.8 s of a cold
+    answer on 2 cores, most of it XLA's compile, which releases the interpreter): compiled
+    while the coarse fit compiles and runs, it is ready when the check comes. The same CPU
+    time, less wall time where a core is free. A failure here is left to the real call to
+    meet and report."""
+
+    def __init__(self, build):
+        def run():
+            try:
+                model = _dynamic(build())
+                if not model.schedule.adaptive:
+                    return  # eq 23's loop has no bound to set to 0: it would run in full
+                # a loop bound of 0 attempts: the program as the check runs it (the bound
+                # is traced), run for nothing but its compilation
+                limit = to_device(np.zeros(np.shape(model.schedule.attempt_limit), np.int32))
+                model = model.with_schedule(dataclasses.replace(model.schedule,
+                                                                attempt_limit=limit))
+                jax.block_until_ready(_forward_jit(model, to_device(
+                    np.zeros(model.packing.size), np.float64)))
+            except Exception:  # noqa: BLE001 (the check's own call reports it)
+                pass
+
+        self._thread = threading.Thread(target=run, daemon=True, name="jaxwear-forward")
+        self._thread.start()
+
+    def wait(self) -> None:
+        self._thread.join()
+
+
+def compile_forward(build) -> Compiling:
+    """Start compiling the forward run of the model `build()` returns (a `ResidualModel`
+    with an adaptive schedule) in a daemon thread (`Compiling`)."""
+    return Compiling(build)
 
 
 def forward(model: ResidualModel, u, *, doublings: int = 3):

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.host import to_device
 from jaxwear._physics.effects import (
     STRUCTURAL_CANDIDATES,
     effect_parameter_specs,
@@ -363,4 +364,4 @@ def packing_of(columns: list[tuple[Column, float]], start: dict | None = None) -
         if c.log and not v > 0:
             raise InputError(f"start value of {c.name} must be > 0 to fit it, got {v}")
         s0.append(v)
-    return Packing(tuple(c for c, _ in columns), jnp.asarray(s0, jnp.float64))
+    return Packing(tuple(c for c, _ in columns), to_device(s0, np.float64))

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.host import stack, to_device
 from jaxwear._inference.packing import (
     Packing,
     candidate_columns,
@@ -114,7 +115,8 @@ class Data(eqx.Module):
 
 
 def _stack(trees):
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+    # on the host where the leaves are host data (`_core.host.stack`: no compilation)
+    return jax.tree.map(lambda *xs: stack(xs), *trees)
 
 
 def _run_length(e) -> dict:
@@ -190,13 +192,12 @@ def measured_data(study: Study, packing: Packing) -> Data:
             rows["offset_col"] += [-1] * k
     if not rows["exp"]:
         raise InputError(f"{study.path}: no measured data (profile or history) to fit")
-    f = jnp.float64
-    return Data(exp=jnp.asarray(rows["exp"], jnp.int32), snap=jnp.asarray(rows["snap"], jnp.int32),
-                i0=jnp.asarray(rows["i0"], jnp.int32), i1=jnp.asarray(rows["i1"], jnp.int32),
-                w=jnp.asarray(rows["w"], f), is_max=jnp.asarray(rows["is_max"], bool),
-                depth_um=jnp.asarray(rows["depth_um"], f), x=jnp.asarray(rows["x"], f),
-                angle=jnp.asarray(rows["angle"], f),
-                offset_col=jnp.asarray(rows["offset_col"], jnp.int32))
+    f, i = np.float64, np.int32
+    return Data(exp=to_device(rows["exp"], i), snap=to_device(rows["snap"], i),
+                i0=to_device(rows["i0"], i), i1=to_device(rows["i1"], i),
+                w=to_device(rows["w"], f), is_max=to_device(rows["is_max"], bool),
+                depth_um=to_device(rows["depth_um"], f), x=to_device(rows["x"], f),
+                angle=to_device(rows["angle"], f), offset_col=to_device(rows["offset_col"], i))
 
 
 class ResidualModel(eqx.Module):
@@ -247,7 +248,7 @@ class ResidualModel(eqx.Module):
 
     def with_defect(self, defect_um) -> ResidualModel:
         """The same model with its rows corrected by `defect_um` (rows,) [µm]."""
-        return dataclasses.replace(self, defect_um=jnp.asarray(defect_um, jnp.float64))
+        return dataclasses.replace(self, defect_um=to_device(defect_um, np.float64))
 
     @property
     def defect(self) -> np.ndarray:
@@ -367,7 +368,7 @@ def build_model(study: Study, keys: list[str], start: dict | None = None, *,
                           packing=packing, params=params,
                           schedule=experiment_schedules(study, plist, layout),
                           data=measured_data(study, packing),
-                          nominal_angle_deg=jnp.asarray(nominal_angle, jnp.float64),
+                          nominal_angle_deg=to_device(nominal_angle, np.float64),
                           noise_um=study.noise_um)
     model = model.with_defect(np.zeros(model.n_data))
     if candidates or shape is not None:

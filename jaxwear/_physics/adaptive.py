@@ -333,6 +333,19 @@ def _regime_rates(p: Params, cfg: ModelConfig):
 
 
 DEFAULT_WEAR_TOLERANCE_UM = 0.002
+RATE_STEPS = 72  # the load history's steps per cycle for the rate bound (`rate_config`)
+
+
+def rate_config(cfg: ModelConfig) -> ModelConfig:
+    """The configuration the rate bound (`_regime_rates`) is computed in: at most
+    `RATE_STEPS` steps per cycle, and the nodes fixed (the bound does not depend on them).
+    Every resolution of a study (90 x 72 to 360 x 360, design.md §6) then shares one
+    compiled rate program where each compiled its own (3 x 2 programs in a rig calibration,
+    ~0.5 s of a cold answer). The bound moves with the steps only through the cycle's
+    sliding (a sum over the steps): 0.06 % between 72 and 360 steps on the rig and the
+    boom, inside the attempt count's own margins (`adaptive_attempts`: x3, then a bucket;
+    and a short count is doubled and rerun)."""
+    return cfg.replace(nodes=8, steps_per_rev=min(cfg.steps_per_rev, RATE_STEPS))
 
 
 def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) -> int:
@@ -343,7 +356,8 @@ def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) 
     `_regime_rates` where the caller has them (one call for every experiment). Raises
     `TrialFailed` where the estimate is not finite (a rate bound NaN or inf at these
     parameters): no attempt count can run them."""
-    rates = np.asarray(_regime_rates_jit(p, cfg) if rates is None else rates).reshape(-1)
+    rates = np.asarray(_regime_rates_jit(p, rate_config(cfg)) if rates is None
+                       else rates).reshape(-1)
     cyc = np.asarray(sched.cycles)
     reg = np.asarray(sched.regime)
     live = cyc > 0

@@ -12,14 +12,16 @@ from dataclasses import dataclass, fields
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.host import to_device
 from jaxwear._core.types import Scalar
 from jaxwear._physics.effects import effect_parameter_specs
 
 
 def _f(x) -> Scalar:
-    return jnp.asarray(x, dtype=jnp.float64)
+    return to_device(x, np.float64)  # a host number: no compilation (`_core.host`)
 
 
 class Params(eqx.Module):

@@ -11,10 +11,12 @@ import dataclasses
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._core.errors import InputError
+from jaxwear._core.host import to_device
 from jaxwear._core.types import Array, Float, Int
 
 DYNAMIC_ATTEMPTS = -1
@@ -70,8 +72,8 @@ class Schedule(eqx.Module):
         if not self.adaptive or self.dynamic:
             return self
         shape = self.cycles.shape[:-1]
-        return dataclasses.replace(self, attempts=DYNAMIC_ATTEMPTS, attempt_limit=jnp.full(
-            shape, self.attempts, jnp.int32))
+        return dataclasses.replace(self, attempts=DYNAMIC_ATTEMPTS, attempt_limit=to_device(
+            np.full(shape, self.attempts, np.int32)))
 
     @property
     def updates(self) -> int:
@@ -90,9 +92,14 @@ class Schedule(eqx.Module):
         """The same schedule with the early stop set (see the class docstring); arrays of
         the schedule's batch shape (or scalars)."""
         shape = self.cycles.shape[:-1]
-        return dataclasses.replace(
-            self, stop_depth=jnp.broadcast_to(jnp.asarray(depth_m, jnp.float64), shape),
-            stop_after=jnp.broadcast_to(jnp.asarray(after_cycles, jnp.float64), shape))
+
+        def full(x):
+            if isinstance(x, jax.Array):
+                return jnp.broadcast_to(jnp.asarray(x, jnp.float64), shape)
+            # a host value: no program of its own (`_core.host`)
+            return to_device(np.broadcast_to(np.asarray(x, np.float64), shape).copy())
+
+        return dataclasses.replace(self, stop_depth=full(depth_m), stop_after=full(after_cycles))
 
 
 def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> Schedule:
@@ -141,8 +148,9 @@ def make_schedule(segments, snapshots, M: float, pad_to: int | None = None) -> S
         reg += [0] * extra
         snap_idx = np.concatenate([snap_idx, np.full(extra, len(snaps), np.int32)])
         end_arr = np.concatenate([end_arr, np.full(extra, end_arr[-1] if n else 0.0)])
-    return Schedule(cycles=jnp.asarray(cyc, jnp.float64), regime=jnp.asarray(reg, jnp.int32),
-                    snapshot=jnp.asarray(snap_idx), cycle_end=jnp.asarray(end_arr, jnp.float64),
+    # host arrays onto the device without a compilation per shape (`_core.host`)
+    return Schedule(cycles=to_device(cyc, np.float64), regime=to_device(reg, np.int32),
+                    snapshot=to_device(snap_idx), cycle_end=to_device(end_arr, np.float64),
                     n_snapshots=len(snaps), order=order)
 
 
@@ -153,11 +161,14 @@ def pad_schedule(s: Schedule, updates: int, n_snapshots: int | None = None,
     several experiments stack into one batch. Snapshots come back in increasing order."""
     S = s.n_snapshots if n_snapshots is None else n_snapshots
     extra = updates - s.updates
-    snap = jnp.where(s.snapshot >= s.n_snapshots, S, s.snapshot)
-    return Schedule(cycles=jnp.concatenate([s.cycles, jnp.zeros(extra)]),
-                    regime=jnp.concatenate([s.regime, jnp.zeros(extra, jnp.int32)]),
-                    snapshot=jnp.concatenate([snap, jnp.full(extra, S, jnp.int32)]),
-                    cycle_end=jnp.concatenate([s.cycle_end, jnp.full(extra, s.cycle_end[-1])]),
+    # on the host (a schedule is host data): eager jnp here compiled ~8 small programs
+    cyc, reg = np.asarray(s.cycles, np.float64), np.asarray(s.regime, np.int32)
+    snap0, end = np.asarray(s.snapshot, np.int32), np.asarray(s.cycle_end, np.float64)
+    snap = np.where(snap0 >= s.n_snapshots, S, snap0).astype(np.int32)
+    return Schedule(cycles=to_device(np.concatenate([cyc, np.zeros(extra)])),
+                    regime=to_device(np.concatenate([reg, np.zeros(extra, np.int32)])),
+                    snapshot=to_device(np.concatenate([snap, np.full(extra, S, np.int32)])),
+                    cycle_end=to_device(np.concatenate([end, np.full(extra, end[-1])])),
                     n_snapshots=S,
                     attempts=s.attempts if attempts is None else attempts,
                     tolerance=s.tolerance)

@@ -17,6 +17,7 @@ import numpy as np
 from jax import lax
 
 from jaxwear._core.errors import InputError, WornThroughError
+from jaxwear._core.host import to_device
 from jaxwear._core.jit import jit
 from jaxwear._core.types import NodeArray
 from jaxwear._physics.adaptive import DEFAULT_WEAR_TOLERANCE_UM, _adaptive_loop, adaptive_attempts
@@ -181,7 +182,7 @@ def build_schedule(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
         sched = make_schedule(segs, snaps, M, pad_to=target)
     if integrator == "adaptive":
         sched = dataclasses.replace(sched, attempts=1,
-                                    tolerance=jnp.asarray(float(tolerance_um) * 1e-6))
+                                    tolerance=to_device(float(tolerance_um) * 1e-6, np.float64))
         sched = dataclasses.replace(sched, attempts=attempts or adaptive_attempts(p, cfg, sched))
     return sched
 

@@ -117,13 +117,14 @@ def stiff_rates(study, exp) -> list[tuple[float, float]]:
 
     cfg = study.config
     p = study.params(exp)
-    compliance = float(p.layer_thickness) / float(equivalent_modulus(p.layer_modulus,
-                                                                     p.layer_poisson))
+    # host floats throughout: eager jnp on the parameters compiled a program per operation
+    compliance = float(p.layer_thickness) / equivalent_modulus(float(p.layer_modulus),
+                                                               float(p.layer_poisson))
     if cfg.double_layer:
-        compliance += float(p.backing_thickness) / float(equivalent_modulus(
-            p.backing_modulus, p.backing_poisson))
+        compliance += float(p.backing_thickness) / equivalent_modulus(
+            float(p.backing_modulus), float(p.backing_poisson))
     k = 1.0 / compliance if compliance > 0 else math.inf
-    kd, r_pin = float(p.wear_coefficient), float(p.pin_radius)
+    kd, r_pin = float(p.wear_coefficient), float(p.bore_radius) - float(p.clearance)
     if timed(cfg):
         shares, _, _ = _block_shares(study, exp)
         rot = [b.load.rotation if cfg.driver == "load_history"

@@ -35,13 +35,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
 
 from jaxwear._core.errors import FitError, TrialFailed
+from jaxwear._core.jit import jit
 from jaxwear._inference.lsq._covariance import Covariance, covariance, gauss_newton
 from jaxwear._inference.lsq._point import Point
 from jaxwear._inference.lsq._status import Status
@@ -85,7 +85,9 @@ def _info(r, J):
     return optx.FunctionInfo.ResidualJac(r, lx.MatrixLinearOperator(J))
 
 
-@jax.jit
+# Both run once per evaluation on (rows x free) arrays in well under a millisecond: LLVM's
+# O0 (`jit(..., once=True)`, `_core.jit`) compiles them in less time.
+@jit(once=True)
 def _propose(y, r, J, step_size):
     """optimistix's damped Newton step from y for the system (r, J) at trust 1/λ."""
     f_info = _info(r, J)
@@ -94,7 +96,7 @@ def _propose(y, r, J, step_size):
     return diff
 
 
-@jax.jit
+@jit(once=True)
 def _judge(y, y_eval, r, J, r_eval, J_eval, step_size):
     """optimistix's trust-region verdict on a trial: (next step size, accept)."""
     f_info, f_eval = _info(r, J), _info(r_eval, J_eval)
@@ -345,7 +347,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     D = _column_scale(Jw, None)
     # λ = 0.01 of the (unit) diagonal at first: near-Gauss-Newton steps, since the robust
     # start has brought the scale in
-    step_size = jnp.asarray(1e2)
+    step_size = np.asarray(1e2)  # a host array: no program of its own (`_core.host`)
     rejections = 0  # trials in a row that were rejected or gained nothing (< NO_GAIN)
     gains: list[float] = []  # ½χ² each evaluation lowered (0 where rejected)
     gauss_newton_failed, ratio_at_failure = False, math.inf
@@ -419,8 +421,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             Jy = Jw / D
             # columns held at a bound drop out of the proposal (zero column: no step)
             Jy = np.where(_held(u, free, lo, hi, Jw.T @ rw)[None, :], 0.0, Jy)
-            diff = np.asarray(_propose(jnp.asarray(y), jnp.asarray(rw), jnp.asarray(Jy),
-                                       step_size))
+            diff = np.asarray(_propose(y, rw, Jy, step_size))
             trial[free] = np.clip((y + diff) / D, lo[free], hi[free])
         if project is not None:
             trial = np.where(free, project(trial), u)
@@ -434,9 +435,8 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             rw_t, Jw_t = whitened(pt_t, sigma, free)
         else:
             rw_t, Jw_t = np.full_like(rw, _BAD), np.zeros_like(Jw)
-        step_size, accept = _judge(jnp.asarray(y), jnp.asarray(D * trial[free]),
-                                   jnp.asarray(rw), jnp.asarray(Jw / D), jnp.asarray(rw_t),
-                                   jnp.asarray(Jw_t / D), step_size)
+        # host arrays straight into the programs (`jnp.asarray` compiled one per shape)
+        step_size, accept = _judge(y, D * trial[free], rw, Jw / D, rw_t, Jw_t / D, step_size)
         accept = bool(accept) and why is None
         if accept:
             gain = 0.5 * (float(rw @ rw) - float(rw_t @ rw_t))
