@@ -2,8 +2,9 @@
 search never calls a law found on the comparison with the shape that it could not make.
 
 The bug (issue 48's `fatigue` study, seed 1, 48 x 72): the joint linearised start of the
-refit along sliding speed and pressure with the speed x pressure surface wore through the
-layer; the least-squares core ends a fit whose start is not usable at once ("unusable"),
+refit along sliding speed and pressure with the speed x pressure surface could not be
+integrated ("the adaptive loop ran out of attempts"); the least-squares core ends a fit
+whose start is not usable at once ("unusable"),
 `shape.rmse_after_um` was null, and `LawResult.lead_reasons` skipped the "within 5 % of
 the shape's" check without a word. Here a stand-in for the linearised start (the real one
 scaled by `BLOW_UP`) makes the start unusable on a small study from the independent
@@ -72,7 +73,8 @@ def test_an_unusable_linearised_start_still_gives_the_refits_rmse(study, monkeyp
     assert shp.rmse_after_um <= base.rmse * (1 + 1e-9)
     assert doc["refit_status"] != "unusable"
     # and says which start could not be evaluated
-    assert "linearised start was not usable" in doc["refit_message"]
+    assert "linearised start was not usable: " in doc["refit_message"]
+    assert "u = [" not in doc["refit_message"]  # the cause, not the start's coefficients
     assert shp.correction and shp.when_where is not None
 
 

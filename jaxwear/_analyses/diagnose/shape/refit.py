@@ -27,12 +27,14 @@ from jaxwear._physics.effects.shape import ShapeBasis
 # the report makes turns on it). Measured on the running_pressure study: both refits ran to
 # their budget of 10 at 0.3338 -> 0.3333 µm (½χ² ~1 over the last seven), 20 s each.
 SETTLED_CHI2 = 1.0
-# Where the linearised start is not usable (the model wears through or overflows there),
-# the refit starts again at these fractions of it; 0 is the fit's own answer, a point of
-# the model by construction. Measured on the generator's `fatigue` study (seed 1, 48 x 72):
-# the joint linearised start along sliding speed and pressure with the speed x pressure
-# surface wore through the layer, the refit ended at its start ("unusable") and
-# `rmse_after_um` was null, so the law search's check against the shape was skipped.
+# Where the linearised start is not usable (the model wears through, overflows or cannot be
+# integrated there), the refit starts again at these fractions of it; 0 is the fit's own
+# answer, a point of the model by construction. Measured on the generator's `fatigue`
+# study (seed 1, 48 x 72): the joint linearised start along sliding speed and pressure with
+# the speed x pressure surface could not be integrated ("the adaptive loop ran out of
+# attempts"), the refit ended at its start ("unusable") and `rmse_after_um` was null, so
+# the law search's check against the shape was skipped; from half of it the refit reached
+# 0.338 µm (base 0.511).
 START_FRACTIONS = (0.5, 0.0)
 
 
@@ -163,7 +165,9 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
             break
         what = ("the fit's own answer" if frac == 0 else "the linearised start"
                 if frac == 1 else f"{frac:g} of the linearised start")
-        failed.append(f"{what} was not usable ({out.message})")
+        # the cause, without the start's values (lsq's message lists every coefficient)
+        failed.append(f"{what} was not usable: "
+                      f"{lsq.failure(out.point, jacobian=False) or out.message}")
         _log(verbose, f"    the refit's start, {failed[-1]}")
     if maps is not None:
         maps.result()
