@@ -61,7 +61,7 @@ DEG = math.pi / 180.0
 LAWS = ("impact", "threshold", "two_variable", "null", "pv_tanh", "worn_soft",
         "running_pressure", "impact_load", "fatigue", "film", "damage_step",
         "g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v",
-        "g_dep_power_W")
+        "g_dep_power_W", "bump_v", "thermal")
 # laws of jaxwear's grammar (issue 48 item 6: recovery), written here from their formulas
 # (docs/design.md §7 `shape.law`) in plain NumPy: each kind along a variable, and a product
 GRAMMAR_FACTOR_LAWS = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v")
@@ -72,10 +72,14 @@ GRAMMAR_LAWS = GRAMMAR_FACTOR_LAWS + GRAMMAR_DEPOSIT_LAWS
 # (issue 43 item 5): two variables at once, the surface's own state, an event's size
 # depending on two quantities
 FACTOR_LAWS = ("threshold", "two_variable", "pv_tanh", "worn_soft", "running_pressure",
-               *GRAMMAR_FACTOR_LAWS)
+               "bump_v", *GRAMMAR_FACTOR_LAWS)
 # laws with memory (issue 48 item 4): a hidden per-node state that each revolution drives,
 # of other forms than jaxwear's grammar (`effects.law_memory`)
 MEMORY_LAWS = ("fatigue", "film", "damage_step")
+# laws outside the grammar's kinds (issue 48 item 6): a rate that is not monotone in its
+# variable (`bump_v`), and a rate of a quantity jaxwear's model does not have, the
+# bushing's bulk temperature (`thermal`)
+OUTSIDE_LAWS = ("bump_v", "thermal")
 
 
 class BadInput(ValueError):
@@ -141,8 +145,23 @@ class Law:
       that the deposit per revolution is the grammar's at N_s steps and does not depend
       on the generator's own steps: the grammar's D is per step of the study (N_s its
       steps per revolution).
+    - `bump_v`: K_d → K_d (1 + a exp(−((v − v0)/w)²)), v the sliding speed, v0 =
+      `bump_v0_m_per_s`, w = `bump_width_m_per_s`: a rate that rises and falls again with
+      the speed (a resonance, a lubrication regime between two others); every kind of
+      jaxwear's grammar is monotone in its variable.
+    - `thermal`: the bushing's bulk temperature rise θ = T − T0 [K] (one per specimen, 0
+      at the start: the joint at ambient), driven by the joint's frictional power P = μ
+      mean_i(|W_i| v_i) [W] over the revolution through a thermal resistance R_th
+      (`thermal_resistance_K_per_W`) and a heat capacity C (`thermal_capacity_J_per_K`):
+      dθ/dt = (P − θ/R_th)/C, a time constant R_th C in seconds, not in revolutions;
+      K_d → K_d (1 + a (exp(θ/θ_e) − 1)) (Arrhenius-like near T0, θ_e =
+      `thermal_scale_K`), μ = `thermal_friction`. A quantity the model has no state for:
+      its steady value follows the load and speed of the whole revolution, its warm-up
+      the clock.
     The states of the three laws with memory move by explicit Euler over each update of M
-    revolutions (the profile and the state frozen within it).
+    revolutions (the profile and the state frozen within it); `thermal`'s θ by the exact
+    solution over the update's seconds at its constant power, the rate at θ at the
+    update's middle.
     """
 
     name: str = "null"
@@ -185,6 +204,12 @@ class Law:
     g_dep_exponent: float = 2.0
     g_dep_steps: float = 72.0
     g_dep_width_deg: float = 5.0
+    bump_v0_m_per_s: float = 0.05
+    bump_width_m_per_s: float = 0.007
+    thermal_friction: float = 0.15
+    thermal_resistance_K_per_W: float = 10.0
+    thermal_capacity_J_per_K: float = 60.0
+    thermal_scale_K: float = 10.0
 
     def __post_init__(self):
         if self.name not in LAWS:
@@ -201,7 +226,9 @@ class Law:
                     "fatigue_exponent", "fatigue_cycles", "film_formation", "film_removal",
                     "film_time_s", "film_work_kJ_per_m2", "damage_ref_MPa", "damage_width",
                     "g_p1_MPa", "g_he_um", "g_v1_m_per_s", "g_Sw_m", "g_pw_MPa", "g_W1_N",
-                    "g_dep_steps", "g_dep_width_deg")
+                    "g_dep_steps", "g_dep_width_deg", "bump_width_m_per_s", "thermal_friction",
+                    "thermal_resistance_K_per_W", "thermal_capacity_J_per_K",
+                    "thermal_scale_K")
         for k in positive:
             if not getattr(self, k) > 0:
                 raise BadInput(f"law constant {k} must be > 0, got {getattr(self, k):g}")
@@ -250,6 +277,10 @@ class Law:
             h2 = (np.zeros(pressure.shape[1]) if depth is None else depth * 1e6) ** 2
             return np.broadcast_to(1.0 + self.strength * h2 / (h2 + self.soft_depth_um ** 2),
                                    pressure.shape)
+        elif self.name == "bump_v":
+            return 1.0 + self.strength * np.exp(
+                -((speed[:, None] - self.bump_v0_m_per_s) / self.bump_width_m_per_s) ** 2
+            ) * np.ones_like(p_mpa)
         elif self.name == "running_pressure":
             return 1.0 + self.strength * (p_mpa / self.rp_p_MPa) ** 2 / (
                 1.0 + sliding / self.rp_distance_m)
@@ -257,6 +288,20 @@ class Law:
             return 1.0 + self.strength * np.broadcast_to(
                 self.grammar_phi(p_mpa, speed, depth, sliding), pressure.shape)
         return 1.0 + self.strength * _logistic(x)
+
+    def thermal_rise(self, rise_K, power_W, seconds):
+        """θ [K] after `seconds` at the constant frictional power `power_W` [W] from
+        `rise_K`: the exact solution of dθ/dt = (P − θ/R_th)/C."""
+        steady = self.thermal_resistance_K_per_W * power_W
+        tau = self.thermal_resistance_K_per_W * self.thermal_capacity_J_per_K
+        return steady + (rise_K - steady) * math.exp(-seconds / tau)
+
+    def thermal_factor(self, rise_K):
+        """The rate factor 1 + a (exp(θ/θ_e) − 1) at the temperature rise θ [K]; 1 for
+        the other laws."""
+        if self.name != "thermal" or self.strength == 0:
+            return 1.0
+        return 1.0 + self.strength * math.expm1(rise_K / self.thermal_scale_K)
 
     def grammar_phi(self, p_mpa, speed, depth, sliding):
         """Φ of a grammar law (`GRAMMAR_LAWS`) from p [MPa] (steps, nodes), v [m/s]
@@ -281,7 +326,8 @@ DEFAULT_STRENGTH = {"impact": 0.05, "threshold": 1.0, "two_variable": 1.0, "null
                     "pv_tanh": 1.0, "worn_soft": 1.5, "running_pressure": 2.0,
                     "impact_load": 0.16, "fatigue": 1.5, "film": 0.6, "damage_step": 1.5,
                     "g_power_p": 1.0, "g_exp_h": 0.5, "g_hinge_v": 1.5, "g_step_S": 0.8,
-                    "g_step_p_power_v": 1.0, "g_dep_power_W": 2e-3}
+                    "g_step_p_power_v": 1.0, "g_dep_power_W": 2e-3, "bump_v": 1.5,
+                    "thermal": 0.5}
 
 
 def _logistic(x):
@@ -648,6 +694,11 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
     h = np.zeros(num.nodes)
     state = np.zeros(num.nodes)  # a law with memory's per-node state (0: a new surface)
     hidden = np.zeros(num.nodes)
+    # the `thermal` law's bulk temperature rise [K] and the joint's frictional power [W]
+    # (the load and the sliding do not depend on the wear here: one value per specimen)
+    rise = 0.0
+    power = law.thermal_friction * float(np.mean(np.hypot(*cyc.load.T) * cyc.speed))
+    rev_s = 60.0 / cond.speed_rpm
     e = None
     done, updates, out = 0.0, 0, []
     for target in points:
@@ -664,6 +715,12 @@ def wear_history(cond: Condition, clearance: float, K_d: float, law: Law,
             if dstate is not None:
                 dh = dh * mfactor
                 state = state + block * dstate
+            if law.name == "thermal":
+                # the rate at θ at the update's middle (second order in its length), θ
+                # carried to its end exactly
+                dh = dh * law.thermal_factor(law.thermal_rise(rise, power,
+                                                              0.5 * block * rev_s))
+                rise = law.thermal_rise(rise, power, block * rev_s)
             dh = dh + deposit
             hidden += block * (dh - base)
             h = h + block * dh  # eq 23

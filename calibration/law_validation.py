@@ -8,8 +8,11 @@ code) at finer numerics than the study's, whole-bore scans every 2° with 0.3 µ
 every point (negative depths included), clearance tolerances, interrupted tests. Laws:
 `pv_tanh` (a rate factor of pressure and speed at once), `worn_soft` (a factor of the
 depth already worn, a Hill function), `running_pressure` (running-in stronger at high
-pressure), `impact_load` (impact events whose size also follows the load), and the earlier
-`impact`, `threshold`, `two_variable` and `null`.
+pressure), `impact_load` (impact events whose size also follows the load), the earlier
+`impact`, `threshold`, `two_variable` and `null`, the grammar's own laws (`g_*`), two with
+memory (`fatigue`, `film`), and two of forms the grammar does not hold (issue 48 item 6):
+`bump_v` (a rate not monotone in the sliding speed) and `thermal` (a rate of the bushing's
+bulk temperature, which the model has no state for).
 
 Per case:
 1. `jaxwear diagnose --shape --out` on the training study (the paper's rig matrix): the
@@ -55,11 +58,15 @@ import shape_validation as sv  # noqa: E402
 
 NEW = ("pv_tanh", "worn_soft", "running_pressure", "impact_load")
 MEMORY = ("fatigue", "film")  # laws with memory (issue 48 item 4)
+# laws of forms outside the grammar (issue 48 item 6): a rate not monotone in its variable,
+# and a rate of a quantity the model has no state for (the bushing's bulk temperature)
+BEYOND = ("bump_v", "thermal")
 # laws of the grammar itself, written in the generator (issue 48 item 6: recovery)
 GRAMMAR = ("g_power_p", "g_exp_h", "g_hinge_v", "g_step_S", "g_step_p_power_v",
            "g_dep_power_W")
-CASES = NEW + ("impact", "threshold", "two_variable", "null") + GRAMMAR + MEMORY
-sv.OUTSIDE = sv.OUTSIDE + NEW + GRAMMAR + MEMORY  # made by the generator, not by `jaxwear synth`
+CASES = NEW + ("impact", "threshold", "two_variable", "null") + GRAMMAR + MEMORY + BEYOND
+# made by the generator, not by `jaxwear synth`
+sv.OUTSIDE = sv.OUTSIDE + NEW + GRAMMAR + MEMORY + BEYOND
 EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
           "worn_soft": "factor of the worn depth: h²/(h² + (3 µm)²)",
           "running_pressure": "factor (p/1.5 MPa)²/(1 + S/20 m)",
@@ -71,6 +78,9 @@ EXPECT = {"pv_tanh": "factor of p and v at once: (p/1.5 MPa) tanh(v/0.02 m/s)",
                      "exp(−D³)))",
           "film": "film df/dN = 3e-4 (1 − f)² sqrt(t_off/0.1 s) − 3e-4 f (w/8 kJ/m²)^1.5, "
                   "K_d (1 − 0.6 f)",
+          "bump_v": "factor 1 + 1.5 exp(−((v − 0.05 m/s)/0.007 m/s)²) (not monotone)",
+          "thermal": "bulk temperature rise θ, dθ/dt = (0.15 mean(|W| v) − θ/(10 K/W))/(60 "
+                     "J/K), factor 1 + 0.5 (exp(θ/10 K) − 1)",
           "g_power_p": "grammar: factor (p/1.5 MPa)^2",
           "g_exp_h": "grammar: factor 0.5 exp((h − 5 µm)/6 µm)",
           "g_hinge_v": "grammar: factor 1.5 (max(v − 0.04, 0)/0.04 m/s)^2",

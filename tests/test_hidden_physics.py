@@ -192,3 +192,42 @@ def test_the_grammars_deposit_is_per_step_of_the_studys_cycle():
     peak = np.argmax(d) * 2.0
     assert abs((peak - mode + 180.0) % 360.0 - 180.0) <= 10.0
     assert not hp.grammar_deposit(hp.Law("g_power_p", 1.0), cond, 0.05e-3, 96, 5.0).any()
+
+
+def test_the_laws_outside_the_grammar_are_their_formulas():
+    """`bump_v` by hand at three speeds (below, at and above the bump: not monotone), and
+    `thermal`'s temperature rise against a fine explicit Euler of dθ/dt = (P − θ/R_th)/C,
+    its steady value R_th P and its factor 1 + a (exp(θ/θ_e) − 1)."""
+    law = hp.Law("bump_v", 1.5)
+    p = np.full((3, 1), 2.0e6)
+    v = np.array([0.036, 0.05, 0.064])  # m/s: v0 ∓ 2 widths and v0
+    f = law.rate_factor(p, v)[:, 0]
+    np.testing.assert_allclose(f, [1 + 1.5 * math.exp(-4.0), 2.5, 1 + 1.5 * math.exp(-4.0)],
+                               rtol=1e-12)
+    th = hp.Law("thermal", 0.5)
+    P, t = 0.9, 400.0  # W, s
+    theta, dt = 3.0, 1e-3
+    for _ in range(int(t / dt)):
+        theta += dt * (P - theta / th.thermal_resistance_K_per_W) / th.thermal_capacity_J_per_K
+    assert th.thermal_rise(3.0, P, t) == pytest.approx(theta, rel=1e-5)
+    assert th.thermal_rise(0.0, P, 1e6) == pytest.approx(10.0 * P, rel=1e-12)
+    assert th.thermal_factor(10.0) == pytest.approx(1 + 0.5 * (math.e - 1), rel=1e-12)
+    assert hp.Law("null").thermal_factor(10.0) == 1.0
+
+
+def test_thermal_warms_up_with_the_clock_and_the_friction():
+    """With the law's heat capacity near zero the temperature is at its steady value from
+    the start: the wear is K_d (1 + a (exp(R_th P/θ_e) − 1)) times the null law's, P = μ
+    mean(|W| v) computed here from the generator's cycle; with the default capacity the
+    early wear is less than that (the joint still warming up)."""
+    cond, num = CONDS[0], hp.Numerics(nodes=48, steps=48, M=100.0)
+    null = hp.wear_history(cond, 0.05e-3, 1e-13, hp.Law("null"), num)["depth"]
+    cyc = hp.cycle(cond, 0.05e-3, num.steps)
+    P = 0.15 * float(np.mean(np.hypot(*cyc.load.T) * cyc.speed))
+    fast = hp.Law("thermal", 0.5, thermal_capacity_J_per_K=1e-6)
+    hot = hp.wear_history(cond, 0.05e-3, 1e-13 / (1 + 0.5 * math.expm1(10.0 * P / 10.0)),
+                          fast, num)["depth"]
+    np.testing.assert_allclose(hot, null, rtol=1e-6, atol=1e-6 * null.max())
+    slow = hp.wear_history(cond, 0.05e-3, 1e-13, hp.Law("thermal", 0.5), num)["depth"]
+    steady = hp.wear_history(cond, 0.05e-3, 1e-13, fast, num)["depth"]
+    assert slow[0].max() < 0.97 * steady[0].max()  # at 1000 r (217 s < R_th C = 600 s)

@@ -228,6 +228,8 @@ def _why_lead(law) -> str:
                 f"correction")
     if b.undetermined:
         return f"{', '.join(b.undetermined)} not determined by these data"
+    if law.shape_unchecked is not None:
+        return "not compared with the shape's refitted correction, which has no RMSE"
     if (b.loo_rmse_um is not None and law.loo_before_um is not None
             and not b.loo_rmse_um < law.loo_before_um):
         return "it predicts left-out experiments no better than the base model"

@@ -340,7 +340,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             shp = replace(shp, law=search(model, base, shp.linear, noise, nu,
                                           prefer=(shp.form, shp.best),
                                           correction=shp.correction,
-                                          shape_rmse_um=shp.rmse_after_um, verbose=verbose))
+                                          shape_rmse_um=shp.rmse_after_um,
+                                          shape_why=shp.refit_message, verbose=verbose))
         diag = replace(diag, shape=shp, shape_after_effect=after)
         if contest and shp.law is not None and shp.law.best is not None:
             versus = law_against_library(by_contact(final.contact), final,

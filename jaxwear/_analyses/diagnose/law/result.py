@@ -97,6 +97,21 @@ class LawResult:
     # for each equivalent, where its rate and the best's part most
     # (`law.equivalent.separation`: a dict, or None)
     separations: tuple = ()
+    # why `shape_rmse_um` is None (the shape's refit could not be evaluated: its message),
+    # "" where it was not given
+    shape_why: str = ""
+
+    @property
+    def shape_unchecked(self) -> str | None:
+        """Why the best law's error could not be compared with the shape's (DESIGN §7's
+        "within 5 % of the shape's"): neither the shape's left-out RMSE nor its refitted
+        RMSE is known; None where the comparison is made."""
+        finite = [x for x in (self.shape_loo_um, self.shape_rmse_um)
+                  if x is not None and math.isfinite(x) and x > 0]
+        if finite:
+            return None
+        return ("the shape's refitted correction has no RMSE"
+                + (f": {self.shape_why}" if self.shape_why else ""))
 
     @property
     def worse_than_shape(self) -> bool:
@@ -111,7 +126,8 @@ class LawResult:
         """Why the best law is a lead and not the law found (DESIGN §7), () where found:
         its left-out-experiment RMSE not below the base model's, more than `FOUND_WITHIN`
         above the shape's (its left-out RMSE where known, else its refitted RMSE against
-        the law's own), or constants the data do not determine."""
+        the law's own; where the shape has neither, the comparison could not be made:
+        `shape_unchecked`), or constants the data do not determine."""
         b = self.best
         if b is None:
             return ("no law could be fitted",)
@@ -128,6 +144,11 @@ class LawResult:
         elif self.worse_than_shape:
             out.append(f"its RMSE ({b.rmse_um:.4f} µm) is {b.rmse_um / self.shape_rmse_um - 1:+.0%}"
                        f" from the shape's refitted correction ({self.shape_rmse_um:.4f} µm)")
+        elif self.shape_unchecked is not None:
+            # a check that could not be made is not passed (DESIGN §7: anything else is
+            # a lead)
+            out.append(f"its RMSE could not be compared with the shape's ("
+                       f"{self.shape_unchecked})")
         if b.undetermined:
             out.append(f"constants not determined by the data: {', '.join(b.undetermined)}")
         return tuple(out)
@@ -177,6 +198,7 @@ class LawResult:
                 "worse_than_shape": self.worse_than_shape,
                 "equivalents": [{**_law_json(f), "separation": sep} for f, sep in
                                 zip(self.equivalents, self._separations())],
+                "shape_unchecked": self.shape_unchecked,
                 "undetermined": [] if b is None else list(b.undetermined),
                 "candidates": [f.to_json() for f in self.fitted],
                 "refused": [{"formula": f.formula, "reason": f.refused}

@@ -223,15 +223,17 @@ def fit_law(model: Model, fit: Fit, law: LawSpec, noise_um: float, nu: float, *,
 def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
            n: int = PICKS, forms=("factor", "deposit"), prefer=None,
            correction: dict | None = None, shape_rmse_um: float | None = None,
-           max_evaluations: int = LAW_EVALUATIONS, verbose: bool = False) -> LawResult:
+           shape_why: str = "", max_evaluations: int = LAW_EVALUATIONS,
+           verbose: bool = False) -> LawResult:
     """The law search on the misfit left by `fit` (module docstring); `linear`: the shape
     analysis's linearised system (`ShapeResult.linear`) on top of the same fit; `forms`:
     those the search tries; `n`: laws of distinct structure fitted through the loop at
     most (`law.screen.picks`); `shape_rmse_um`: the shape's correction refitted through
     the loop: a best law more than `LAW_WORSE` above it is reported as worse than the
-    shape (`LawResult.worse_than_shape`) and is a lead. `prefer` and `correction` (the
-    shape's choice and its refitted correction) are reported, not followed: the screen
-    weighs every law of the grammar alike (issue 48)."""
+    shape (`LawResult.worse_than_shape`) and is a lead; None (`shape_why`: why the refit
+    has none) leaves that check unmade, and the law a lead that says so. `prefer` and
+    `correction` (the shape's choice and its refitted correction) are reported, not
+    followed: the screen weighs every law of the grammar alike (issue 48)."""
     # the whole grammar is screened alike (module docstring); `prefer` and `correction`
     # only decide whether laws with memory are tried (`law.memory.wanted`)
     t0, c0, e0 = time.perf_counter(), time.process_time(), Model.evaluations
@@ -368,7 +370,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                            "peer_model_evaluations": peers["model_evaluations"],
                            "peer_cpu_s": peers["cpu_s"]},
                     shape_rmse_um=shape_rmse_um, refused=tuple(refused), ranges=rng,
-                    equivalents=equal, separations=seps)
+                    equivalents=equal, separations=seps, shape_why=shape_why)
     return dataclasses.replace(res, sentence=law_sentence(res))
 
 

@@ -109,6 +109,10 @@ class ShapeResult:
     # the rows' residuals (model - measured) [µm] (rows,) with the refitted correction,
     # for the report's error table and profiles (None before the refit)
     residual_um: np.ndarray | None = field(default=None, repr=False, compare=False)
+    # how the refit through the loop ended (the least-squares core's message, with the
+    # starts that could not be evaluated before it); where `rmse_after_um` is None after a
+    # refit, why it has none
+    refit_message: str = ""
 
 
     def finished(self) -> ShapeResult:
@@ -144,6 +148,7 @@ class ShapeResult:
                 "alpha": self.alpha, "noise_um": _num(self.noise_um),
                 "rmse_before_um": _num(self.rmse_before_um),
                 "model_evaluations": self.evaluations, "refit_status": self.status,
+                "refit_message": self.refit_message or None,
                 "numerical_error": self.numerical, "summary": self.sentence,
                 "next_test": self.next_test,
                 **({"law": self.law.to_json()} if self.law is not None else {})}
