@@ -180,12 +180,19 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
     # truncated history. Not where no experiment took a single step: a model that is not
     # finite at u (a parameter, an effect's hook) rejects every step whatever the count
     # (measured: three doublings to 512 attempts 3.4 s, where one run takes 0.03 s).
-    # The count that reaches the end is found by forward runs, the Jacobian run once at
-    # it: a run that does not reach the end uses every attempt, and the Jacobian's costs
-    # 1 + P tangents. Measured (issue 48): the shape's refit on the fatigue study (51
-    # columns) never reached the end; its three doubled Jacobian runs (2 + 4 + 8 x the
-    # first's length) were ~60 s of CPU per refit of a cold `diagnose --shape`.
+    # Where one doubling is not enough, the count that reaches the end is found by forward
+    # runs and the Jacobian run once more at it: a run that does not reach the end uses
+    # every attempt, and the Jacobian's costs 1 + P tangents. Measured (issue 48): the
+    # shape's refit on the fatigue study (51 columns) never reached the end; its three
+    # doubled Jacobian runs (2 + 4 + 8 x the first's length) were ~60 s of CPU per refit
+    # of a cold `diagnose --shape`. The first doubling is a Jacobian run as before: most
+    # raises end there, and forward runs first would compile the model's forward program
+    # (3 more compilations on the g_step_p_power_v study, each longer than the run saved).
     left = doublings
+    if left > 0 and _unfinished(model, out[2][5], out[2][6]):
+        model = model.with_schedule(model.schedule.more_attempts())
+        left -= 1
+        out = _jacobian_run(_dynamic(model), uj, cols)
     while left > 0 and _unfinished(model, out[2][5], out[2][6]):
         reached = False
         while left > 0:
