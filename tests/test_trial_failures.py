@@ -275,3 +275,57 @@ def test_the_samplers_density_at_a_failing_point_is_minus_infinity(problem):
     bad[1] = 10.0  # the clearance at which the work estimate is NaN (test above)
     assert math.isfinite(float(logp({"u": jnp.asarray(good)})))
     assert float(logp({"u": jnp.asarray(bad)})) == -math.inf
+
+
+def test_an_unfinished_run_finds_its_attempt_count_by_forward_runs(problem, monkeypatch):
+    """Where the attempt estimate is far too short (one doubling does not reach the end),
+    the count that reaches it is found by forward runs and the Jacobian run once more, at
+    it (a Jacobian run that does not reach the end uses every attempt, at 1 + P tangents:
+    on the fatigue study's shape refit three doubled Jacobian runs were ~60 s of CPU); the
+    evaluation is the one at an ample count (the same history, to rounding)."""
+    from jaxwear._inference import evaluation as E
+
+    u = np.zeros(problem.packing.size)
+    full, _ = E.evaluate(problem, u)
+    assert full.usable and full.steps >= 6
+    short = problem.with_schedule(dataclasses.replace(problem.schedule, attempts=1))
+    calls = {"jacobian": 0, "forward": 0}
+    jac, fwd = E._evaluate_jit, E._forward_jit
+
+    def count(name, f):
+        def run(*a, **k):
+            calls[name] += 1
+            return f(*a, **k)
+        return run
+
+    monkeypatch.setattr(E, "_evaluate_jit", count("jacobian", jac))
+    monkeypatch.setattr(E, "_forward_jit", count("forward", fwd))
+    monkeypatch.setattr(E, "enough_attempts", lambda model, u, **k: model)
+    ev, used = E.evaluate(short, u, doublings=5)
+    assert ev.usable and np.isfinite(ev.error_um)
+    assert used.schedule.attempts >= 4  # 1 -> 2 cannot take the history's 6+ steps
+    # the short Jacobian run, the first doubling's, then one at the count the forward runs
+    # reached (before: one Jacobian run per doubling, 4 or more)
+    assert calls["jacobian"] == 3 and calls["forward"] >= 1, calls
+    np.testing.assert_allclose(ev.pred, full.pred, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(ev.J, full.J, rtol=1e-7, atol=1e-9 * np.abs(full.J).max())
+
+
+def test_the_jacobian_of_some_columns_is_those_of_the_full_jacobian(problem):
+    """`evaluate(..., columns=)` (the law search's fits hold most of its model's columns):
+    the rows as without, the Jacobian's named columns those of the full Jacobian, the
+    others 0; a column repeated to pad changes nothing."""
+    from jaxwear._inference.evaluation import evaluate
+
+    u = np.zeros(problem.packing.size)
+    u[0] = 0.1
+    full, _ = evaluate(problem, u)
+    some, _ = evaluate(problem, u, columns=[0, 2, 2])
+    assert some.usable
+    np.testing.assert_allclose(some.pred, full.pred, rtol=1e-12, atol=1e-12)
+    scale = np.abs(full.J).max()
+    np.testing.assert_allclose(some.J[:, [0, 2]], full.J[:, [0, 2]], rtol=1e-9,
+                               atol=1e-12 * scale)
+    assert np.all(some.J[:, [1, 3]] == 0.0) and np.any(full.J[:, [1, 3]] != 0.0)
+    np.testing.assert_allclose(some.J_snaps[..., 2], full.J_snaps[..., 2], rtol=1e-9,
+                               atol=1e-12 * np.abs(full.J_snaps).max())

@@ -109,6 +109,35 @@ def _evaluate_jit(model: ResidualModel, u):
 
 
 @jit
+def _evaluate_columns_jit(model: ResidualModel, u, cols):
+    """`_evaluate_jit` with the Jacobian's columns `cols` (K,) only (indices into u, a
+    column repeated to pad), the others 0: forward mode costs one tangent per column, and
+    a fit that holds most columns (the law search's one model for every law, 10 law
+    constants of which a law fits 1-5) pays for its free ones only. `cols` is data: one
+    program for every set of the same length."""
+    TRACES["jacobian"] += 1  # runs when traced only
+    def g(v):
+        snaps, res = model.snapshots(v)
+        rows = model.predict_from(snaps, v)
+        aux = (rows, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle),
+               res.sliding_distance, jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
+        return (rows, snaps), aux
+
+    T = jnp.eye(u.shape[0], dtype=u.dtype)[:, cols]  # (P, K) unit tangents
+    _, (Jk, Jk_snaps), aux = jax.vmap(lambda t: jax.jvp(g, (u,), (t,), has_aux=True),
+                                      in_axes=1, out_axes=(None, -1, None))(T)
+    J = jnp.zeros(Jk.shape[:-1] + u.shape, Jk.dtype).at[..., cols].set(Jk)
+    J_snaps = jnp.zeros(Jk_snaps.shape[:-1] + u.shape, Jk.dtype).at[..., cols].set(Jk_snaps)
+    return J, J_snaps, aux
+
+
+def _jacobian_run(model: ResidualModel, u, cols):
+    if cols is None:
+        return _evaluate_jit(model, u)
+    return _evaluate_columns_jit(model, u, cols)
+
+
+@jit
 def _forward_jit(model: ResidualModel, u):
     """Rows [µm], snapshots [µm], worn-through cycle, error estimate [µm], steps: no
     Jacobian (a check of a linearised answer costs one plain run)."""
@@ -133,29 +162,53 @@ def unusable_evaluation(model: ResidualModel, u, why: str) -> Evaluation:
                       steps=0, adaptive=model.schedule.adaptive, failure=why)
 
 
-def evaluate(model: ResidualModel, u, *, doublings: int = 3
+def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
              ) -> tuple[Evaluation, ResidualModel]:
     """The model at u with its Jacobian, and the model it ran (its attempt count raised
     where u needed more: a fit keeps it, so later trials neither repeat a short run nor
     recompile). Where the work estimate at u is not finite the model is not run: an
-    unusable `Evaluation` saying why (a fit rejects it as a trial)."""
+    unusable `Evaluation` saying why (a fit rejects it as a trial). `columns`: the
+    Jacobian's columns computed (indices (K,), one repeated to pad), the others 0
+    (`_evaluate_columns_jit`); None: every column."""
     need = attempts_needed(model, u)
     if not math.isfinite(need):
         return unusable_evaluation(model, u, work_failure(model, u)), model
     model = enough_attempts(model, u, need=need)
     uj = jnp.asarray(u, jnp.float64)
-    out = _evaluate_jit(_dynamic(model), uj)
+    cols = None if columns is None else jnp.asarray(columns, jnp.int32)
+    out = _jacobian_run(_dynamic(model), uj, cols)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
     # layer's rejections), double it (a traced bound: no recompilation) rather than use a
     # truncated history. Not where no experiment took a single step: a model that is not
     # finite at u (a parameter, an effect's hook) rejects every step whatever the count
     # (measured: three doublings to 512 attempts 3.4 s, where one run takes 0.03 s).
-    for _ in range(doublings):
-        if not (model.schedule.adaptive and not np.isfinite(float(out[2][5]))
-                and int(out[2][6]) > 0):
-            break
+    # Where one doubling is not enough, the count that reaches the end is found by forward
+    # runs and the Jacobian run once more at it: a run that does not reach the end uses
+    # every attempt, and the Jacobian's costs 1 + P tangents. Measured (issue 48): the
+    # shape's refit on the fatigue study (51 columns) never reached the end; its three
+    # doubled Jacobian runs (2 + 4 + 8 x the first's length) were ~60 s of CPU per refit
+    # of a cold `diagnose --shape`. The first doubling is a Jacobian run as before: most
+    # raises end there, and forward runs first would compile the model's forward program
+    # (3 more compilations on the g_step_p_power_v study, each longer than the run saved).
+    left = doublings
+    if left > 0 and _unfinished(model, out[2][5], out[2][6]):
         model = model.with_schedule(model.schedule.more_attempts())
-        out = _evaluate_jit(_dynamic(model), uj)
+        left -= 1
+        out = _jacobian_run(_dynamic(model), uj, cols)
+    while left > 0 and _unfinished(model, out[2][5], out[2][6]):
+        reached = False
+        while left > 0:
+            model = model.with_schedule(model.schedule.more_attempts())
+            left -= 1
+            f = _forward_jit(_dynamic(model), uj)
+            if np.isfinite(float(f[3])):
+                reached = True
+                break
+            if int(f[4]) == 0:  # no step at all: no count reaches the end (above)
+                left = 0
+        if not reached:
+            break
+        out = _jacobian_run(_dynamic(model), uj, cols)
     J, J_snaps, (rows, snaps, mres, worn, sliding, err, steps) = jax.tree.map(np.asarray, out)
     u = np.asarray(u, np.float64)
     meas = model.measured
@@ -167,6 +220,12 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3
                       J_snaps=J_snaps, max_residual=float(mres), worn=float(worn),
                       sliding_m=sliding, error_um=float(err), steps=int(steps),
                       adaptive=model.schedule.adaptive), model
+
+
+def _unfinished(model: ResidualModel, err, steps) -> bool:
+    """A run of an adaptive model that took steps but did not reach the end (its error
+    estimate `err` not finite): more attempts may reach it."""
+    return bool(model.schedule.adaptive and not np.isfinite(float(err)) and int(steps) > 0)
 
 
 @dataclass(frozen=True)

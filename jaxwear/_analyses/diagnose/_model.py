@@ -10,6 +10,7 @@ every pair.
 
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -40,6 +41,9 @@ class Model:
       between the finer resolution calibrate's answer is corrected to and this study's
       (`_calibrate.correct_to_finer`): the base fit then meets that answer, and every
       candidate is compared at the same correction (the same compiled function).
+    - `jacobian_columns` (K,): the only columns of u whose Jacobian `evaluate` computes
+      (one repeated to pad; the others 0: `evaluation.evaluate`'s `columns`), for a fit
+      that holds the rest (`with_jacobian_columns`); None: every column.
     """
 
     # process-wide counters of compiled-model evaluations (progress, benchmarks)
@@ -50,6 +54,7 @@ class Model:
     def __init__(self, study: Study, *, keys=None, start: dict | None = None,
                  candidates=None, contact=None, shape=None, defect_um=None):
         self.study = study
+        self.jacobian_columns = None  # every column (`with_jacobian_columns`)
         self.keys = list(keys) if keys is not None else parse_fit(
             study, list(study.fit) if study.fit else "K_d,clearance")
         self.start = dict(start or {})
@@ -109,6 +114,14 @@ class Model:
                      shape=self.shape if shape == "same" else shape,
                      defect_um=self.ext.defect)
 
+    def with_jacobian_columns(self, columns) -> Model:
+        """The same model whose evaluations compute the Jacobian of `columns` only (indices
+        (K,) into u, one repeated to pad; the others 0), None: of every column."""
+        out = copy.copy(self)
+        object.__setattr__(out, "jacobian_columns", None if columns is None
+                           else np.asarray(columns, np.int32))
+        return out
+
     def with_contact(self, contact: str | None) -> Model:
         """The same model with another contact choice (None: the study's)."""
         return self.variant(contact=contact)
@@ -137,7 +150,7 @@ class Model:
         Model.evaluations += 1
         t0 = time.perf_counter()
         n_compiled = _compiled_count()
-        ev, used = evaluate(self.ext, u)
+        ev, used = evaluate(self.ext, u, columns=self.jacobian_columns)
         if used.schedule.attempts > self.ext.schedule.attempts:
             # the attempt count an evaluation needed is kept for the rest of the run
             object.__setattr__(self, "ext", used)

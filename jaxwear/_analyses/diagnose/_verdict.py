@@ -305,12 +305,17 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
 
         # both analyses' linear parts first, their refits through the loop after (`defer`),
         # so that the figures the refits do not change are drawn while they run
+        twice = status in ("effect_found", "partly_explained")
+        # both refits on one model (the effect's groups held at off in the first): one
+        # compilation where they refit the same carriers (`shape_analysis`'s refit_groups)
+        shared = list(final.groups) if twice and by_contact(final.contact) is model else []
         shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
                              verbose=verbose, design=None if job is None else job.result(),
                              numerical_um=(finer_minus_rows if _at_start(base, 0.1)
-                                           else None), defer=figures is not None)
+                                           else None), defer=figures is not None,
+                             refit_groups=shared)
         after = None
-        if status in ("effect_found", "partly_explained"):
+        if twice:
             # with the effect's own contact model, on the first analysis's columns (its
             # design carries every candidate, held at off: nesting)
             share = by_contact(final.contact) is model and set(final.groups) <= set(
@@ -318,7 +323,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             after = shape_analysis(by_contact(final.contact), final, noise, nu,
                                    after=" + ".join(effects or partial), seed=seed,
                                    verbose=verbose, design=shp.design if share else None,
-                                   defer=figures is not None)
+                                   defer=figures is not None, refit_groups=shared)
         drawing = None
         if figures is not None:
             drawing = Background(figures, [shp, after])

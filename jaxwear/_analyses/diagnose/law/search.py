@@ -93,6 +93,8 @@ GRID = 121  # points of z over its range for projecting Φ on the splines
 # where a candidate does not use them), so that every candidate shares its program
 LAW_KEYS = ("law_gain", "law_deposit", "law_a_1", "law_x0_1", "law_w_1", "law_b_1",
             "law_a_2", "law_x0_2", "law_w_2", "law_b_2")
+# a law's fitted constants at most: its strength and two terms of two constants each
+MAX_FREE_LAW = 5
 THRESHOLD_QUANTILES = (0.1, 0.25, 0.4, 0.5, 0.6, 0.75, 0.9)
 # the constants that make a term 1 everywhere (a product's second term at its start)
 NEUTRAL = {"power": {"a": 0.0}, "exp": {"b": 0.0}}
@@ -199,8 +201,17 @@ def law_model(model: Model, fit: Fit, law: LawSpec) -> Model:
         parameters={**st.parameters, **held})
     start = {n: float(v) for n, v, m in zip(model.names, fit.values, model.base_mask) if m}
     start.update({k: vals[k] for k in cols})
-    return Model(study, keys=list(model.keys) + list(cols), start=start, candidates=[],
-                 defect_um=model.ext.defect)
+    lm = Model(study, keys=list(model.keys) + list(cols), start=start, candidates=[],
+               defect_um=model.ext.defect)
+    if cols is not LAW_KEYS:
+        return lm
+    # the Jacobian of the columns a law fits only (`fit_law`'s free ones: the fit's own
+    # and the law's constants), padded to one length for every law (one program): a law
+    # fits 1-5 of the 10 law columns, each a tangent of every evaluation
+    free = [n for n, m in zip(model.names, fit.mask) if m]
+    jac = [lm.index[n] for n in [*free, *law.free_keys()] if n in lm.index]
+    jac += [jac[0]] * (len(free) + MAX_FREE_LAW - len(jac))
+    return lm.with_jacobian_columns(jac)
 
 
 def fit_law(model: Model, fit: Fit, law: LawSpec, noise_um: float, nu: float, *,

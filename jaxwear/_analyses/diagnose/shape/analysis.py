@@ -95,7 +95,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                    seed: int = 0, draws: int = DRAWS, size: int = SIZE,
                    verbose: bool = False, numerical: bool = True,
                    numerical_um: np.ndarray | None = None,
-                   design: Design | None = None, defer: bool = False) -> ShapeResult:
+                   design: Design | None = None, defer: bool = False,
+                   refit_groups=None) -> ShapeResult:
     """The shape of the misfit left by `fit` (of `model`) along every state variable, in
     both forms (module docstring). `noise_um` σ [µm] with `nu` degrees of freedom
     (diagnose's noise level). `numerical`: count the model's numerical error: the rows of
@@ -115,10 +116,19 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
 
     `defer`: where a variable is significant, return before the refit through the loop
     (status "pending"; `ShapeResult.finished()` runs it), so that the caller can do other
-    work meanwhile (draw the figures the refit does not change)."""
+    work meanwhile (draw the figures the refit does not change).
+
+    `refit_groups`: the candidate groups of the refit's model (default: the fit's own);
+    those the fit does not have are held at off, where the model is the fit's exactly
+    (nesting). Why: diagnose's two analyses (after the base fit and after the effect
+    found) then refit through one compiled program where they refit the same carriers:
+    the model with the correction and its when/where map compiled once, not twice (on the
+    fatigue study 2 x (15-21 s + 18-34 s) of compilation for the same answer)."""
 
     evals0 = Model.evaluations
     own_groups = [g for g in model.candidates if g in fit.groups]
+    held = set(refit_groups or ()) | set(own_groups)
+    refit_with = [g for g in model.candidates if g in held]
     spent = 0  # evaluations of a design computed before this call, not yet counted
     if design is None:
         design = prepare_design(model, fit, groups=own_groups, size=size, verbose=verbose)
@@ -290,7 +300,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         e0 = Model.evaluations
         surf = inter.block if inter is not None and inter.significant else None
         rmse_after, status, corr_model, u_fit, cov, snaps, resid, message = _refit(
-            smodel, own_groups, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
+            smodel, refit_with, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
             Jw, rho_full, verbose, deepest, surface=surf)
         if not math.isfinite(rmse_after):
             # no start of the refit could be evaluated: no RMSE, no correction, and why

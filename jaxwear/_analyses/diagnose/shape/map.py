@@ -123,7 +123,10 @@ def compile_maps(cm, deepest: int) -> None:
         pass
 
 
-@jit
+# O0 (`once`): the map runs twice per refitted model (`compile_maps`'s warm-up and
+# `when_where`), a few tenths of a second each, while its compilation (a Jacobian of one
+# cycle's rates) took 18-34 s of a cold `diagnose --shape` on the fatigue study at O1
+@jit(once=True)
 def _jit_maps(ext, u, deepest, h):
 
     cfg = ext.cfg
