@@ -160,21 +160,22 @@ class Model:
             Model.first_evaluation_s = dt
         return ev
 
-    def predict(self, u) -> np.ndarray:
+    def predict(self, u, *, doublings: int = 3) -> np.ndarray:
         """Model depth at every row [µm] at u, forward only (no Jacobian: a check of a
         linearised answer costs one plain evaluation); NaN rows where the model wore
-        through or its integration ran out of attempts."""
-        return self._forward(u)[0]
+        through or its integration ran out of attempts (`doublings`: times the attempt
+        count may double before that, `evaluation.forward`)."""
+        return self._forward(u, doublings=doublings)[0]
 
     def snapshots(self, u) -> np.ndarray:
         """Model snapshots (E, S, N) [µm] at u, forward only; NaN where the model wore
         through or its integration ran out of attempts."""
         return self._forward(u)[1]
 
-    def _forward(self, u):
+    def _forward(self, u, doublings: int = 3):
         Model.evaluations += 1
         t0 = time.perf_counter()
-        rows, snaps, _, used = forward(self.ext, u)
+        rows, snaps, _, used = forward(self.ext, u, doublings=doublings)
         if used.schedule.attempts > self.ext.schedule.attempts:
             object.__setattr__(self, "ext", used)
         Model.evaluation_s += time.perf_counter() - t0
