@@ -94,15 +94,21 @@ class Evaluation:
                          error_um=err, extra=self, why=self.why)
 
 
+def _rows_and_aux(model: ResidualModel, v):
+    """((rows, snapshots), aux) at v: what both Jacobian programs differentiate, with the
+    run's checks (max residual, worn-through cycle, sliding distance, error [µm], steps)."""
+    snaps, res = model.snapshots(v)
+    rows = model.predict_from(snaps, v)
+    aux = (rows, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle),
+           res.sliding_distance, jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
+    return (rows, snaps), aux
+
+
 @jit
 def _evaluate_jit(model: ResidualModel, u):
     TRACES["jacobian"] += 1  # runs when traced only
     def g(v):
-        snaps, res = model.snapshots(v)
-        rows = model.predict_from(snaps, v)
-        aux = (rows, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle),
-               res.sliding_distance, jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
-        return (rows, snaps), aux
+        return _rows_and_aux(model, v)
 
     (J, J_snaps), aux = jax.jacfwd(g, has_aux=True)(u)
     return J, J_snaps, aux
@@ -117,11 +123,7 @@ def _evaluate_columns_jit(model: ResidualModel, u, cols):
     program for every set of the same length."""
     TRACES["jacobian"] += 1  # runs when traced only
     def g(v):
-        snaps, res = model.snapshots(v)
-        rows = model.predict_from(snaps, v)
-        aux = (rows, snaps, jnp.max(res.max_residual), jnp.max(res.worn_through_cycle),
-               res.sliding_distance, jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
-        return (rows, snaps), aux
+        return _rows_and_aux(model, v)
 
     T = jnp.eye(u.shape[0], dtype=u.dtype)[:, cols]  # (P, K) unit tangents
     _, (Jk, Jk_snaps), aux = jax.vmap(lambda t: jax.jvp(g, (u,), (t,), has_aux=True),
