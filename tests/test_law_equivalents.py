@@ -161,3 +161,98 @@ def test_a_lead_best_law_gives_its_determined_neighbours_to_fit():
            "law_w_2": 0.3}
     g = pruned([_fit(two, 0.3126, se2)])
     assert [x.label for x in g] == ["factor: step(pressure_MPa)"]
+
+
+def _dep(kind, var, ref, strength=0.003, **kw):
+    return LawSpec("deposit", (Term(kind, var, ref, **kw),), strength)
+
+
+def test_a_law_simpler_than_one_at_the_noise_is_fitted_too():
+    """The rich design's deposit ∝ (W/150 N)² (seed 2): a step in the load (3 constants)
+    fitted to the noise first and stopped the search; the screen's best law of fewer
+    constants over the same variable (its power, 2) would win a tie, and is picked; not
+    one of another variable, not where a law that simple is fitted already, not where none
+    is at the noise."""
+    from jaxwear._analyses.diagnose.law.search import simpler_pick
+
+    step = _dep("step", "load_N", 150.0, x0=1.0, w=0.1)
+    hinge = _dep("hinge", "load_N", 150.0, x0=0.4, a=1.0)
+    power_w = _dep("power", "load_N", 150.0, a=2.0)
+    power_p = _dep("power", "pressure_MPa", 1.5, a=1.0)
+    se = {"law_deposit": 1e-4, "law_x0_1": 0.02, "law_w_1": 0.01, "law_a_1": 0.1}
+    fit_step = _fit(step, 0.3127, se, at_noise=True)
+    # the pressure's power scores best of the 2-constant laws, but is not of the load
+    screened = [(800.0, hinge), (795.0, step), (790.0, power_p), (780.0, power_w)]
+    pk = simpler_pick(screened, [fit_step], 2880)
+    assert pk is not None and pk[1].label == "deposit: power(load_N)"
+    assert simpler_pick(screened, [fit_step, _fit(power_w, 0.313, se)], 2880) is None
+    assert simpler_pick(screened, [dataclasses.replace(fit_step, at_noise=False)],
+                        2880) is None
+    assert simpler_pick(screened[:3], [fit_step], 2880) is None
+
+
+def test_a_lead_with_an_undetermined_term_gives_the_screens_changes_of_that_term():
+    """The rich design's step(p)·power(v) (seeds 1, 2): step(p)·step(ω) answered with ω's
+    threshold undetermined; the screen's best products that keep step(p) and change the
+    other term are fitted (best score first), not those that drop step(p), not the lead's
+    own structure, not one fitted already (either term order); a determined lead gives
+    none."""
+    from jaxwear._analyses.diagnose.law.search import same, swaps
+
+    step_p = Term("step", "pressure_MPa", 1.5, x0=1.0, w=0.07)
+    lead = LawSpec("factor", (step_p, Term("step", "load_turn_rate_deg_per_s", 100.0,
+                                           x0=0.02, w=1.1)), 2.4)
+    se = {"law_gain": 0.2, "law_x0_1": 0.02, "law_w_1": 0.01, "law_x0_2": 3.0,
+          "law_w_2": 0.3}
+    f = _fit(lead, 0.3126, se)
+    assert "omega0" in f.undetermined and "p0" not in f.undetermined
+    power_v = LawSpec("factor", (Term("power", "sliding_speed_m_per_s", 0.04, a=1.0),
+                                 step_p), 1.0)
+    exp_s = LawSpec("factor", (step_p, Term("exp", "sliding_distance_m", 20.0, b=1.0)), 1.0)
+    other = LawSpec("factor", (Term("power", "pressure_MPa", 1.5, a=2.0),
+                               Term("power", "sliding_speed_m_per_s", 0.04, a=1.0)), 1.0)
+    single = LawSpec("factor", (step_p,), 1.0)
+    screened = [(7400.0, lead), (7390.0, other), (7380.0, power_v), (7350.0, exp_s),
+                (7000.0, single)]
+    got = swaps([f], screened, n_rows=2880)
+    assert [g[1].label for g in got] == [power_v.label, exp_s.label]
+    # step(p)·power(v) fitted already, its terms the other way round
+    flipped = LawSpec("factor", power_v.terms[::-1], 1.0)
+    assert [g[1].label for g in swaps([f], screened, {same(flipped)}, 2880)] == [exp_s.label]
+    # a determined lead: nothing to change
+    se_ok = dict(se, law_x0_2=0.005)
+    assert swaps([_fit(lead, 0.3126, se_ok)], screened, n_rows=2880) == []
+
+
+def test_a_single_undetermined_term_is_changed_for_the_screens_next_single_laws():
+    """The rich design's exponential of the worn depth (seed 3): a hinge in h with its
+    threshold undetermined; the screen's next one-term laws (the exponential, the power
+    fitted already aside) are fitted, not the products."""
+    from jaxwear._analyses.diagnose.law.search import same, swaps
+
+    f = _fit(HINGE_H, 0.3120, {"law_gain": 0.06, "law_a_1": 0.3, "law_x0_1": 0.6})
+    assert f.undetermined == ("h0",)
+    prod = LawSpec("factor", (HINGE_H.terms[0], Term("exp", "load_turn_deg_per_deg", 0.03,
+                                                     b=-0.1)), 0.1)
+    screened = [(9064.0, HINGE_H), (9055.0, prod), (9050.0, POWER_H), (9040.0, EXP_H),
+                (100.0, POWER_P)]
+    got = swaps([f], screened, {same(POWER_H)}, 2880)
+    assert [g[1].label for g in got] == [EXP_H.label, POWER_P.label]
+
+
+def test_an_exponential_factor_is_bounded_by_the_rate_it_gives():
+    """A factor's rate is K_d (1 + A Φ): its growth from the top of the states met (h =
+    14.42 µm) to twice it is that of 1 + A Φ, not Φ's. By hand, exp((h − h_s)/6 µm) at
+    h_s = 3.2 µm: Φ grows e^(14.42/6) = 11.0-fold (more than `EXP_GROWTH`, 10), Φ(14.42) =
+    e^1.870 = 6.49 and Φ(28.84) = e^4.273 = 71.7; with A = 0.37 the rate grows (1 + 26.5)
+    / (1 + 2.40) = 8.1-fold (kept), with A = 100 by 7171 / 650 = 11.0 (refused); a
+    deposit's rate is DΦ (refused), and so is a law not yet fitted (strength 0: Φ's)."""
+    from jaxwear._analyses.diagnose.law.search import unbounded
+
+    ranges = {"worn_depth_um": (0.0, 14.42)}
+    term = Term("exp", "worn_depth_um", 3.2, b=3.2 / 6.0)
+    assert unbounded(LawSpec("factor", (term,), 0.37), ranges) == ""
+    assert "a rate with an exponential" in unbounded(LawSpec("factor", (term,), 100.0),
+                                                     ranges)
+    assert "grows 11.1-fold" in unbounded(LawSpec("deposit", (term,), 0.37), ranges)
+    assert "grows 11.1-fold" in unbounded(LawSpec("factor", (term,), 0.0), ranges)

@@ -212,7 +212,9 @@ class LawResult:
                 # the fits after a law at the noise (`law.search.PEERS`) and their cost
                 "peer_fits": self.extra.get("peer_fits"),
                 "peer_model_evaluations": self.extra.get("peer_model_evaluations"),
-                "peer_cpu_s": self.extra.get("peer_cpu_s"), "summary": self.sentence}
+                "peer_cpu_s": self.extra.get("peer_cpu_s"),
+                # the screen's best structures (`law.search.screen_top`), fitted or not
+                "screen_top": self.extra.get("screen_top", []), "summary": self.sentence}
 
 
 def _law_json(f: LawFit) -> dict:

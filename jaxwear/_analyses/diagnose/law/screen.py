@@ -161,22 +161,29 @@ def screen_grammar(linear: dict, samples: dict, grids, forms=("factor", "deposit
     return out
 
 
+def score(x, n_rows: int) -> float:
+    """The screen's score of (χ² drop, law): the drop less ln(n_rows) per fitted constant
+    (module docstring)."""
+    return x[0] - math.log(max(n_rows, 2)) * len(x[1].free_keys())
+
+
+def ranked_structures(screened, n_rows: int) -> list[tuple[float, LawSpec]]:
+    """The best (χ² drop, law) of each structure (`structure`) of `screened` (best drop
+    first), best `score` first."""
+    best = {}
+    for drop, law in screened:
+        best.setdefault(structure(law), (drop, law))
+    return sorted(best.values(), key=lambda x: score(x, n_rows), reverse=True)
+
+
 def picks(screened, n_rows: int, n: int = PICKS) -> list[tuple[float, LawSpec]]:
     """The laws fitted through the loop: the best of each structure (`structure`), ranked
     by the χ² drop less ln(n_rows) per fitted constant, the first `n`; the best one-term
     law among them (in the last place where it was not)."""
-    best = {}
-    for drop, law in screened:
-        best.setdefault(structure(law), (drop, law))
-    price = math.log(max(n_rows, 2))
-
-    def score(x):
-        return x[0] - price * len(x[1].free_keys())
-
-    ranked = sorted(best.values(), key=score, reverse=True)
+    ranked = ranked_structures(screened, n_rows)
     out = ranked[:n]
     single = next((x for x in ranked if len(x[1].terms) == 1), None)
     if single is not None and all(len(x[1].terms) > 1 for x in out):
         out = out[:n - 1] + [single]
     # simplest first: the products may start from the single laws as fitted
-    return sorted(out, key=lambda x: (len(x[1].terms), -score(x)))
+    return sorted(out, key=lambda x: (len(x[1].terms), -score(x, n_rows)))

@@ -62,6 +62,8 @@ from jaxwear._analyses.diagnose.law.screen import (
     PICKS,
     SAMPLES,
     picks,
+    ranked_structures,
+    score,
     screen_grammar,
     structure,
 )
@@ -269,16 +271,28 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
 
     def screen_then_peer():
         # the screen's picks, then (once one fits to noise) the screen's best structure of
-        # the same complexity not yet fitted (`peer_pick`)
+        # the same complexity not yet fitted (`peer_pick`) and its best simpler one of the
+        # same variables (`simpler_pick`)
         yield from ((d, lw, "screen") for d, lw in todo)
         pk = peer_pick(screened, fitted + refused, len(linear["rho"]))
         if pk is not None and peers["fits"] < PEERS:
             yield pk[0], pk[1], "peer"
+        pk = simpler_pick(screened, fitted + refused, len(linear["rho"]))
+        if pk is not None:
+            yield pk[0], pk[1], "simpler"
         # a best law whose constants the data do not determine: its determined neighbours
         # (`pruned`), so that a lead does not stand where a simpler law predicts as well
         done = {f.law.label for f in fitted + refused}
         for lw in pruned(rank(fitted), done)[:PRUNED]:
             yield math.nan, lw, "pruned"
+        # ... and the screen's best laws that keep its determined terms and change the
+        # undetermined one (`swaps`): the lead's undetermined term may stand for another
+        done = {same(f.law) for f in fitted + refused}
+        for d, lw in swaps(rank(fitted), screened, done, len(linear["rho"]))[:SWAPS]:
+            yield d, lw, "swap"
+            last = next((f for f in fitted if same(f.law) == same(lw)), None)
+            if last is not None and not last.undetermined:
+                break  # a determined law in the lead's place: the next is not needed
 
     with searching():
         # the screen's picks, then the laws with memory, where the history shows or no law
@@ -289,24 +303,30 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 verbose=verbose, skip=any(f.at_noise for f in fitted),
                 as_shape=as_shape(fitted, shape_rmse_um))):
             peer = False
-            if src == "pruned":
-                _log(verbose, f"    {law.label}: fitted as the determined neighbour of a "
-                              f"law whose constants the data do not determine")
+            if same(law) in {same(f.law) for f in fitted + refused}:
+                continue  # fitted already (a pick, a peer, a neighbour)
+            if src in ("pruned", "swap"):
+                _log(verbose, f"    {law.label}: fitted as the "
+                              + ("determined neighbour" if src == "pruned" else
+                                 "screen's best change of the undetermined term")
+                              + " of a law whose constants the data do not determine")
             elif fitted and any(f.at_noise for f in fitted):
-                # a simpler law already fits to noise by diagnose's own tests: the others
-                # can at most tie with it and would lose to it by complexity; one of the
-                # same complexity (`PEERS`) is still fitted: it may tie, and then the data
-                # do not tell the two apart (`law.equivalent`)
+                # a law already fits to noise by diagnose's own tests: the others can at
+                # most tie with it and would lose to it by complexity; one of the same
+                # complexity (`PEERS`) is still fitted: it may tie, and then the data do
+                # not tell the two apart (`law.equivalent`); and one simpler than it
+                # (fewer constants), which would win a tie (`simpler_pick`)
                 k_noise = min(f.complexity for f in fitted if f.at_noise)
+                simpler = (src in ("screen", "peer", "simpler")
+                           and len(law.free_keys()) < k_noise)
                 peer = (src in ("screen", "peer") and peers["fits"] < PEERS
-                        and len(law.free_keys()) == k_noise
-                        and law.label not in {f.law.label for f in fitted + refused})
-                if not peer:
+                        and len(law.free_keys()) == k_noise)
+                if not (peer or simpler):
                     _log(verbose, f"    {law.label}: not fitted (a law already fits to "
                                   f"noise)")
                     continue
             if fitted and as_shape(fitted, shape_rmse_um) and src not in ("memory",
-                                                                          "pruned"):
+                                                                          "pruned", "swap"):
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
                 # fitted after the step in p·v (0.316 µm, the shape 0.317) reached 0.400
@@ -379,10 +399,23 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                            "model_evaluations": Model.evaluations - e0,
                            "loo_forward_runs": runs, "peer_fits": peers["fits"],
                            "peer_model_evaluations": peers["model_evaluations"],
-                           "peer_cpu_s": peers["cpu_s"]},
+                           "peer_cpu_s": peers["cpu_s"],
+                           "screen_top": screen_top(screened, len(linear["rho"]))},
                     shape_rmse_um=shape_rmse_um, refused=tuple(refused), ranges=rng,
                     equivalents=equal, separations=seps, shape_why=shape_why)
     return dataclasses.replace(res, sentence=law_sentence(res))
+
+
+SCREEN_TOP = 12  # the screen's best structures reported (`screen_top`)
+
+
+def screen_top(screened, n_rows: int, n: int = SCREEN_TOP) -> list[dict]:
+    """The screen's best `n` structures (`ranked_structures`) for the report: each one's
+    label, χ² drop [σ²], score (the drop less ln(n_rows) per constant) and constants; why:
+    a law the loop never fitted is then seen to be missed by the screen or by the stops."""
+    return [{"label": law.label, "chi2_drop": float(d), "score": float(score((d, law), n_rows)),
+             "constants": len(law.free_keys())}
+            for d, law in ranked_structures(screened, n_rows)[:n]]
 
 
 def law_off(lm: Model, model: Model, law: LawSpec):
@@ -566,11 +599,48 @@ def unbounded(law: LawSpec, ranges: dict) -> str:
                     f"where a prediction goes")
         if t.kind == "exp" and t.b > 0 and math.isfinite(hi):
             growth = t.b * hi / t.ref  # ln Φ(2 hi)/Φ(hi)
+            what = "an exponential"
+            c = _level(law, t, ranges)
+            if c is not None:
+                # a factor's rate is K_d (1 + A Φ): what a prediction meets is that rate's
+                # growth, which its 1 dilutes (ln of (1 + c Φ(2 hi))/(1 + c Φ(hi)), c the
+                # rest of A Φ at the top of the states met). Why: on the generator's
+                # exponential of the worn depth (seed 1, rich design) the fitted
+                # exponential itself, h_e ≈ 6 µm to h = 14.4 µm, grew 11-fold (refused)
+                # where the rate it gives grows 8-fold
+                e1 = t.b * (hi / t.ref - 1.0)
+                growth = (_log1p_exp(math.log(c) + e1 + t.b * hi / t.ref)
+                          - _log1p_exp(math.log(c) + e1))
+                what = "a rate with an exponential"
             if growth > math.log(EXP_GROWTH):
                 x = math.exp(min(growth, 700.0))
-                return (f"an exponential of {t.variable} that grows {x:.3g}-fold from the "
+                return (f"{what} of {t.variable} that grows {x:.3g}-fold from the "
                         f"upper end of the states met ({hi:.4g}) to twice it")
     return ""
+
+
+def _log1p_exp(x: float) -> float:
+    """ln(1 + eˣ) without overflow."""
+    return x + math.log1p(math.exp(-x)) if x > 0 else math.log1p(math.exp(x))
+
+
+def _level(law: LawSpec, term, ranges: dict):
+    """c > 0 of a factor's rate 1 + c Φ_term (`unbounded`): its fitted strength A times
+    its other terms at the end of their range met where they are largest; None where the
+    law is a deposit (its rate is DΦ: Φ's growth), or its strength is not a positive
+    number (the screen's laws, not yet fitted: Φ's growth, the most the rate can grow)."""
+    if law.form != "factor" or not (math.isfinite(law.strength) and law.strength > 0):
+        return None
+    c = float(law.strength)
+    for o in law.terms:
+        if o is term:
+            continue
+        lo, hi = ranges.get(o.variable, (math.nan, math.nan))
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return None
+        ends = law_phi_numpy(LawSpec("factor", (o,)), {o.variable: np.array([lo, hi])})
+        c *= float(np.max(ends))
+    return c if c > 0 and math.isfinite(c) else None
 
 
 def loo_se(f) -> float:
@@ -637,13 +707,91 @@ def peer_pick(screened, fitted, n_rows: int):
     if not noise:
         return None
     k = min(f.complexity for f in noise)
-    done = {f.law.label for f in fitted}
+    done = {same(f.law) for f in fitted}
     cand = [x for x in picks(screened, n_rows, n=len(screened) or 1)
-            if len(x[1].free_keys()) == k and x[1].label not in done]
+            if len(x[1].free_keys()) == k and same(x[1]) not in done]
     if not cand:
         return None
     price = math.log(max(n_rows, 2))
     return max(cand, key=lambda x: x[0] - price * len(x[1].free_keys()))
+
+
+def same(law) -> tuple:
+    """A law's structure with its terms in either order (a product fitted from a single
+    law may hold its terms swapped, `from_fitted`); a law with memory: its label."""
+    if getattr(law, "memory", False) or not hasattr(law, "terms"):
+        return (law.label,)
+    return (law.form, *sorted((t.kind, t.variable) for t in law.terms))
+
+
+def simpler_pick(screened, fitted, n_rows: int):
+    """(χ² drop, law) of the screen's best structure (`picks`' score) with fewer fitted
+    constants than the simplest law of `fitted` that fits to noise (`LawFit.at_noise`), of
+    its form and of its variables only, where no law of `fitted` is that simple, else None.
+    Why: a law at the noise stopped the search, the simpler ones left unfitted though they
+    would win a tie (`rank`): on the generator's deposit ∝ (W/150 N)² (rich design, seed
+    2) a step in the load (3 constants) answered and its power (2) was never fitted."""
+    noise = [f for f in fitted if f.at_noise and not getattr(f.law, "memory", False)]
+    if not noise:
+        return None
+    best = min(noise, key=lambda f: f.complexity)
+    k = best.complexity
+    if any(f.complexity < k for f in fitted):
+        return None
+    names = {t.variable for t in best.law.terms}
+    done = {same(f.law) for f in fitted}
+    for x in ranked_structures(screened, n_rows):
+        law = x[1]
+        if (law.form == best.law.form and len(law.free_keys()) < k
+                and {t.variable for t in law.terms} <= names and same(law) not in done):
+            return x
+    return None
+
+
+# the screen's best changes of a lead's undetermined term fitted (`swaps`), at most this
+# many. Why: on the rich design's step(p)·power(v) (the generator's, seeds 1 and 2) the
+# answer was step(p)·step(ω), the turn rate's threshold undetermined (a lead); its only
+# determined neighbour, step(p), had been fitted, and step(p)·power(v) never was.
+SWAPS = 2
+
+
+def _undetermined_terms(law: LawSpec, undetermined_: tuple) -> list[bool]:
+    """Per term of `law`: whether it holds a constant named in `undetermined_`."""
+    und = set(undetermined_)
+    out = []
+    for k, t in enumerate(law.terms, 1):
+        sym = SYMBOLS[t.variable]
+        names = {"power": {f"a{k}"}, "hinge": {f"a{k}", f"{sym}0"},
+                 "step": {f"{sym}0", f"{sym}_width"}, "exp": {f"{sym}_e"}}[t.kind]
+        out.append(bool(names & und))
+    return out
+
+
+def swaps(ranked, screened, done=frozenset(), n_rows: int = 2) -> list:
+    """(χ² drop, law) of the screen's best structures (`picks`' score, best first) that
+    keep the determined terms (kind and variable) of the best law of `ranked` and change
+    its terms that hold an undetermined constant (another kind or variable; as many
+    terms, one form), where that best law is not determined; those in `done` (`same`
+    keys) left out; [] where it is determined, of memory, or its every term is determined (an
+    undetermined strength alone: `pruned`'s)."""
+    if not ranked or not ranked[0].undetermined or getattr(ranked[0].law, "memory", False):
+        return []
+    law = ranked[0].law
+    bad = _undetermined_terms(law, ranked[0].undetermined)
+    if not any(bad):
+        return []
+    kept = sorted((t.kind, t.variable) for t, b in zip(law.terms, bad) if not b)
+    own = structure(law)
+    out = []
+    for x in ranked_structures(screened, n_rows):
+        cand = x[1]
+        if (cand.form != law.form or len(cand.terms) != len(law.terms)
+                or structure(cand) == own or same(cand) in done):
+            continue
+        have = sorted((t.kind, t.variable) for t in cand.terms)
+        if all(have.count(k) >= kept.count(k) for k in kept):
+            out.append(x)
+    return out
 
 
 # determined neighbours of an undetermined best law fitted (`pruned`), at most this many.
