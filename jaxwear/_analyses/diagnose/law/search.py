@@ -23,9 +23,14 @@ core, guarded, and ranked by their error on left-out experiments.
    combined test, or a law of two variables reaches the shape's refitted RMSE
    (`as_shape`), the rest are not fitted, but for one of the same complexity as the law
    at the noise (`PEERS`, `peer_pick`: the next of the screen's picks, else the screen's
-   best such structure), which may tie with it. Then, where the history shows or no law of the
-   present states reaches the noise, laws with memory: a per-node damage or film the
-   cycle drives (`law.memory`).
+   best such structure), which may tie with it, and the screen's picks of fewer constants
+   than it, which would win a tie. Where the best law so far has undetermined constants:
+   its determined neighbours (`pruned`), then the screen's best laws keeping its
+   determined terms and changing the others (`swaps`). Then the laws simpler than the
+   best one so far over its variables (`simpler`: every kind of fewer constants along a
+   one-term law's variable, the screen's best such law for a product). Then, where
+   the history shows or no law of the present states reaches the noise, laws with memory:
+   a per-node damage or film the cycle drives (`law.memory`).
 3. **Ranking** (`rank`): the simplest law within one standard error (`loo_se`) of the best
    left-out RMSE; `LawResult.front` is complexity against left-out RMSE; the laws of
    another structure within one standard error of the answer's left-out RMSE are its
@@ -271,15 +276,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
 
     def screen_then_peer():
         # the screen's picks, then (once one fits to noise) the screen's best structure of
-        # the same complexity not yet fitted (`peer_pick`) and its best simpler one of the
-        # same variables (`simpler_pick`)
+        # the same complexity not yet fitted (`peer_pick`)
         yield from ((d, lw, "screen") for d, lw in todo)
         pk = peer_pick(screened, fitted + refused, len(linear["rho"]))
         if pk is not None and peers["fits"] < PEERS:
             yield pk[0], pk[1], "peer"
-        pk = simpler_pick(screened, fitted + refused, len(linear["rho"]))
-        if pk is not None:
-            yield pk[0], pk[1], "simpler"
         # a best law whose constants the data do not determine: its determined neighbours
         # (`pruned`), so that a lead does not stand where a simpler law predicts as well
         done = {f.law.label for f in fitted + refused}
@@ -293,6 +294,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             last = next((f for f in fitted if same(f.law) == same(lw)), None)
             if last is not None and not last.undetermined:
                 break  # a determined law in the lead's place: the next is not needed
+        # the best law's simpler rivals over its variables, which would win a tie
+        # (`simpler`)
+        done = {same(f.law) for f in fitted + refused}
+        for d, lw in simpler(rank(fitted), screened, done, len(linear["rho"])):
+            yield d, lw, "simpler"
 
     with searching():
         # the screen's picks, then the laws with memory, where the history shows or no law
@@ -305,28 +311,30 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             peer = False
             if same(law) in {same(f.law) for f in fitted + refused}:
                 continue  # fitted already (a pick, a peer, a neighbour)
-            if src in ("pruned", "swap"):
+            if src == "simpler":
+                _log(verbose, f"    {law.label}: fitted as a law simpler than the best one, "
+                              f"of its variables")
+            elif src in ("pruned", "swap"):
                 _log(verbose, f"    {law.label}: fitted as the "
                               + ("determined neighbour" if src == "pruned" else
                                  "screen's best change of the undetermined term")
                               + " of a law whose constants the data do not determine")
-            elif fitted and any(f.at_noise for f in fitted):
+            elif fitted and any(f.at_noise for f in fitted) and src != "simpler":
                 # a law already fits to noise by diagnose's own tests: the others can at
                 # most tie with it and would lose to it by complexity; one of the same
                 # complexity (`PEERS`) is still fitted: it may tie, and then the data do
-                # not tell the two apart (`law.equivalent`); and one simpler than it
-                # (fewer constants), which would win a tie (`simpler_pick`)
+                # not tell the two apart (`law.equivalent`); and a pick simpler than it
+                # (fewer constants), which would win a tie
                 k_noise = min(f.complexity for f in fitted if f.at_noise)
-                simpler = (src in ("screen", "peer", "simpler")
-                           and len(law.free_keys()) < k_noise)
+                fewer = src in ("screen", "peer") and len(law.free_keys()) < k_noise
                 peer = (src in ("screen", "peer") and peers["fits"] < PEERS
                         and len(law.free_keys()) == k_noise)
-                if not (peer or simpler):
+                if not (peer or fewer):
                     _log(verbose, f"    {law.label}: not fitted (a law already fits to "
                                   f"noise)")
                     continue
-            if fitted and as_shape(fitted, shape_rmse_um) and src not in ("memory",
-                                                                          "pruned", "swap"):
+            if fitted and as_shape(fitted, shape_rmse_um) and src not in (
+                    "memory", "pruned", "swap", "simpler"):
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
                 # fitted after the step in p·v (0.316 µm, the shape 0.317) reached 0.400
@@ -724,28 +732,36 @@ def same(law) -> tuple:
     return (law.form, *sorted((t.kind, t.variable) for t in law.terms))
 
 
-def simpler_pick(screened, fitted, n_rows: int):
-    """(χ² drop, law) of the screen's best structure (`picks`' score) with fewer fitted
-    constants than the simplest law of `fitted` that fits to noise (`LawFit.at_noise`), of
-    its form and of its variables only, where no law of `fitted` is that simple, else None.
-    Why: a law at the noise stopped the search, the simpler ones left unfitted though they
-    would win a tie (`rank`): on the generator's deposit ∝ (W/150 N)² (rich design, seed
-    2) a step in the load (3 constants) answered and its power (2) was never fitted."""
-    noise = [f for f in fitted if f.at_noise and not getattr(f.law, "memory", False)]
-    if not noise:
-        return None
-    best = min(noise, key=lambda f: f.complexity)
-    k = best.complexity
-    if any(f.complexity < k for f in fitted):
-        return None
-    names = {t.variable for t in best.law.terms}
-    done = {same(f.law) for f in fitted}
-    for x in ranked_structures(screened, n_rows):
-        law = x[1]
-        if (law.form == best.law.form and len(law.free_keys()) < k
-                and {t.variable for t in law.terms} <= names and same(law) not in done):
-            return x
-    return None
+def _variables(law) -> set:
+    return {t.variable for t in law.terms}
+
+
+def simpler(ranked, screened, done=frozenset(), n_rows: int = 2) -> list:
+    """(χ² drop, law) of the screen's laws simpler than the best of `ranked` (fewer fitted
+    constants; its form, its variables only) not in `done` (`same` keys): for a one-term
+    best law, the best of every such kind along its variable (the power and the
+    exponential of a step's or a hinge's variable), best score first; for a product, the
+    screen's best such structure, where no law that simple over its variables is among
+    `ranked`; [] for a law with memory, or where nothing simpler is left. Why: the
+    screen's drops of one variable's kinds differ by under 1 % (it is first order), and a
+    law at the noise stopped the search: the simpler ones, which would win a tie
+    (`rank`), were left unfitted. On the rich design's deposit ∝ (W/150 N)² (seed 2) a
+    step in the load (3 constants) answered and its power was never fitted; on its
+    exponential of the worn depth (seed 3) a step in h answered, the exponential never
+    fitted."""
+    if not ranked or getattr(ranked[0].law, "memory", False):
+        return []
+    best = ranked[0]
+    k, names, form = best.complexity, _variables(best.law), best.law.form
+    out = [x for x in ranked_structures(screened, n_rows)
+           if x[1].form == form and len(x[1].free_keys()) < k
+           and _variables(x[1]) <= names and same(x[1]) not in done]
+    if len(best.law.terms) == 1:
+        return [x for x in out if len(x[1].terms) == 1]
+    if any(f.complexity < k and _variables(f.law) <= names for f in ranked
+           if not getattr(f.law, "memory", False)):
+        return []
+    return out[:1]
 
 
 # the screen's best changes of a lead's undetermined term fitted (`swaps`), at most this
