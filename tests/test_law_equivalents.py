@@ -167,40 +167,29 @@ def _dep(kind, var, ref, strength=0.003, **kw):
     return LawSpec("deposit", (Term(kind, var, ref, **kw),), strength)
 
 
-def test_the_laws_simpler_than_the_best_over_its_variables_are_fitted_too():
-    """The rich design's deposit ∝ (W/150 N)² (seed 2): a step in the load (3 constants)
-    fitted to the noise first and stopped the search; the one-term laws of fewer constants
-    along the load (its power and exponential, best score first) would win a tie, and are
-    fitted; not one of another variable, not one fitted already; for a product, the
-    screen's best simpler law of its variables, where none is fitted; nothing simpler
-    than a law of two constants."""
-    from jaxwear._analyses.diagnose.law.search import same, simpler
+def test_a_pick_simpler_than_a_law_at_the_noise_is_fitted_too():
+    """The rich design's deposit ∝ (W/150 N)² (seed 2): the screen's picks hinge(W),
+    power(W), step(W); the hinge (3 constants) fitted to the noise first, and the power
+    (2), which would win a tie, was skipped as "a law already fits to noise" while the
+    step (3) was fitted as its peer. The power is fitted; the step as the one peer; a
+    product of 4 and a second peer are not; a law with memory is not; before any law fits
+    to noise, everything is."""
+    from jaxwear._analyses.diagnose.law.search import after_noise
 
-    step = _dep("step", "load_N", 150.0, x0=1.0, w=0.1)
     hinge = _dep("hinge", "load_N", 150.0, x0=0.4, a=1.0)
     power_w = _dep("power", "load_N", 150.0, a=2.0)
-    exp_w = _dep("exp", "load_N", 150.0, b=1.0)
-    power_p = _dep("power", "pressure_MPa", 1.5, a=1.0)
-    se = {"law_deposit": 1e-4, "law_x0_1": 0.02, "law_w_1": 0.01, "law_a_1": 0.1,
-          "law_b_1": 0.1}
-    fit_step = _fit(step, 0.3127, se, at_noise=True)
-    # the pressure's power scores best of the 2-constant laws, but is not of the load
-    screened = [(800.0, hinge), (795.0, step), (790.0, power_p), (770.0, exp_w),
-                (780.0, power_w)]
-    got = simpler([fit_step], screened, n_rows=2880)
-    assert [g[1].label for g in got] == [power_w.label, exp_w.label]
-    assert [g[1].label for g in simpler([fit_step], screened, {same(power_w)}, 2880)] == [
-        exp_w.label]
-    assert simpler([_fit(power_w, 0.313, se)], screened, n_rows=2880) == []
-    # a product: the screen's best simpler law of its variables, unless one is fitted
+    step = _dep("step", "load_N", 150.0, x0=1.0, w=0.1)
     prod = LawSpec("deposit", (Term("power", "load_N", 150.0, a=2.0),
                                Term("step", "pressure_MPa", 1.5, x0=1.0, w=0.1)), 0.003)
-    fit_prod = _fit(prod, 0.312, {"law_deposit": 1e-4, "law_a_1": 0.1, "law_x0_2": 0.02,
-                                  "law_w_2": 0.01})
-    screened2 = screened + [(500.0, prod)]
-    assert [g[1].label for g in simpler([fit_prod], screened2, n_rows=2880)] == [
-        hinge.label]
-    assert simpler([fit_prod, fit_step], screened2, n_rows=2880) == []
+    se = {"law_deposit": 1e-4, "law_x0_1": 0.02, "law_a_1": 0.1}
+    at = [_fit(hinge, 0.3145, se, at_noise=True)]
+    assert after_noise(power_w, "screen", at, 0) == (True, False)
+    assert after_noise(step, "screen", at, 0) == (True, True)
+    assert after_noise(step, "screen", at, 1) == (False, False)  # PEERS = 1 spent
+    assert after_noise(prod, "screen", at, 0) == (False, False)
+    assert after_noise(step, "memory", at, 0) == (False, False)
+    not_at = [dataclasses.replace(at[0], at_noise=False)]
+    assert after_noise(prod, "screen", not_at, 0) == (True, False)
 
 
 def test_a_lead_with_an_undetermined_term_gives_the_screens_changes_of_that_term():

@@ -26,9 +26,7 @@ core, guarded, and ranked by their error on left-out experiments.
    best such structure), which may tie with it, and the screen's picks of fewer constants
    than it, which would win a tie. Where the best law so far has undetermined constants:
    its determined neighbours (`pruned`), then the screen's best laws keeping its
-   determined terms and changing the others (`swaps`). Then the laws simpler than the
-   best one so far over its variables (`simpler`: every kind of fewer constants along a
-   one-term law's variable, the screen's best such law for a product). Then, where
+   determined terms and changing the others (`swaps`). Then, where
    the history shows or no law of the present states reaches the noise, laws with memory:
    a per-node damage or film the cycle drives (`law.memory`).
 3. **Ranking** (`rank`): the simplest law within one standard error (`loo_se`) of the best
@@ -294,11 +292,6 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             last = next((f for f in fitted if same(f.law) == same(lw)), None)
             if last is not None and not last.undetermined:
                 break  # a determined law in the lead's place: the next is not needed
-        # the best law's simpler rivals over its variables, which would win a tie
-        # (`simpler`)
-        done = {same(f.law) for f in fitted + refused}
-        for d, lw in simpler(rank(fitted), screened, done, len(linear["rho"])):
-            yield d, lw, "simpler"
 
     with searching():
         # the screen's picks, then the laws with memory, where the history shows or no law
@@ -311,30 +304,20 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             peer = False
             if same(law) in {same(f.law) for f in fitted + refused}:
                 continue  # fitted already (a pick, a peer, a neighbour)
-            if src == "simpler":
-                _log(verbose, f"    {law.label}: fitted as a law simpler than the best one, "
-                              f"of its variables")
-            elif src in ("pruned", "swap"):
+            if src in ("pruned", "swap"):
                 _log(verbose, f"    {law.label}: fitted as the "
                               + ("determined neighbour" if src == "pruned" else
                                  "screen's best change of the undetermined term")
                               + " of a law whose constants the data do not determine")
-            elif fitted and any(f.at_noise for f in fitted) and src != "simpler":
-                # a law already fits to noise by diagnose's own tests: the others can at
-                # most tie with it and would lose to it by complexity; one of the same
-                # complexity (`PEERS`) is still fitted: it may tie, and then the data do
-                # not tell the two apart (`law.equivalent`); and a pick simpler than it
-                # (fewer constants), which would win a tie
-                k_noise = min(f.complexity for f in fitted if f.at_noise)
-                fewer = src in ("screen", "peer") and len(law.free_keys()) < k_noise
-                peer = (src in ("screen", "peer") and peers["fits"] < PEERS
-                        and len(law.free_keys()) == k_noise)
-                if not (peer or fewer):
+            elif fitted and any(f.at_noise for f in fitted):
+                # a law already fits to noise by diagnose's own tests (`after_noise`)
+                go, peer = after_noise(law, src, fitted, peers["fits"])
+                if not go:
                     _log(verbose, f"    {law.label}: not fitted (a law already fits to "
                                   f"noise)")
                     continue
             if fitted and as_shape(fitted, shape_rmse_um) and src not in (
-                    "memory", "pruned", "swap", "simpler"):
+                    "memory", "pruned", "swap"):
                 # a law of two variables already fits as well as the shape's correction
                 # (refitted through the loop): measured on the PV step, the two laws
                 # fitted after the step in p·v (0.316 µm, the shape 0.317) reached 0.400
@@ -732,36 +715,27 @@ def same(law) -> tuple:
     return (law.form, *sorted((t.kind, t.variable) for t in law.terms))
 
 
-def _variables(law) -> set:
-    return {t.variable for t in law.terms}
-
-
-def simpler(ranked, screened, done=frozenset(), n_rows: int = 2) -> list:
-    """(χ² drop, law) of the screen's laws simpler than the best of `ranked` (fewer fitted
-    constants; its form, its variables only) not in `done` (`same` keys): for a one-term
-    best law, the best of every such kind along its variable (the power and the
-    exponential of a step's or a hinge's variable), best score first; for a product, the
-    screen's best such structure, where no law that simple over its variables is among
-    `ranked`; [] for a law with memory, or where nothing simpler is left. Why: the
-    screen's drops of one variable's kinds differ by under 1 % (it is first order), and a
-    law at the noise stopped the search: the simpler ones, which would win a tie
-    (`rank`), were left unfitted. On the rich design's deposit ∝ (W/150 N)² (seed 2) a
-    step in the load (3 constants) answered and its power was never fitted; on its
-    exponential of the worn depth (seed 3) a step in h answered, the exponential never
-    fitted."""
-    if not ranked or getattr(ranked[0].law, "memory", False):
-        return []
-    best = ranked[0]
-    k, names, form = best.complexity, _variables(best.law), best.law.form
-    out = [x for x in ranked_structures(screened, n_rows)
-           if x[1].form == form and len(x[1].free_keys()) < k
-           and _variables(x[1]) <= names and same(x[1]) not in done]
-    if len(best.law.terms) == 1:
-        return [x for x in out if len(x[1].terms) == 1]
-    if any(f.complexity < k and _variables(f.law) <= names for f in ranked
-           if not getattr(f.law, "memory", False)):
-        return []
-    return out[:1]
+def after_noise(law: LawSpec, src: str, fitted, peer_fits: int) -> tuple[bool, bool]:
+    """(fit it, as the peer) for `law` from `src` (the screen's picks, "peer") once a law
+    of `fitted` fits to noise by diagnose's own tests: the others can at most tie with the
+    simplest such law and would lose to it by complexity, so they are not fitted, but for
+    one of the same complexity (`PEERS`, while `peer_fits` is below it: it may tie, and
+    then the data do not tell the two apart, `law.equivalent`) and a pick of fewer
+    constants (it would win a tie). Why the latter: on the rich design's deposit ∝ (W/150
+    N)² (seed 2) the screen's picks were hinge(W), power(W), step(W), simplest first by
+    their terms; the hinge reached the noise, the power (2 constants) was then skipped
+    as "a law already fits to noise" and the step fitted as the hinge's peer: the answer
+    was the step. A law with memory ("memory") is not fitted; a lead's neighbours are
+    decided by their own rules (`pruned`, `swaps`); (True, False) where none fits to
+    noise."""
+    noise = [f.complexity for f in fitted if f.at_noise]
+    if not noise:
+        return True, False
+    if src not in ("screen", "peer"):
+        return False, False
+    k, n = min(noise), len(law.free_keys())
+    peer = peer_fits < PEERS and n == k
+    return peer or n < k, peer
 
 
 # the screen's best changes of a lead's undetermined term fitted (`swaps`), at most this
