@@ -94,8 +94,8 @@ def test_the_law_constants_are_corrected_to_the_finer_level_and_their_error_said
 
 
 def test_the_sentence_folds_the_numerical_error_into_the_plus_minus(deposit_fit):
-    """The law's sentence gives each constant ± √(SE² + numerical²) and says that the
-    constants were corrected to the finer level."""
+    """The law's sentence and the headline give each constant ± √(SE² + numerical²),
+    and the sentence says that the constants were corrected to the finer level."""
     from jaxwear._analyses.diagnose.law.numerical import correct_law
     from jaxwear._analyses.diagnose.law.result import LawResult, law_sentence
 
@@ -108,6 +108,10 @@ def test_the_sentence_folds_the_numerical_error_into_the_plus_minus(deposit_fit)
     total = math.hypot(s, out.numerical_error["a1"])
     assert f"a1 = {v:.4g} ± {total:.2g}" in text, text
     assert "corrected to 72 x 108" in text, text
+    # the headline's one line too
+    from jaxwear._analyses.diagnose._headline import _fmt_value, law_text
+
+    assert f"a1 = {_fmt_value(v, total, '')}" in law_text(res), law_text(res)
     head = res.to_json()
     assert head["constants"]["D"]["numerical_error"] == out.numerical_error["D"]
     assert head["numerical"]["corrected"] is True
