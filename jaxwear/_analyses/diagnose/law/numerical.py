@@ -145,6 +145,9 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
     se = {n: float(s) for n, s in zip(lm.names, f.stderr)}
     new = constants(law, se)
     err = {k: abs(new[k][0] - v) for k, (v, _, _) in lf.constants.items() if k in new}
+    if not all(math.isfinite(x) for x in err.values()):
+        return out(forward_runs=runs, step_se=first,
+                   why="the corrected constants are not finite (the answer stands)")
     info = Numerical(level, finer, first, runs, time.process_time() - c0,
                      float(np.sqrt(np.mean(delta ** 2))), True)
     _log(verbose, f"    δ {info.rows_rms_um:.3g} µm RMS; the answer moves by "
