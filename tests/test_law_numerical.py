@@ -70,7 +70,9 @@ def test_the_law_constants_are_corrected_to_the_finer_level_and_their_error_said
         out = correct_law(lf, NOISE)
     num = out.numerical
     assert num is not None and num.corrected, num
-    assert num.level == (36, 54) and num.finer == (72, 108) and num.forward_runs == 1
+    # one forward run at the finer level, one of the fit's own model checking the step
+    assert num.level == (36, 54) and num.finer == (72, 108) and num.forward_runs == 2
+    assert num.fraction == 1.0, num
     truth = {"D": d_true, "a1": q}
     for k, true in truth.items():
         before, se, _ = lf.constants[k]
@@ -115,3 +117,35 @@ def test_the_sentence_folds_the_numerical_error_into_the_plus_minus(deposit_fit)
     head = res.to_json()
     assert head["constants"]["D"]["numerical_error"] == out.numerical_error["D"]
     assert head["numerical"]["corrected"] is True
+
+
+def test_a_correction_that_does_not_lower_the_misfit_is_halved_then_not_made(deposit_fit,
+                                                                           monkeypatch):
+    """The linear step is checked by the fit's own model with δ held: where no fraction
+    of it lowers the misfit to the finer level's rows (here the study's model is made to
+    answer 10 µm off after the finer run), the constants stand at the study's numerics,
+    the check says why, and the numerical error (the full step's) is still reported."""
+    from jaxwear._analyses.diagnose import Model
+    from jaxwear._analyses.diagnose.law.numerical import HALVINGS, correct_law
+
+    lf, _, _ = deposit_fit
+    real = Model.predict
+
+    def off(self, u, **kw):
+        rows = real(self, u, **kw)
+        return rows + 10.0 if self.study.config.nodes == 36 else rows
+
+    monkeypatch.setattr(Model, "predict", off)
+    with searching():
+        out = correct_law(lf, NOISE)
+    num = out.numerical
+    assert not num.corrected and "did not lower the misfit" in num.why, num
+    assert num.forward_runs == 1 + HALVINGS + 1, num
+    assert out.constants == lf.constants and out.law == lf.law
+    assert set(out.numerical_error) == set(lf.constants)
+    assert out.numerical_error["a1"] > 0 and out.to_json()["numerical"]["corrected"] is False
+    from jaxwear._analyses.diagnose.law.result import LawResult, law_sentence
+
+    text = law_sentence(LawResult(out, (out,), 1, NOISE, 0.4, 0.45, 1.0,
+                                  shape_rmse_um=out.rmse_um))
+    assert "did not lower the misfit" in text and "corrected to" not in text, text

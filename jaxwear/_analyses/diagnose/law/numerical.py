@@ -17,9 +17,14 @@ cycle (half the update M, a quarter of the integration tolerance: `finer_rows`),
 rows_fine(û) − rows(û); the answer's shift is one Gauss-Newton step of the law fit's own
 Jacobian on the rows moved by δ, less the step on the rows as they are (what the fit's
 stop left: `lsq.defect_step`): no new compilation at the study's level, one at the finer.
+The step is checked by a forward run of the fit's own model with δ held: it must lower the
+misfit to the finer level's rows, else it is halved (at most `HALVINGS` times; a step's
+width, fitted in log space, overshot: the rich design's step in the load, seed 2, W_width
+16.8 -> 108 N by the full step), and where no fraction lowers it the constants stand at the
+study's numerics, `numerical.corrected` false and `why` said.
 The constants reported are the corrected ones (the finer level's to first order, as
 calibrate reports its corrected answer), and each constant's `numerical_error` is the size
-of its correction: the error left at the finer level is at most that where the
+of its full linear correction: the error left at the finer level is at most that where the
 discretisation error at least halves when the nodes and steps double (first order:
 equal; second order: a third of it). The sentence's ± folds it in with the standard
 error (√(SE² + numerical²), JSON `uncertainty`).
@@ -50,6 +55,7 @@ from jaxwear._inference import lsq
 from jaxwear._physics.effects.law import constants
 
 PER_STEP = ("law_deposit",)  # study keys of a quantity per step of the cycle
+HALVINGS = 2  # times the correction may be halved before it is not made
 
 
 def finer_model(lm: Model) -> Model:
@@ -77,9 +83,10 @@ def finer_rows(lm: Model, fm: Model, u) -> np.ndarray:
 @dataclasses.dataclass(frozen=True)
 class Numerical:
     """The check of a law's constants against a finer resolution: the levels (nodes,
-    steps per cycle), the correction's largest move in standard errors (of the fit's
-    determined columns, u), the forward runs and their CPU seconds, the rows' change δ
-    (RMS, µm), whether the constants were corrected, and why not where they were not."""
+    steps per cycle), the linear correction's largest move in standard errors (of the
+    fit's determined columns, u), the forward runs and their CPU seconds, the rows' change
+    δ (RMS, µm), whether the constants were corrected, why not where they were not, and
+    the fraction of the linear step applied."""
 
     level: tuple
     finer: tuple
@@ -89,6 +96,7 @@ class Numerical:
     rows_rms_um: float = math.nan
     corrected: bool = False
     why: str = ""
+    fraction: float = 1.0  # of the linear step applied (halved where it overshot)
 
     def to_json(self) -> dict:
         def num(x):
@@ -98,6 +106,7 @@ class Numerical:
                 "checked_against": {"nodes": self.finer[0], "steps_per_rev": self.finer[1]},
                 "step_se": num(self.step_se),
                 "rows_rms_um": num(self.rows_rms_um), "corrected": self.corrected,
+                "step_fraction": self.fraction,
                 "forward_runs": self.forward_runs, "cpu_s": self.cpu_s,
                 "why": self.why or None}
 
@@ -138,23 +147,55 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
     step, cov, _ = lsq.defect_step(ev0.shifted(delta).point(), noise_um, lo, hi, free,
                                    relative_to=ev0.point())
     first = _ratio(step, cov)
-    u = np.array(ev0.u, np.float64)
-    u[free] += step
-    values = dict(zip(lm.names, map(float, lm.values(u))))
-    law = lf.law.with_values(values)
     se = {n: float(s) for n, s in zip(lm.names, f.stderr)}
-    new = constants(law, se)
-    err = {k: abs(new[k][0] - v) for k, (v, _, _) in lf.constants.items() if k in new}
+
+    def at(t):
+        u = np.array(ev0.u, np.float64)
+        u[free] += t * step
+        return u, constants(lf.law.with_values(dict(zip(lm.names, map(float,
+                                                                    lm.values(u))))), se)
+
+    # the numerical error: the constants' change by the full linear step
+    u1, full = at(1.0)
+    err = {k: abs(full[k][0] - v) for k, (v, _, _) in lf.constants.items() if k in full}
     if not all(math.isfinite(x) for x in err.values()):
         return out(forward_runs=runs, step_se=first,
                    why="the corrected constants are not finite (the answer stands)")
+
+    # the step checked by forward runs of the fit's own (compiled) model with δ held: it
+    # must lower the misfit to the finer level's rows, else it is halved (the linear step
+    # of a strongly curved law, e.g. a step's width fitted in log space, overshoots)
+    def misfit(u, pred):
+        r = (pred + delta - lm.measured) / noise_um
+        rp = ev0.r_prior + ev0.J_prior @ (u - ev0.u)
+        return float(r @ r + rp @ rp)
+
+    before = misfit(ev0.u, ev0.pred)
+    t, law, new, why = 1.0, None, None, ""
+    for _ in range(HALVINGS + 1):
+        u, cs = (u1, full) if t == 1.0 else at(t)
+        pred = lm.predict(u)
+        runs += 1
+        if np.all(np.isfinite(pred)) and misfit(u, pred) <= before:
+            law = lf.law.with_values(dict(zip(lm.names, map(float, lm.values(u)))))
+            new = cs
+            break
+        t *= 0.5
+    else:
+        why = (f"the correction did not lower the misfit to the finer level's rows (halved "
+               f"{HALVINGS} times): the constants stand at the study's numerics, their "
+               f"numerical error the linear step's")
     info = Numerical(level, finer, first, runs, time.process_time() - c0,
-                     float(np.sqrt(np.mean(delta ** 2))), True)
+                     float(np.sqrt(np.mean(delta ** 2))), law is not None, why,
+                     1.0 if law is None else t)
     _log(verbose, f"    δ {info.rows_rms_um:.3g} µm RMS; the answer moves by "
-                  f"{first:.2g} standard errors; "
-                  + ", ".join(f"{k} {lf.constants[k][0]:.4g} -> {new[k][0]:.4g}"
-                              for k in err if err[k] > 0)
+                  f"{first:.2g} standard errors"
+                  + (f" (× {t:g})" if law is not None and t < 1 else "") + "; "
+                  + (", ".join(f"{k} {lf.constants[k][0]:.4g} -> {new[k][0]:.4g}"
+                               for k in err if err[k] > 0) if law is not None else why)
                   + f" ({runs} forward runs, {info.cpu_s:.1f} s CPU)")
+    if law is None:
+        return dataclasses.replace(lf, numerical_error=err, numerical=info)
     return dataclasses.replace(lf, law=law, constants=new, numerical_error=err,
                                numerical=info)
 

@@ -292,6 +292,10 @@ def law_sentence(res: LawResult) -> str:
                    f"steps per cycle (from the study's {num.level[0]} x {num.level[1]} they moved "
                    f"by up to {max(moved):.2g} standard errors); each ± holds that "
                    f"correction as a numerical error beside the standard error.")
+    elif num is not None and moved:
+        und_num = (f" Its constants are the study's {num.level[0]} x {num.level[1]}'s: "
+                   f"checked against {num.finer[0]} x {num.finer[1]}, {num.why}; each ± "
+                   f"holds that linear estimate of their numerical error.")
     else:
         und_num = ""
     many = len(b.undetermined) > 1
