@@ -131,7 +131,15 @@ def _against(case: str, truth: dict, found: dict) -> dict:
         se = f.get("stderr")
         z = (abs(f["value"] - v) / se) if se and math.isfinite(se) and se > 0 else math.inf
         out["constants"][k] = {"true": v, "found": f.get("value"), "stderr": se, "z": z}
+        # the constants' numerical error (`law.numerical`, where checked): z against the
+        # standard error and the numerical error together, √(SE² + numerical²)
+        n = f.get("numerical_error")
+        if n is not None and z < math.inf:
+            out["constants"][k].update(numerical_error=n,
+                                       z_total=abs(f["value"] - v) / math.hypot(se, n))
     out["within_2se"] = bool(want) and all(x["z"] <= 2.0 for x in out["constants"].values())
+    if want and all("z_total" in x for x in out["constants"].values()):
+        out["within_2u"] = all(x["z_total"] <= 2.0 for x in out["constants"].values())
     return out
 
 
@@ -265,6 +273,7 @@ def run_case(case: str, seed: int, work: Path, numerics, design: str = "paper",
                law_peer_evaluations=law.get("peer_model_evaluations"),
                law_peer_cpu_s=law.get("peer_cpu_s"),
                law_cpu_s=law.get("cpu_s"),
+               law_numerical=law.get("numerical"),
                law_against_library=doc["verdict"].get("law_against_library"))
     if case in GRAMMAR:
         row["recovery"] = recovery(case, train, law)
@@ -308,8 +317,13 @@ def _recovered(r) -> str:
     if not rec["structure"]:
         return "; recovery: another structure" + eq
     zs = ", ".join(f"{k} {v['z']:.2f}" for k, v in rec["constants"].items())
+    zt = ""
+    if "within_2u" in rec:
+        zt = (", /√(SE² + numerical²): " + ", ".join(
+            f"{k} {v['z_total']:.2f}" for k, v in rec["constants"].items())
+            + f" ({'all' if rec['within_2u'] else 'NOT all'} ≤ 2)")
     return (f"; |found − true|/SE: {zs} ({'all' if rec['within_2se'] else 'NOT all'} ≤ 2)"
-            + eq)
+            + zt + eq)
 
 
 def table(rows) -> str:
@@ -350,8 +364,10 @@ def summary(rows, unfinished=()) -> str:
     k1 = sum(bool(r["recovery"]["within_2se"]) for r in g)
     k2 = sum(bool(r["recovery"].get("among_equivalents")) for r in g)
     found = sum(r.get("law_status") == "found" for r in g)
+    k3 = sum(bool(r["recovery"].get("within_2u")) for r in g)
     out = [f"- grammar runs finished: {len(g)}; law found: {found}; the found law's constants "
-           f"within 2 SE: **{k1} of {len(g)}**; the truth among the found law and its "
+           f"within 2 SE: **{k1} of {len(g)}**; within 2 √(SE² + numerical error²) "
+           f"(`law.numerical`): **{k3} of {len(g)}**; the truth among the found law and its "
            f"equivalents: **{k2} of {len(g)}**"]
     for case in dict.fromkeys(r["case"] for r in g):
         rc = [r for r in g if r["case"] == case]

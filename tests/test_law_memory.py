@@ -207,3 +207,20 @@ def test_a_damage_law_is_recovered_through_the_loop(damage_study):
         v, se, _ = c[name]
         assert 0 < se < 0.5 * abs(v) and abs(v - true) < 2 * se, (name, v, se, true)
     assert f.rmse < 1.1 * 0.3 < base.rmse, (f.rmse, base.rmse)
+    # a law with memory checked against twice the nodes and steps too (`law.numerical`):
+    # corrected, each constant within 2 of its standard and numerical errors together
+    import math
+
+    from jaxwear._analyses.diagnose.law.numerical import correct_law
+    from jaxwear._analyses.diagnose.law.result import LawFit
+
+    lf = LawFit(found, f.rmse, None, 0.0, f.status, f.evaluations, c, math.nan, fit=f,
+                model=lm)
+    with searching():
+        out = correct_law(lf, 0.3)
+    assert out.numerical.corrected and out.numerical.finer == (96, 144), out.numerical
+    for name, true in (("k1", 1.0 / law["fatigue_cycles"]), ("A", law["strength"]),
+                       ("a", law["fatigue_exponent"]), ("width", law["damage_width"])):
+        v, se, _ = out.constants[name]
+        n = out.numerical_error[name]
+        assert abs(v - true) <= 2 * math.hypot(se, n), (name, v, se, n, true)

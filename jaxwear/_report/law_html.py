@@ -24,7 +24,10 @@ def law_section(shape, _table) -> list[str]:
               _n(shape.rmse_after_um), "—"),
              (f"with the law: {b.formula}", _n(b.rmse_um), _n(b.loo_rmse_um)),
              ("noise level", _n(res.noise_um), "")]
-    consts = [(k, _n(v, ".5g"), _n(s, ".2g") if s == s else "—", u)
+    # the constants' numerical error (`law.numerical`: their correction to a finer level)
+    ne = getattr(b, "numerical_error", None) or {}
+    consts = [(k, _n(v, ".5g"), _n(s, ".2g") if s == s else "—",
+               _n(ne[k], ".2g") if k in ne else "—", u)
               for k, (v, s, u) in b.constants.items()]
     tried = [(f.law.label, _n(f.rmse_um), _n(f.loo_rmse_um), _n(f.evidence, ".1f"),
               "yes" if f.at_noise else "no", f.status) for f in res.fitted]
@@ -33,7 +36,7 @@ def law_section(shape, _table) -> list[str]:
             else "A lead, not a law found")
     return [f"<h3>{head}</h3>", f"<p>{html.escape(res.sentence)}</p>",
             _table(steps, ["model", "RMSE [µm]", "left-out-experiment RMSE [µm]"]),
-            _table(consts, ["constant", "value", "SE", "unit"]),
+            _table(consts, ["constant", "value", "SE", "numerical error", "unit"]),
             "<p>Laws of the grammar (power law, hinge, smooth step, exponential and "
             f"products of two, in the factor and deposit forms) screened: {res.screened};"
             " the best of distinct structure fitted through the wear loop with K_d and the "

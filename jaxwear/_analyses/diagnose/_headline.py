@@ -73,8 +73,15 @@ def law_text(law) -> str:
     """The law's formula with its constants in their units, in one line."""
     b = law.best
     f = b.formula.replace("   [", " [")
+    # ± the standard error and the constants' numerical error together (`law.numerical`)
+    ne = getattr(b, "numerical_error", None) or {}
+
+    def pm(k, s):
+        n = ne.get(k)
+        return math.hypot(s, n) if n is not None and math.isfinite(n) else s
+
     consts = ", ".join(
-        f"{k} = " + (_fmt_value(v, s, "" if u == "-" else f" {u}")
+        f"{k} = " + (_fmt_value(v, pm(k, s), "" if u == "-" else f" {u}")
                      if s is not None and math.isfinite(s) and s > 0
                      else f"{num(v)}{'' if u == '-' else ' ' + u}")
         for k, (v, s, u) in b.constants.items())

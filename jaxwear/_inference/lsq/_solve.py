@@ -470,16 +470,27 @@ def step_in_standard_errors(pt: Point, noise_um: float, lower=None, upper=None,
     check an answer against a finer discretisation of the same model: `relative_to`, the
     same point with the coarse rows, whose own step (what the fit's stop left, up to 0.1 SE
     within the numerical floor) is subtracted, so that the ratio is what refining moves."""
+    if not pt.usable:
+        return math.inf, math.inf
+    step, cov, pred = defect_step(pt, noise_um, lower, upper, free, relative_to)
+    return _ratio(step, cov), pred
+
+
+def defect_step(pt: Point, noise_um: float, lower=None, upper=None, free=None,
+                relative_to: Point | None = None):
+    """The Gauss-Newton step from `pt` over the `free` columns (projected on the bounds),
+    less the step from `relative_to` (the same point with other rows: what the fit's own
+    stop left) where given: the move of the answer that a change of the rows alone makes,
+    with the fit's own Jacobian (defect correction). Returns (step (k,) in u of the free
+    columns, the covariance of the free columns, predicted decrease of ½χ²)."""
     P = len(pt.u)
     free = np.ones(P, bool) if free is None else np.asarray(free, bool)
     lo = np.full(P, -np.inf) if lower is None else np.asarray(lower, np.float64)
     hi = np.full(P, np.inf) if upper is None else np.asarray(upper, np.float64)
-    if not pt.usable:
-        return math.inf, math.inf
     rw, Jw = whitened(pt, noise_um, free)
     u = np.asarray(pt.u, np.float64)
     step, cov, pred = gauss_newton_step(u, free, lo, hi, rw, Jw, pt.r.size)
     if relative_to is not None and relative_to.usable:
         rw0, _ = whitened(relative_to, noise_um, free)
         step = step - gauss_newton_step(u, free, lo, hi, rw0, Jw, pt.r.size)[0]
-    return _ratio(step, cov), pred
+    return step, cov, pred

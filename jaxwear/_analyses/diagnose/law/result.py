@@ -47,6 +47,14 @@ class LawFit:
     loo_per_experiment: dict = field(default_factory=dict)  # µm, the left-out error of each
     refused: str = ""  # why the law is refused (unbounded where a prediction goes), or ""
     loo_linear_um: float | None = None  # the left-out RMSE of one unchecked Gauss-Newton step
+    # the constants' numerical error (`law.numerical`: NAME -> the size of their correction
+    # to twice the nodes and steps per cycle, in the constant's unit), the best law's only;
+    # {} where not checked
+    numerical_error: dict = field(default_factory=dict)
+    numerical: object = None  # `law.numerical.Numerical`: that check, or None
+    # the law's fit (`_fit.Fit`) and its model, for that check (not reported)
+    fit: object = field(default=None, repr=False, compare=False)
+    model: object = field(default=None, repr=False, compare=False)
 
     @property
     def complexity(self) -> int:
@@ -57,10 +65,22 @@ class LawFit:
     def formula(self) -> str:
         return formula(self.law)
 
+    def constants_json(self) -> dict:
+        """{NAME: {value, stderr, unit}} (DESIGN §7), with `numerical_error` (the
+        discretisation's, `law.numerical`) and `uncertainty` (the two combined, √(SE² +
+        numerical²)) where the constants were checked against a finer resolution."""
+        out = {}
+        for k, (v, s, u) in self.constants.items():
+            out[k] = {"value": _num(v), "stderr": _num(s), "unit": u}
+            if k in self.numerical_error:
+                n = self.numerical_error[k]
+                out[k]["numerical_error"] = _num(n)
+                out[k]["uncertainty"] = _num(_combined(s, n))
+        return out
+
     def to_json(self) -> dict:
         return {"formula": self.formula, "label": self.law.label, "form": self.law.form,
-                "constants": {k: {"value": _num(v), "stderr": _num(s), "unit": u}
-                              for k, (v, s, u) in self.constants.items()},
+                "constants": self.constants_json(),
                 "rmse_um": _num(self.rmse_um), "loo_rmse_um": _num(self.loo_rmse_um),
                 "evidence": _num(self.evidence), "fit_status": self.status,
                 "model_evaluations": self.evaluations,
@@ -68,7 +88,15 @@ class LawFit:
                 "at_noise_level": bool(self.at_noise), "p_combined": _num(self.p_combined),
                 "undetermined": list(self.undetermined), "start": self.start,
                 "complexity": self.complexity, "refused": self.refused or None,
-                "loo_linearised_um": _num(self.loo_linear_um)}
+                "loo_linearised_um": _num(self.loo_linear_um),
+                "numerical": None if self.numerical is None else self.numerical.to_json()}
+
+
+def _combined(s, n) -> float:
+    """√(s² + n²): a standard error and a numerical error together (NaN where s is)."""
+    if s is None or not math.isfinite(s):
+        return math.nan
+    return math.hypot(s, n if n is not None and math.isfinite(n) else 0.0)
 
 
 @dataclass(frozen=True)
@@ -180,12 +208,13 @@ class LawResult:
     def to_json(self) -> dict:
         b = self.best
         head = ({"formula": b.formula, "file": self.file, "effect": self.effect,
-                 "constants": {k: {"value": _num(v), "stderr": _num(s), "unit": u}
-                               for k, (v, s, u) in b.constants.items()},
-                 "rmse_um": _num(b.rmse_um), "loo_rmse_um": _num(b.loo_rmse_um)}
+                 "constants": b.constants_json(),
+                 "rmse_um": _num(b.rmse_um), "loo_rmse_um": _num(b.loo_rmse_um),
+                 # the constants checked against a finer resolution (`law.numerical`)
+                 "numerical": None if b.numerical is None else b.numerical.to_json()}
                 if b is not None else {"formula": None, "file": None, "effect": None,
                                        "constants": {}, "rmse_um": None,
-                                       "loo_rmse_um": None})
+                                       "loo_rmse_um": None, "numerical": None})
         return {**head, "status": self.status, "lead_reasons": list(self.lead_reasons),
                 "form": None if b is None else b.law.form,
                 "front": [{"formula": f.formula, "complexity": f.complexity,
@@ -247,21 +276,37 @@ def law_sentence(res: LawResult) -> str:
     if res.equivalents:
         eq = equivalents_sentence(b, list(res.equivalents), res._separations())
         refused = (" " + eq if eq else "") + refused
-    cs = ", ".join(f"{k} = {_value(v, s)}{'' if u == '-' else ' ' + u}"
-                   for k, (v, s, u) in b.constants.items())
+    ne = b.numerical_error
+    cs = ", ".join(f"{k} = {_value(v, _combined(s, ne[k]) if k in ne else s)}"
+                   f"{'' if u == '-' else ' ' + u}" for k, (v, s, u) in b.constants.items())
     lo = (f", on left-out experiments {b.loo_rmse_um:.3f} µm (base "
           f"{res.loo_before_um:.3f})" if b.loo_rmse_um is not None
           and res.loo_before_um is not None else "")
     reach = (f"fitted through the wear loop it brings the RMSE from {res.rmse_before_um:.3f} "
              f"to {b.rmse_um:.3f} µm{lo}, against a noise level of {res.noise_um:.3f} µm "
              f"({b.rmse_um / res.noise_um - 1:+.1%})")
+    num = b.numerical
+    moved = [ne[k] / s for k, (v, s, u) in b.constants.items()
+             if k in ne and s is not None and math.isfinite(s) and s > 0]
+    if num is not None and num.corrected and moved:
+        # the constants corrected to a finer resolution (`law.numerical`): said once
+        und_num = (f" Its constants are corrected to {num.finer[0]} x {num.finer[1]} nodes x "
+                   f"steps per cycle (from the study's {num.level[0]} x {num.level[1]} they moved "
+                   f"by up to {max(moved):.2g} standard errors); each ± holds that "
+                   f"correction as a numerical error beside the standard error.")
+    elif num is not None and moved:
+        und_num = (f" Its constants are the study's {num.level[0]} x {num.level[1]}'s: "
+                   f"checked against {num.finer[0]} x {num.finer[1]}, {num.why}; each ± "
+                   f"holds that linear estimate of their numerical error.")
+    else:
+        und_num = ""
     many = len(b.undetermined) > 1
     und = (f" Its constant{'s' if many else ''} {', '.join(b.undetermined)} "
            f"{'are' if many else 'is'} not determined by these data one by one (standard "
            f"error{'s' if many else ''} above the value{'s' if many else ''}: "
            f"{'they trade' if many else 'it trades'} off against the others), so "
            f"{'they are' if many else 'it is'} a lead, not a measurement."
-           if b.undetermined else "")
+           if b.undetermined else "") + und_num
     if res.worse_than_shape:
         return (f"No law of the grammar explains the misfit as well as the shape: the best "
                 f"tried, {b.formula}, with {cs}, reaches {b.rmse_um:.3f} µm, "

@@ -32,7 +32,9 @@ core, guarded, and ranked by their error on left-out experiments.
 3. **Ranking** (`rank`): the simplest law within one standard error (`loo_se`) of the best
    left-out RMSE; `LawResult.front` is complexity against left-out RMSE; the laws of
    another structure within one standard error of the answer's left-out RMSE are its
-   `equivalents`, each with the state where the two part (`law.equivalent`).
+   `equivalents`, each with the state where the two part (`law.equivalent`). The
+   answer's constants are checked against twice the nodes and steps per cycle and
+   corrected to them, each with its numerical error (`law.numerical`).
 4. **Found or a lead** (`LawResult.status`, DESIGN §7): found only where the law's
    left-out RMSE is below the base model's (by the same checked rule, through the law
    model with the law off: `law_off`), its RMSE within `LAW_WORSE` of the shape's refitted
@@ -54,6 +56,7 @@ from jaxwear._analyses.diagnose._refit import _tests_for
 from jaxwear._analyses.diagnose._stats import neighbour_pairs
 from jaxwear._analyses.diagnose.law.equivalent import equivalents, separation
 from jaxwear._analyses.diagnose.law.memory import after, memory_candidates
+from jaxwear._analyses.diagnose.law.numerical import correct_law
 from jaxwear._analyses.diagnose.law.result import (  # noqa: F401 (the search's types)
     LAW_WORSE,
     LawFit,
@@ -240,14 +243,17 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
            n: int = PICKS, forms=("factor", "deposit"), prefer=None,
            correction: dict | None = None, shape_rmse_um: float | None = None,
            shape_why: str = "", max_evaluations: int = LAW_EVALUATIONS,
-           verbose: bool = False) -> LawResult:
+           numerical: bool = True, verbose: bool = False) -> LawResult:
     """The law search on the misfit left by `fit` (module docstring); `linear`: the shape
     analysis's linearised system (`ShapeResult.linear`) on top of the same fit; `forms`:
     those the search tries; `n`: laws of distinct structure fitted through the loop at
     most (`law.screen.picks`); `shape_rmse_um`: the shape's correction refitted through
     the loop: a best law more than `LAW_WORSE` above it is reported as worse than the
     shape (`LawResult.worse_than_shape`) and is a lead; None (`shape_why`: why the refit
-    has none) leaves that check unmade, and the law a lead that says so. `prefer` and
+    has none) leaves that check unmade, and the law a lead that says so. `numerical`: the
+    best law's constants checked against twice the nodes and steps per cycle and corrected
+    to it (`law.numerical.correct_law`: one forward run there, a chord check or two at
+    this level). `prefer` and
     `correction` (the shape's choice and its refitted correction) are reported, not
     followed: the screen weighs every law of the grammar alike (issue 48)."""
     # the whole grammar is screened alike (module docstring); `prefer` and `correction`
@@ -363,7 +369,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                         drop, not tests.systematic and not why, tests.p_min,
                         undetermined(found, se), src, residual_um=np.asarray(f.ev.r),
                         loo_per_experiment=per, refused=why,
-                        loo_linear_um=_rms(loo(lm, f, noise_um)))
+                        loo_linear_um=_rms(loo(lm, f, noise_um)), fit=f, model=lm)
             (refused if lf.refused else fitted).append(lf)
             if peer:
                 peers["model_evaluations"] += Model.evaluations - e_peer
@@ -373,6 +379,12 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                           f"{f.evaluations} evaluations)"
                           + (f"; refused: {lf.refused}" if lf.refused else ""))
     ranked = rank(fitted)
+    if ranked and numerical:
+        # the answer's constants checked against, and corrected to, a finer resolution
+        # (`law.numerical`): the study's numerics' error is in no standard error
+        with searching():
+            ranked[0] = correct_law(ranked[0], noise_um, verbose=verbose)
+        runs += ranked[0].numerical.forward_runs
     best = ranked[0] if ranked else None
     equal = tuple(equivalents(ranked))
     seps = tuple(separation(best, f, samples, ranges, getattr(model.study, "path", None))
