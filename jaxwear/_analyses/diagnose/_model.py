@@ -145,12 +145,15 @@ class Model:
     def bounds_u(self):
         return self.packing.bounds_u()
 
-    def evaluate(self, u) -> Evaluation:
-        """The model at u: rows, prior rows, Jacobian (one compiled call)."""
+    def evaluate(self, u, *, probe: bool = False) -> Evaluation:
+        """The model at u: rows, prior rows, Jacobian (one compiled call). `probe`: where
+        the run does not reach its end, the raised attempt counts are probed by forward
+        runs before the Jacobian runs again (`evaluation.evaluate`; for a u far from any
+        point evaluated)."""
         Model.evaluations += 1
         t0 = time.perf_counter()
         n_compiled = _compiled_count()
-        ev, used = evaluate(self.ext, u, columns=self.jacobian_columns)
+        ev, used = evaluate(self.ext, u, columns=self.jacobian_columns, probe=probe)
         if used.schedule.attempts > self.ext.schedule.attempts:
             # the attempt count an evaluation needed is kept for the rest of the run
             object.__setattr__(self, "ext", used)
