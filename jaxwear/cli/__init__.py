@@ -15,6 +15,7 @@ from pathlib import Path
 
 import jax
 
+from jaxwear._core.blas import limit as limit_blas
 from jaxwear._core.errors import (
     FitError,
     InputError,
@@ -32,7 +33,6 @@ from jaxwear._core.interrupt import (
     restore,
     shutting_down,
 )
-from jaxwear._core.blas import limit as limit_blas
 from jaxwear._core.io import FULL
 from jaxwear._core.xla_flags import apply as configure_xla
 from jaxwear._study.effect_files import effect_file_frame
