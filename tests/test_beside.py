@@ -38,7 +38,7 @@ def test_each_thread_counts_its_own_evaluations(monkeypatch):
     from types import SimpleNamespace
 
     ext = SimpleNamespace(schedule=SimpleNamespace(attempts=1))
-    monkeypatch.setattr(_model, "evaluate", lambda e, u, columns=None, probe=False: (None, e))
+    monkeypatch.setattr(_model, "evaluate", lambda e, u, columns=None: (None, e))
     monkeypatch.setattr(_model, "forward", lambda e, u, doublings=3: (None, None, 0.0, e))
     monkeypatch.setattr(_model, "_compiled_count", lambda: 0)
     monkeypatch.setattr(_model.Model, "evaluations", 0)

@@ -311,44 +311,6 @@ def test_an_unfinished_run_finds_its_attempt_count_by_forward_runs(problem, monk
     np.testing.assert_allclose(ev.J, full.J, rtol=1e-7, atol=1e-9 * np.abs(full.J).max())
 
 
-def test_a_probed_evaluation_runs_the_jacobian_only_where_the_count_reaches_the_end(
-        problem, monkeypatch):
-    """`evaluate(..., probe=True)` (a refit's linearised start): after a short first
-    Jacobian run, the doublings are forward runs and the Jacobian runs once more, at the
-    count that reaches the end; the evaluation equals the unprobed one's bit for bit (the
-    same count, the same program). Where no count reaches the end, the short run is the
-    only Jacobian run (before: a second one at twice its attempts, every one used)."""
-    from jaxwear._inference import evaluation as E
-
-    u = np.zeros(problem.packing.size)
-    short = problem.with_schedule(dataclasses.replace(problem.schedule, attempts=2))
-    calls = {"jacobian": 0, "forward": 0}
-    jac, fwd = E._evaluate_jit, E._forward_jit
-
-    def count(name, f):
-        def run(*a, **k):
-            calls[name] += 1
-            return f(*a, **k)
-        return run
-
-    monkeypatch.setattr(E, "_evaluate_jit", count("jacobian", jac))
-    monkeypatch.setattr(E, "_forward_jit", count("forward", fwd))
-    monkeypatch.setattr(E, "enough_attempts", lambda model, u, **k: model)
-    plain, used_plain = E.evaluate(short, u, doublings=5)
-    assert plain.usable and used_plain.schedule.attempts > 2
-    calls.update(jacobian=0, forward=0)
-    probed, used = E.evaluate(short, u, doublings=5, probe=True)
-    assert used.schedule.attempts == used_plain.schedule.attempts
-    assert calls["jacobian"] == 2 and calls["forward"] >= 1, calls
-    assert np.array_equal(probed.pred, plain.pred) and np.array_equal(probed.J, plain.J)
-    # no count within the doublings reaches the end: one Jacobian run, then forward runs
-    tiny = problem.with_schedule(dataclasses.replace(problem.schedule, attempts=1))
-    calls.update(jacobian=0, forward=0)
-    ev, _ = E.evaluate(tiny, u, doublings=1, probe=True)
-    assert not ev.usable and "ran out of attempts" in ev.why
-    assert calls == {"jacobian": 1, "forward": 1}, calls
-
-
 def test_the_jacobian_of_some_columns_is_those_of_the_full_jacobian(problem):
     """`evaluate(..., columns=)` (the law search's fits hold most of its model's columns):
     the rows as without, the Jacobian's named columns those of the full Jacobian, the

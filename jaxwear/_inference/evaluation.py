@@ -164,20 +164,14 @@ def unusable_evaluation(model: ResidualModel, u, why: str) -> Evaluation:
                       steps=0, adaptive=model.schedule.adaptive, failure=why)
 
 
-def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None,
-             probe: bool = False) -> tuple[Evaluation, ResidualModel]:
+def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
+             ) -> tuple[Evaluation, ResidualModel]:
     """The model at u with its Jacobian, and the model it ran (its attempt count raised
     where u needed more: a fit keeps it, so later trials neither repeat a short run nor
     recompile). Where the work estimate at u is not finite the model is not run: an
     unusable `Evaluation` saying why (a fit rejects it as a trial). `columns`: the
     Jacobian's columns computed (indices (K,), one repeated to pad), the others 0
-    (`_evaluate_columns_jit`); None: every column. `probe`: where the first Jacobian run
-    does not reach the end, every doubling is probed by a forward run first (the Jacobian
-    runs again only at a count that reaches it), for a caller whose u is far from any
-    point evaluated (a refit's linearised start): there the first doubling fails more
-    often than not, and a failed Jacobian run uses every attempt of 1 + P tangents. The
-    same answer either way (the forward run and the Jacobian's primal take the same
-    steps)."""
+    (`_evaluate_columns_jit`); None: every column."""
     need = attempts_needed(model, u)
     if not math.isfinite(need):
         return unusable_evaluation(model, u, work_failure(model, u)), model
@@ -199,7 +193,7 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None,
     # raises end there, and forward runs first would compile the model's forward program
     # (3 more compilations on the g_step_p_power_v study, each longer than the run saved).
     left = doublings
-    if not probe and left > 0 and _unfinished(model, out[2][5], out[2][6]):
+    if left > 0 and _unfinished(model, out[2][5], out[2][6]):
         model = model.with_schedule(model.schedule.more_attempts())
         left -= 1
         out = _jacobian_run(_dynamic(model), uj, cols)

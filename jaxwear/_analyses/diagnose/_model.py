@@ -155,16 +155,13 @@ class Model:
         `evaluations` would add in."""
         return getattr(_own, "n", 0)
 
-    def evaluate(self, u, *, probe: bool = False) -> Evaluation:
-        """The model at u: rows, prior rows, Jacobian (one compiled call). `probe`: where
-        the run does not reach its end, the raised attempt counts are probed by forward
-        runs before the Jacobian runs again (`evaluation.evaluate`; for a u far from any
-        point evaluated)."""
+    def evaluate(self, u) -> Evaluation:
+        """The model at u: rows, prior rows, Jacobian (one compiled call)."""
         Model.evaluations += 1
         _own.n = getattr(_own, "n", 0) + 1
         t0 = time.perf_counter()
         n_compiled = _compiled_count()
-        ev, used = evaluate(self.ext, u, columns=self.jacobian_columns, probe=probe)
+        ev, used = evaluate(self.ext, u, columns=self.jacobian_columns)
         if used.schedule.attempts > self.ext.schedule.attempts:
             # the attempt count an evaluation needed is kept for the rest of the run
             object.__setattr__(self, "ext", used)

@@ -119,17 +119,8 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     lo, hi = cm.bounds_u()
     D = [np.linalg.cholesky(v.roughness() + 1e-12 * np.eye(v.size)).T for v in terms]
 
-    # the linearised start is the one point of the refit far from any point evaluated:
-    # where its run does not reach the end, the raised counts are probed by forward runs
-    # (`Model.evaluate`'s `probe`). Measured on the generator's `fatigue` study (seed 1,
-    # 48 x 72, 52 columns): both refits' linearised starts ran out of attempts at every
-    # count; their second Jacobian run (twice the first's attempts, every one used) was
-    # the most of the ~20 s of CPU each start cost
-    probing = [linear_start]
-
     def evaluate(v):
-        e = cm.evaluate(v, probe=probing[0])
-        probing[0] = False
+        e = cm.evaluate(v)
         pt = e.point()
         rows, J = [], []
         k = 0
