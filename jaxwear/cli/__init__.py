@@ -15,6 +15,7 @@ from pathlib import Path
 
 import jax
 
+from jaxwear._core.blas import limit as limit_blas
 from jaxwear._core.errors import (
     FitError,
     InputError,
@@ -87,6 +88,9 @@ def main(argv=None) -> int:
     # the command line's own process opts in to XLA:CPU's faster-compiling emitters (the
     # library leaves XLA's settings to its user); before any computation starts the backend
     configure_xla()
+    # and holds the host BLAS to one thread: its small SVDs beside XLA's threads spun for
+    # a core (`_core.blas`; a user's OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is kept)
+    limit_blas()
     release()  # Ctrl-C from here on is caught below (and remembered: `_interrupt`)
     rc = EXIT_CODE
     try:

@@ -11,6 +11,7 @@ every pair.
 from __future__ import annotations
 
 import copy
+import threading
 import time
 
 import numpy as np
@@ -46,7 +47,8 @@ class Model:
       that holds the rest (`with_jacobian_columns`); None: every column.
     """
 
-    # process-wide counters of compiled-model evaluations (progress, benchmarks)
+    # process-wide counters of compiled-model evaluations (progress, benchmarks); this
+    # thread's own: `own_evaluations`
     evaluations = 0
     evaluation_s = 0.0  # wall time spent in them [s], compilations included
     first_evaluation_s = 0.0  # the last evaluation that compiled (the first of its shape)
@@ -145,9 +147,18 @@ class Model:
     def bounds_u(self):
         return self.packing.bounds_u()
 
+    @staticmethod
+    def own_evaluations() -> int:
+        """Evaluations this thread made (forward runs included): an analysis's count where
+        another runs beside it (`diagnose`: the refit on top of the effect beside the law
+        search; the law model's warm-up beside the first refit), which the process-wide
+        `evaluations` would add in."""
+        return getattr(_own, "n", 0)
+
     def evaluate(self, u) -> Evaluation:
         """The model at u: rows, prior rows, Jacobian (one compiled call)."""
         Model.evaluations += 1
+        _own.n = getattr(_own, "n", 0) + 1
         t0 = time.perf_counter()
         n_compiled = _compiled_count()
         ev, used = evaluate(self.ext, u, columns=self.jacobian_columns)
@@ -174,6 +185,7 @@ class Model:
 
     def _forward(self, u, doublings: int = 3):
         Model.evaluations += 1
+        _own.n = getattr(_own, "n", 0) + 1
         t0 = time.perf_counter()
         rows, snaps, _, used = forward(self.ext, u, doublings=doublings)
         if used.schedule.attempts > self.ext.schedule.attempts:
@@ -196,6 +208,9 @@ class Model:
     def row_time(self) -> np.ndarray:
         """Revolutions (profiles) or hours (history) at which each row was measured."""
         return self._rows_t
+
+
+_own = threading.local()  # this thread's evaluations (`Model.own_evaluations`)
 
 
 def _compiled_count() -> int:

@@ -37,6 +37,7 @@ from jaxwear._analyses.diagnose.shape.analysis import shape_analysis
 from jaxwear._analyses.diagnose.shape.design import Background, at_answer, prepare_design
 from jaxwear._core.errors import InputError
 from jaxwear._core.jsonfmt import json_float
+from jaxwear._core.log import held
 from jaxwear._inference.calibrate import fit_study, registered, study_fit_keys
 from jaxwear._inference.residual import traces, traces_since
 from jaxwear._study.resolution import at_level, at_stable_update
@@ -331,12 +332,18 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         warming = (Background(warm, model, base, shp.linear, (shp.form, shp.best))
                    if law and shp.best is not None and shp.linear else None)
         shp = shp.finished()
-        after = after.finished() if after is not None else None
+        # the refit on top of the effect found beside the law search (which needs the
+        # first refit only): one core each, where they took turns (the fatigue study:
+        # ~35 s of the refit's wall and ~55 s of the search's, each a chain of
+        # single-threaded runs). After the first refit, whose program (and map's) it
+        # shares where it refits the same carriers: compiled by then, not twice. Its
+        # progress lines are printed once it is done (`held`), after the search's.
+        beside = (Background(_finished_quietly, after)
+                  if after is not None else None)
+        pngs_after = None
         if drawing is not None:
             pngs, pngs_after = drawing.result()
             shp = replace(shp, pngs=pngs)
-            if after is not None:
-                after = replace(after, pngs=pngs_after)
         if warming is not None:
             warming.result()
         if law and shp.best is not None and shp.linear:
@@ -347,6 +354,12 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                           correction=shp.correction,
                                           shape_rmse_um=shp.rmse_after_um,
                                           shape_why=shp.refit_message, verbose=verbose))
+        if beside is not None:
+            after, lines = beside.result()
+            for line in lines:
+                _log(verbose, line)
+            if pngs_after is not None:
+                after = replace(after, pngs=pngs_after)
         diag = replace(diag, shape=shp, shape_after_effect=after)
         if contest and shp.law is not None and shp.law.best is not None:
             versus = law_against_library(by_contact(final.contact), final,
@@ -376,6 +389,12 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                     f"{comp['jacobian']} Jacobian and {comp['forward']} forward "
                     f"compilations)")
     return diag
+
+
+def _finished_quietly(result):
+    """(`result.finished()`, the progress lines it logged, held: `_core.log.held`)."""
+    with held() as lines:
+        return result.finished(), lines
 
 
 NARROW = 10.0  # a combined test passed by less than this factor over α is contested

@@ -258,7 +258,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     followed: the screen weighs every law of the grammar alike (issue 48)."""
     # the whole grammar is screened alike (module docstring); `prefer` and `correction`
     # only decide whether laws with memory are tried (`law.memory.wanted`)
-    t0, c0, e0 = time.perf_counter(), time.process_time(), Model.evaluations
+    # this thread's evaluations (`Model.own_evaluations`): diagnose refits the shape on top
+    # of the effect found beside the search
+    t0, c0, e0 = time.perf_counter(), time.process_time(), Model.own_evaluations()
     samples, ranges = states_met(model, fit, forms)
     peaks = linear.get("peaks", {})
 
@@ -333,7 +335,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 continue
             if peer:
                 peers["fits"] += 1
-                c_peer, e_peer = time.process_time(), Model.evaluations
+                c_peer, e_peer = time.process_time(), Model.own_evaluations()
                 _log(verbose, f"    {law.label}: fitted after a law at the noise (one of "
                               f"its complexity, `PEERS`)")
             if src == "memory":  # its start already chosen by forward runs (`law.memory`)
@@ -372,7 +374,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                         loo_linear_um=_rms(loo(lm, f, noise_um)), fit=f, model=lm)
             (refused if lf.refused else fitted).append(lf)
             if peer:
-                peers["model_evaluations"] += Model.evaluations - e_peer
+                peers["model_evaluations"] += Model.own_evaluations() - e_peer
                 peers["cpu_s"] += time.process_time() - c_peer
             _log(verbose, f"    {found.label}: RMSE {f.rmse:.4f} µm (start {r_start:.4f}), "
                           f"left-out {_fmt(lo)} µm, evidence {ev:.1f} ({f.status}, "
@@ -395,11 +397,12 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
         met = ranges.get(best.law.form, {})
         rng = {t.variable: met[t.variable] for t in best.law.terms if t.variable in met}
     # CPU seconds of every thread beside the wall: on a shared machine the wall depends
-    # on the others' load, the CPU time much less
+    # on the others' load, the CPU time much less (in `diagnose`, the process's: the
+    # shape's refit on top of the effect found runs beside the search)
     res = LawResult(best, tuple(ranked), len(screened), float(noise_um), fit.rmse, lb,
                     time.perf_counter() - t0,
                     extra={"cpu_s": time.process_time() - c0,
-                           "model_evaluations": Model.evaluations - e0,
+                           "model_evaluations": Model.own_evaluations() - e0,
                            "loo_forward_runs": runs, "peer_fits": peers["fits"],
                            "peer_model_evaluations": peers["model_evaluations"],
                            "peer_cpu_s": peers["cpu_s"],

@@ -297,7 +297,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
 
     def finish() -> ShapeResult:
         """The refit through the loop and the when/where map (the costly part)."""
-        e0 = Model.evaluations
+        # this thread's (the refit runs in it): another analysis may run beside it
+        e0 = Model.own_evaluations()
         surf = inter.block if inter is not None and inter.significant else None
         rmse_after, status, corr_model, u_fit, cov, snaps, resid, message = _refit(
             smodel, refit_with, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
@@ -307,14 +308,14 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
             # (the law search then says its check against the shape was not made)
             _log(verbose, f"    the shape's refit gave no RMSE: {message}")
             return replace(result(results, None, status, {}, None,
-                                  linear.evaluations + Model.evaluations - e0),
+                                  linear.evaluations + Model.own_evaluations() - e0),
                            refit_message=message)
         correction = _correction(corr_model, u_fit, carriers, form)
         done = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
                 and v.form == form else v for v in results]
         ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL, snaps=snaps)
         return replace(result(done, rmse_after, status, correction, ww,
-                              linear.evaluations + Model.evaluations - e0),
+                              linear.evaluations + Model.own_evaluations() - e0),
                        residual_um=resid, refit_message=message)
 
     linear = result(results, None, "none", {}, None, Model.evaluations - evals0 + spent)
