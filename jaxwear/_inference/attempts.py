@@ -95,8 +95,22 @@ def enough_attempts(model: ResidualModel, u, headroom: float = RAISE_HEADROOM,
         return model
     if not math.isfinite(need):
         raise TrialFailed(work_failure(model, u))
-    more = 2 ** math.ceil(math.log2(headroom * need))
+    if need > MAX_ATTEMPTS:
+        raise TrialFailed(too_stiff(need))
+    more = min(2 ** math.ceil(math.log2(headroom * need)), MAX_ATTEMPTS)
     return model.with_schedule(dataclasses.replace(sched, attempts=more))
+
+
+# the most attempts a run is given: the loop's bound is an int32 on the device, and a run
+# that needs more (a left-out step that took a clearance to 1e-300 or K_d to 1e30:
+# measured 2^46 on a held-out study) cannot be integrated in any time a user waits for
+MAX_ATTEMPTS = 2 ** 24
+
+
+def too_stiff(need: float) -> str:
+    """Why a run is not made whose integration would need `need` attempts."""
+    return (f"the integration would need ~{need:.3g} steps (over {MAX_ATTEMPTS}): the "
+            f"wear rate is far beyond any measured one there (not run)")
 
 
 def needs_more_attempts(model: ResidualModel, u, factor: float = 4.0) -> bool:

@@ -17,7 +17,14 @@ import numpy as np
 from jaxwear._core.host import to_device
 from jaxwear._core.jit import jit
 from jaxwear._inference import lsq
-from jaxwear._inference.attempts import _dynamic, attempts_needed, enough_attempts, work_failure
+from jaxwear._inference.attempts import (
+    MAX_ATTEMPTS,
+    _dynamic,
+    attempts_needed,
+    enough_attempts,
+    too_stiff,
+    work_failure,
+)
 from jaxwear._inference.residual import TRACES, ResidualModel
 
 
@@ -254,8 +261,9 @@ def forward_run(model: ResidualModel, u, *, doublings: int = 3, worn_ok: bool = 
     snapshots of a run that wore through (a forecast past the layer). Where the work
     estimate at u is not finite the model is not run: NaN rows and snapshots, error inf."""
     need = attempts_needed(model, u)
-    if not math.isfinite(need):
-        ev = unusable_evaluation(model, u, work_failure(model, u))
+    if not math.isfinite(need) or need > MAX_ATTEMPTS:
+        ev = unusable_evaluation(model, u, work_failure(model, u) if not math.isfinite(need)
+                                 else too_stiff(need))
         return Forward(ev.pred, ev.snaps, math.inf, 0, model)
     model = enough_attempts(model, u, need=need)
     uj = jnp.asarray(u, jnp.float64)

@@ -63,6 +63,9 @@ LOO_HALVINGS = 3  # a left-out step that raises the left-in misfit is halved thi
 
 # times a left-out check's forward run may double its attempt count (`loo_refined`)
 LOO_DOUBLINGS = 1
+# a left-out step whose estimated attempt count is over this many times the fit's is not
+# run (halved): the doublings above bound a run's growth, not its start
+LOO_STIFF = 16.0
 
 
 def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[dict, int]:
@@ -81,7 +84,7 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
         # bump, 2026-11-28): the checks of a law power(W)·exp(ω) ran one forward run for
         # over 6 minutes of wall; the law search took 1795 s of CPU in 188 model runs
         def predict(u):
-            return model.predict(u, doublings=LOO_DOUBLINGS)
+            return model.predict(u, doublings=LOO_DOUBLINGS, stiff=LOO_STIFF)
     rw, Jw = whitened_system(fit.ev, fit.mask, noise_um)
     n = len(model.measured)
     free = np.flatnonzero(fit.mask)

@@ -18,6 +18,7 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._extended import candidate_names
 from jaxwear._core.noise import series
+from jaxwear._inference.attempts import needs_more_attempts
 from jaxwear._inference.evaluation import (
     Evaluation,
     _evaluate_jit,
@@ -171,11 +172,16 @@ class Model:
             Model.first_evaluation_s = dt
         return ev
 
-    def predict(self, u, *, doublings: int = 3) -> np.ndarray:
+    def predict(self, u, *, doublings: int = 3, stiff: float | None = None) -> np.ndarray:
         """Model depth at every row [µm] at u, forward only (no Jacobian: a check of a
         linearised answer costs one plain evaluation); NaN rows where the model wore
         through or its integration ran out of attempts (`doublings`: times the attempt
-        count may double before that, `evaluation.forward`)."""
+        count may double before that, `evaluation.forward`). `stiff`: NaN rows, and no
+        run, where u's estimated attempt count is over `stiff` times the model's (a check
+        at a stiff corner the fit never went to: an estimate of 2^46 attempts on a
+        held-out study, a run of hours)."""
+        if stiff is not None and needs_more_attempts(self.ext, u, factor=stiff):
+            return np.full(self.n, np.nan)
         return self._forward(u, doublings=doublings)[0]
 
     def snapshots(self, u) -> np.ndarray:
