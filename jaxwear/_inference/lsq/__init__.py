@@ -24,6 +24,7 @@ from jaxwear._inference.lsq._solve import (
     failure,
     solve,
     step_in_standard_errors,
+    step_ratio,
     whitened,
 )
 from jaxwear._inference.lsq._start import robust_start
@@ -39,6 +40,7 @@ __all__ = [
     "Point",
     "SE_TOL",
     "defect_step",
+    "step_ratio",
     "Status",
     "covariance",
     "error_scale",

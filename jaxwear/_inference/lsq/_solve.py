@@ -225,6 +225,9 @@ def _ratio(step, cov: Covariance) -> float:
     return float(np.max(np.abs(step[det]) / cov.se[det], initial=0.0))
 
 
+step_ratio = _ratio  # public: a defect step's size in standard errors (`defect_step`)
+
+
 def error_scale(rss: float, n: int, k_eff: float, sigma: float, sigma_dof: float,
                 estimated: bool) -> tuple[float, float]:
     """The noise rule for the errors the data support: (s [µm], its degrees of freedom).

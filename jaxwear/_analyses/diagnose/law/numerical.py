@@ -146,7 +146,7 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
     # the fit's own Jacobian: the step on the rows moved by δ, less the step its stop left
     step, cov, _ = lsq.defect_step(ev0.shifted(delta).point(), noise_um, lo, hi, free,
                                    relative_to=ev0.point())
-    first = _ratio(step, cov)
+    first = lsq.step_ratio(step, cov)
     se = {n: float(s) for n, s in zip(lm.names, f.stderr)}
 
     def at(t):
@@ -199,7 +199,3 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
     return dataclasses.replace(lf, law=law, constants=new, numerical_error=err,
                                numerical=info)
 
-
-def _ratio(step, cov) -> float:
-    det = ~cov.undetermined
-    return float(np.max(np.abs(step[det]) / cov.se[det], initial=0.0))
