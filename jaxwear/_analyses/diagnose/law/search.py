@@ -775,16 +775,17 @@ def after_noise(law: LawSpec, src: str, fitted, peer_fits: int) -> tuple[bool, b
 SWAPS = 2
 
 
+def _term_constants(k: int, t: Term) -> set:
+    """The names (`constants`, the sentence's) of term `k` (1-based) `t`'s constants."""
+    sym = SYMBOLS[t.variable]
+    return {"power": {f"a{k}"}, "hinge": {f"a{k}", f"{sym}0"},
+            "step": {f"{sym}0", f"{sym}_width"}, "exp": {f"{sym}_e"}}[t.kind]
+
+
 def _undetermined_terms(law: LawSpec, undetermined_: tuple) -> list[bool]:
     """Per term of `law`: whether it holds a constant named in `undetermined_`."""
     und = set(undetermined_)
-    out = []
-    for k, t in enumerate(law.terms, 1):
-        sym = SYMBOLS[t.variable]
-        names = {"power": {f"a{k}"}, "hinge": {f"a{k}", f"{sym}0"},
-                 "step": {f"{sym}0", f"{sym}_width"}, "exp": {f"{sym}_e"}}[t.kind]
-        out.append(bool(names & und))
-    return out
+    return [bool(_term_constants(k, t) & und) for k, t in enumerate(law.terms, 1)]
 
 
 def swaps(ranked, screened, done=frozenset(), n_rows: int = 2) -> list:
@@ -835,9 +836,7 @@ def pruned(ranked, done=frozenset()) -> list:
     kept, changed = [], False
     for k, t in enumerate(law.terms, 1):
         sym = SYMBOLS[t.variable]
-        names = {"power": {f"a{k}"}, "hinge": {f"a{k}", f"{sym}0"},
-                 "step": {f"{sym}0", f"{sym}_width"}, "exp": {f"{sym}_e"}}[t.kind]
-        bad = names & und
+        bad = _term_constants(k, t) & und
         if not bad:
             kept.append(t)
         elif t.kind == "hinge" and bad == {f"{sym}0"}:
