@@ -298,3 +298,31 @@ def test_light_load_converges_on_a_coarse_grid():
         fx, fy = (p * area * np.cos(th)).sum(1), (p * area * np.sin(th)).sum(1)
         np.testing.assert_allclose(fx, W * np.cos(ang), atol=1e-9 * W)
         np.testing.assert_allclose(fy, W * np.sin(ang), atol=1e-9 * W)
+
+
+@pytest.mark.parametrize("case", [2, 5])
+def test_gathered_newton_phase_gives_each_step_its_own_answer(rig, case):
+    """From 64 steps on, Newton's last iterations run on the unconverged steps alone,
+    gathered (`contact._newton_2d`). Each step's equilibrium is unique (a strictly convex
+    potential), so 128 steps solved at once, cold and warm-started from a perturbed answer,
+    give every step the offset it gets in a batch of 48 (which runs the plain loop), and
+    satisfy Σ p_j A_j n_j = W to 1e-9 recomputed here."""
+    h = jnp.asarray(worn_profiles()[case])
+    rng = np.random.default_rng(100 + case)
+    load = rng.uniform(0.5, 3000.0, 128)
+    angle = rng.uniform(-np.pi, np.pi, 128)
+    k = _stiffness(h, rig, False)
+    area = node_area(rig, N)
+    big = _solvers["unsymmetric"](jnp.asarray(load), jnp.asarray(angle), h, rig.clearance, k,
+                                  area)
+    ref = np.concatenate([solve(load[i:i + STEPS], angle[i:i + STEPS], h, rig).offset
+                          for i in range(0, 128, STEPS)])
+    scale = np.max(np.abs(ref))
+    np.testing.assert_allclose(np.asarray(big.offset), ref, rtol=0, atol=1e-9 * scale)
+    warm = jax.jit(functools.partial(jw.solve_contact, contact="unsymmetric"))(
+        jnp.asarray(load), jnp.asarray(angle), h, rig.clearance, k, area,
+        start=jnp.asarray(ref * (1 + 1e-3 * rng.standard_normal(ref.shape))))
+    np.testing.assert_allclose(np.asarray(warm.offset), ref, rtol=0, atol=1e-9 * scale)
+    for sol in (big, warm):
+        res = np.linalg.norm(force_balance(sol, load, angle, rig), axis=1) / load
+        assert res.max() < 1e-9

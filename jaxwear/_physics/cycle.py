@@ -145,10 +145,28 @@ def cycle_step(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, slidin
     rate, sol, ds = _cycle(p, cfg, hist, regime, h, sliding, start, memory)
     slide = hist.slide[regime]
     area = node_area(p, cfg.nodes)
-    # Sums over the steps as matrix-vector products: XLA:CPU's reductions of a
-    # (steps, nodes) array cost ~3x (measured, 360 x 360: 0.09 ms against ~0.03 ms a cycle).
-    work = area * jnp.sum(slide @ sol.pressure)
-    return jnp.ones_like(slide) @ rate, ds, work, sol
+    dh, slid = _step_sums(rate, slide[:, None] * sol.pressure)
+    return dh, ds, area * jnp.sum(slid), sol
+
+
+@jax.custom_jvp
+def _step_sums(a, b):
+    """Σ_i a_ij and Σ_i b_ij (nodes,) of two (steps, nodes) arrays: one variadic reduction.
+
+    XLA:CPU then computes the pressure field, the rate and both sums in one pass, writing
+    no (steps, nodes) array (measured, 360 x 360, legacy emitters: 38 µs against 81 µs for
+    the pressure and rate written out and summed by two matrix-vector products, 103 µs for
+    two plain sums; a cycle evaluation of the boom's is ~0.4 ms). The derivative uses
+    matrix-vector products: reverse mode cannot transpose a variadic reduction."""
+    return tuple(lax.reduce([a, b], [jnp.zeros((), a.dtype)] * 2,
+                            lambda x, y: [x[0] + y[0], x[1] + y[1]], (0,)))
+
+
+@_step_sums.defjvp
+def _step_sums_jvp(primals, tangents):
+    ta, tb = tangents
+    ones = jnp.ones(primals[0].shape[0], primals[0].dtype)
+    return _step_sums(*primals), (ones @ ta, ones @ tb)
 
 
 def _cold_starts(hist: LoadHistory):
