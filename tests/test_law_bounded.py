@@ -182,3 +182,72 @@ def test_the_json_and_the_sentence_say_which_term_is_bounded_and_where():
     plain = LawFit(fast, 0.31, 0.32, 50.0, "converged", 4, constants(fast, {}), 9.0)
     res = LawResult(plain, (plain,), 191, 0.30, 0.39, 0.40, 12.0)
     assert res.to_json()["bounded"] == [] and "bounded" not in law_sentence(res)
+
+
+@pytest.fixture(scope="module")
+def exp_fit(tmp_path_factory):
+    """The independent generator's exponential of the worn depth (K_d (1 + 0.5 exp((h −
+    5 µm)/6 µm))) at 72 x 108, M = 100, the paper's five experiments, 0.3 µm noise; the
+    study at 36 x 54: its base fit, the states met, and the grammar's exponential of h
+    fitted through the loop (3 evaluations: the check needs a law model at an answer,
+    not a converged one)."""
+    import sys
+    from pathlib import Path
+
+    from jaxwear._analyses.diagnose import Model, fit_masked
+    from jaxwear._analyses.diagnose.law.search import fit_law, states_met
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import hidden_physics as hp
+
+    gen = hp.generate(hp.Law("g_exp_h", 0.5), hp.PAPER, seed=3,
+                      num=hp.Numerics(nodes=72, steps=108, M=100.0))
+    path = hp.write(tmp_path_factory.mktemp("exp"), gen, hp.PAPER, study_numerics=(36, 54))
+    model = Model(jw.load_study(path), candidates=[])
+    base = fit_masked(model, model.base_mask, np.zeros(len(model.names)), noise_um=0.3)
+    _, ranges, tops = states_met(model, base, ("factor",))
+    start = LawSpec("factor", (Term("exp", "worn_depth_um", 3.0, b=0.5),), 0.4)
+    with searching():
+        found, f, lm = fit_law(model, base, start, 0.3, np.inf, max_evaluations=3)
+    lf = LawFit(found, f.rmse, None, 0.0, f.status, f.evaluations,
+                constants(found, dict(zip(lm.names, f.stderr))), math.nan, fit=f, model=lm)
+    return model, base, lf, ranges, tops
+
+
+def test_a_cap_at_the_top_of_the_states_met_leaves_the_fits_rows_unchanged(exp_fit):
+    """Through the wear loop (`law.search.rebound`: the law model run with and without
+    the cap at the fitted parameters): a cap that the states met reach changes the rows;
+    the same cap raised to the deepest state the law's own fit wears (`own_tops`: deeper
+    than the base fit's, the law adds wear) leaves every row as it was. The cap is put low
+    on purpose: the law's e-fold h_e set to 1 µm (Φ's growth from 3 µm to 6 µm e^3 =
+    20-fold, so its tenfold point 3 + ln 10 = 5.3 µm lies within the depths worn, up to
+    ~20 µm); the rows are the fit's own (its fitted h_e): the cap is what differs."""
+    from types import SimpleNamespace
+
+    from jaxwear._analyses.diagnose.law.search import rebound
+
+    model, base, lf, ranges, tops = exp_fit
+    deepest = float(np.nanmax(np.asarray(lf.fit.ev.snaps)))
+    assert deepest > tops["factor"]["worn_depth_um"] > 6.0  # the check can fail
+    t = lf.law.terms[0]
+    steep = dataclasses.replace(lf, law=dataclasses.replace(
+        lf.law, terms=(dataclasses.replace(t, b=t.ref / 1.0),), strength=1e6))
+    low = {"factor": {"worn_depth_um": (0.0, 3.0)}}
+    # the fit with its snapshots hidden: no state of its own raises the cap
+    blind = dataclasses.replace(steep, fit=SimpleNamespace(
+        values=lf.fit.values, ev=SimpleNamespace(u=lf.fit.ev.u, snaps=None)))
+    with searching():
+        inside, k1 = rebound(model, base, blind, low, {"factor": {}})
+        at_base_top, _ = rebound(model, base, blind, low, tops)
+        at_top, k2 = rebound(model, base, steep, low, tops)
+    cap_in = inside.bounded[0]["cap"]
+    assert cap_in == pytest.approx(3.0 + math.log(EXP_GROWTH), rel=1e-6)
+    assert k1 == k2 == 2
+    assert inside.bounded[0]["in_sample_change_um"] > 1e-3
+    # the base fit's deepest state is not the law's: a cap there still changes rows
+    assert at_base_top.bounded[0]["cap"] == pytest.approx(tops["factor"]["worn_depth_um"])
+    assert at_base_top.bounded[0]["in_sample_change_um"] > 1e-3
+    assert at_top.bounded[0]["cap"] == pytest.approx(deepest)
+    assert "the states met end" in at_top.bounded[0]["reason"]
+    assert at_top.bounded[0]["in_sample_change_um"] == 0.0
+    assert at_top.constants["h_cap"] == (pytest.approx(deepest), 0.0, "µm")
