@@ -287,10 +287,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
 
     # the screen refuses only what no cap can bound (`unbounded`): an exponential is
     # screened on the states met, where a cap (above them) changes nothing, and bounded
-    # once fitted. Why: the screen's grid of rates holds b = ±1, ±4 per span, and the
-    # +4 grows e^4 = 55-fold to twice the top of the states met; refused there, the
-    # generator's exponential of the worn depth (h_e = 6 µm, rich design, seed 3) was
-    # never among the picks and a law of another structure answered
+    # once fitted; its growth beyond them is no reason to leave it out (the grid's b = 4
+    # per span grows e^4 = 55-fold to twice the top of the states met, and was refused
+    # here before the bound)
     screened = screen_grammar(linear, samples, grid, forms, refuse)
     todo = picks(screened, len(linear["rho"]), n)
     _log(verbose, f"  law search: {len(screened)} one- and two-term laws screened; through "
