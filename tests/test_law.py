@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -38,6 +39,9 @@ PRODUCT = LawSpec("factor", (Term("step", "pressure_MPa", 1.2, x0=1.1, w=0.08),
 DEPOSIT = LawSpec("deposit", (Term("hinge", "load_turn_rate_deg_per_s", 2000.0, x0=1.5,
                                    a=2.0),), 0.02)
 WORN = LawSpec("factor", (Term("exp", "worn_depth_um", 2.0, b=0.5),), 0.4)
+# the same exponential bounded (`law.search.bounded`): held flat beyond h_cap = 1.5 h_ref =
+# 3 µm, within the nodes' 0-4 µm of depth (some nodes beyond it, some below)
+WORN_CAP = LawSpec("factor", (Term("exp", "worn_depth_um", 2.0, b=0.5, cap=1.5),), 0.4)
 # a PV step: the derived state p·v (the frictional power density's PV factor)
 PV = LawSpec("factor", (Term("step", "pv_MPa_m_per_s", 0.08, x0=1.0, w=0.1),), 1.0)
 
@@ -54,13 +58,15 @@ def _rates(cfg, p, h):
     return np.asarray(rate), sol, hist
 
 
-@pytest.mark.parametrize("law", [PRODUCT, DEPOSIT, WORN, PV],
-                         ids=["product", "deposit", "worn", "pv"])
+@pytest.mark.parametrize("law", [PRODUCT, DEPOSIT, WORN, PV, WORN_CAP],
+                         ids=["product", "deposit", "worn", "pv", "worn_capped"])
 def test_law_file_round_trips_and_both_give_the_formula(tmp_path, law):
     """law.py written for a law, loaded as an effect file, gives the same rates as the
     search's effect (its structure as held data), and the factor form equals the formula
     computed by hand in numpy: the base rate x (1 + A Φ) (the deposit: Φ ≥ 0 where the
-    load turns fast, added to the base rate)."""
+    load turns fast, added to the base rate). The bounded exponential: by hand Φ = exp((
+    min(h, 3 µm) − 2 µm)/4 µm) (h_e = h_ref / b = 4 µm), flat on the nodes worn beyond
+    3 µm."""
     cfg = ModelConfig(nodes=24, steps_per_rev=36)
     h = jnp.linspace(0.0, 4e-6, 24)
     base = jw.preset("rig")
@@ -73,6 +79,10 @@ def test_law_file_round_trips_and_both_give_the_formula(tmp_path, law):
     assert formula(law) in text
     try:
         load_effect_file(path)
+        # the compiled cycle is keyed on the config (the effect's name) and the parameters'
+        # keys: another file of the same name and keys (the worn law, capped and not) would
+        # run the earlier file's trace
+        jax.clear_caches()
         mine = _rates(cfg.replace(effects=("found_law",)), jw.preset("rig"), h)[0]
     finally:
         unregister_effect("found_law")
@@ -87,6 +97,16 @@ def test_law_file_round_trips_and_both_give_the_formula(tmp_path, law):
         phi = law_phi_numpy(law, z)
         np.testing.assert_allclose(mine, rate0 * (1.0 + law.strength * phi), rtol=1e-12)
         assert np.ptp(phi) > 0.1  # the law varies over the cycle: the check can fail
+    if law is WORN_CAP:
+        assert "min(h, h_cap)" in text and "H_CAP = 3.0" in text
+        hm = np.asarray(h) * 1e6  # the nodes' depth [µm]
+        phi = np.exp((np.minimum(hm, 3.0) - 2.0) / 4.0)
+        np.testing.assert_allclose(mine, rate0 * (1.0 + 0.4 * phi[None, :]), rtol=1e-10)
+        deep = hm > 3.0 + 1e-9
+        assert 0 < deep.sum() < len(hm)  # nodes on both sides of the cap: the check can fail
+        ratio = mine / np.where(rate0 > 0, rate0, np.nan)
+        flat = ratio[:, deep][np.isfinite(ratio[:, deep])]
+        np.testing.assert_allclose(flat, 1.0 + 0.4 * np.exp(0.25), rtol=1e-10)
     if law is PV:
         # p·v by hand from the model's state: the contact pressure at each node [MPa]
         # times the sliding speed of the step dS/dt [m/s], into the step's formula
@@ -417,13 +437,13 @@ def test_found_only_where_the_law_predicts_else_a_lead_everywhere():
     assert "p_width" in _fit_of(STEP, 0.31, 0.318, se={**STEP_SE, "law_w_1": 0.03}).undetermined
 
 
-def test_a_law_unbounded_where_a_prediction_goes_is_refused():
+def test_a_law_unbounded_where_a_prediction_goes_is_refused_or_bounded():
     """A negative power of a state that starts at zero (the issue's deposit ∝ S^−1.31) or
     reaches it (the sliding speed at a dead centre) is refused; one of the pressure, whose
-    range met stays away from zero, is not. An exponential that grows more than tenfold
-    from the top of the states met to twice it is refused; a slower or decaying one is
-    not."""
-    from jaxwear._analyses.diagnose.law.search import unbounded
+    range met stays away from zero, is not. An exponential is never refused: one that
+    grows more than tenfold from the top of the states met to twice it is bounded (held
+    flat where it has grown tenfold), a slower or decaying one is left as it is."""
+    from jaxwear._analyses.diagnose.law.search import bounded, unbounded
 
     ranges = {"sliding_distance_m": (0.0, 40.0), "pressure_MPa": (0.5, 3.0),
               "sliding_speed_m_per_s": (0.0, 0.09), "worn_depth_um": (0.0, 10.0)}
@@ -437,9 +457,17 @@ def test_a_law_unbounded_where_a_prediction_goes_is_refused():
     assert unbounded(law("power", "pressure_MPa", 1.5, a=-1.0), ranges) == ""
     assert unbounded(law("power", "sliding_distance_m", 20.0, a=0.5), ranges) == ""
     # exp(b (h/h_s − 1)): from h = 10 µm to 20 µm it grows by exp(b · 10/h_s)
-    assert "exponential" in unbounded(law("exp", "worn_depth_um", 5.0, b=1.2), ranges)
-    assert unbounded(law("exp", "worn_depth_um", 5.0, b=1.1), ranges) == ""  # e^2.2 = 9
-    assert unbounded(law("exp", "worn_depth_um", 5.0, b=-4.0), ranges) == ""
+    for b in (1.2, 1.1, -4.0, 4.0):
+        assert unbounded(law("exp", "worn_depth_um", 5.0, b=b), ranges) == ""
+    # e^2.4 = 11.0 > 10: bounded where Φ (a deposit's rate) has grown tenfold from 10 µm,
+    # at 10 µm + h_e ln 10 = 10 + (5/1.2) · 2.3026 = 19.594 µm
+    capped, said = bounded(law("exp", "worn_depth_um", 5.0, b=1.2), ranges)
+    assert capped.terms[0].cap * 5.0 == pytest.approx(10.0 + 5.0 / 1.2 * np.log(10.0))
+    assert [c["variable"] for c in said] == ["worn_depth_um"] and "held flat" in said[0][
+        "reason"] and "11-fold" in said[0]["reason"]
+    for b in (1.1, -4.0):  # e^2.2 = 9.0, and a decaying one: as it is
+        same = law("exp", "worn_depth_um", 5.0, b=b)
+        assert bounded(same, ranges) == (same, ())
 
 
 def test_the_front_is_simplest_first_and_the_answer_the_simplest_within_one_se():

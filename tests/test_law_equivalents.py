@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
 from jaxwear._analyses.diagnose.law.equivalent import equivalents, loo_band, separation
 from jaxwear._analyses.diagnose.law.search import (
@@ -246,14 +247,25 @@ def test_an_exponential_factor_is_bounded_by_the_rate_it_gives():
     14.42 µm) to twice it is that of 1 + A Φ, not Φ's. By hand, exp((h − h_s)/6 µm) at
     h_s = 3.2 µm: Φ grows e^(14.42/6) = 11.0-fold (more than `EXP_GROWTH`, 10), Φ(14.42) =
     e^1.870 = 6.49 and Φ(28.84) = e^4.273 = 71.7; with A = 0.37 the rate grows (1 + 26.5)
-    / (1 + 2.40) = 8.1-fold (kept), with A = 100 by 7171 / 650 = 11.0 (refused); a
-    deposit's rate is DΦ (refused), and so is a law not yet fitted (strength 0: Φ's)."""
-    from jaxwear._analyses.diagnose.law.search import unbounded
+    / (1 + 2.40) = 8.1-fold (left as it is), with A = 100 by 7171 / 650 = 11.0 (bounded
+    where 1 + AΦ = 6500: Φ = 64.99, h = 3.2 + 6 ln 64.99 = 28.24 µm); a deposit's rate is
+    DΦ, and so is a law not yet fitted (strength 0: Φ's): bounded where Φ has grown
+    tenfold, h = 14.42 + 6 ln 10 = 28.24 µm."""
+    from jaxwear._analyses.diagnose.law.search import bounded
 
     ranges = {"worn_depth_um": (0.0, 14.42)}
     term = Term("exp", "worn_depth_um", 3.2, b=3.2 / 6.0)
-    assert unbounded(LawSpec("factor", (term,), 0.37), ranges) == ""
-    assert "a rate with an exponential" in unbounded(LawSpec("factor", (term,), 100.0),
-                                                     ranges)
-    assert "grows 11.1-fold" in unbounded(LawSpec("deposit", (term,), 0.37), ranges)
-    assert "grows 11.1-fold" in unbounded(LawSpec("factor", (term,), 0.0), ranges)
+    kept = LawSpec("factor", (term,), 0.37)
+    assert bounded(kept, ranges) == (kept, ())
+    law, said = bounded(LawSpec("factor", (term,), 100.0), ranges)
+    # the same unrounded: 1 + 100 Φ(h_c) = 10 (1 + 100 Φ(14.42)), Φ(h) = e^((h − 3.2)/6)
+    phi_c = (10.0 * (1.0 + 100.0 * np.exp((14.42 - 3.2) / 6.0)) - 1.0) / 100.0
+    assert law.terms[0].cap * 3.2 == pytest.approx(3.2 + 6.0 * np.log(phi_c), rel=1e-12)
+    assert law.terms[0].cap * 3.2 == pytest.approx(28.24, abs=0.01)
+    assert "a rate with an exponential" in said[0]["reason"]
+    assert said[0]["growth"] == pytest.approx(7171.0 / 650.0, rel=2e-3)
+    assert said[0]["growth_capped"] == pytest.approx(10.0, rel=1e-9)
+    for form, a in (("deposit", 0.37), ("factor", 0.0)):
+        law, said = bounded(LawSpec(form, (term,), a), ranges)
+        assert law.terms[0].cap * 3.2 == pytest.approx(14.42 + 6.0 * np.log(10.0))
+        assert "grow 11.1-fold" in said[0]["reason"]

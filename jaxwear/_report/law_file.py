@@ -2,7 +2,8 @@
 
 Self-contained like `missing_wear.py`: the formula in its docstring, each fitted constant
 a parameter of the effect (its key names its unit, its default the fitted value, its
-standard error in the docstring), the references z_s as named module constants, and a
+standard error in the docstring), the references z_s (and an exponential's cap z_c, beyond
+which it is held flat: `law.search.bounded`) as named module constants, and a
 local rate of a few lines of jax.numpy that computes the formula as written (no held
 selectors: `effects.law.LAW_SEARCH` is the search's device, not the user's file). Text
 only: the CLI writes it.
@@ -47,7 +48,9 @@ def _term_code(law: LawSpec, k: int, keys: dict) -> str:
     if t.kind == "step":
         return f"jax.nn.sigmoid(({z} - {e(sym + '0')}) / {e(sym + '_width')})"
     if t.kind == "exp":
-        return f"jnp.exp(jnp.clip(({z} - {ref}) / {e(sym + '_e')}, -50.0, 50.0))"
+        # a bounded exponential: held flat beyond its cap (`term_formula`'s min(z, z_cap))
+        zc = f"jnp.minimum({z}, {sym.upper()}_CAP)" if math.isfinite(t.cap) else z
+        return f"jnp.exp(jnp.clip(({zc} - {ref}) / {e(sym + '_e')}, -50.0, 50.0))"
     return "1.0"
 
 
@@ -64,13 +67,16 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
     `status`: "found" or "lead" (`law.search.LawResult.status`), said in the first line;
     `ranges`: {variable: (lo, hi)} the states it was fitted on, carried by the effect
     (`state_range`) so that calibrate and predict flag its use beyond them."""
-    fitted = {n: c for n, c in consts.items() if not n.endswith("_ref")}
-    refs = {n: c for n, c in consts.items() if n.endswith("_ref")}
+    # the references and caps are chosen, not fitted: module constants, not parameters
+    fixed = ("_ref", "_cap")
+    fitted = {n: c for n, c in consts.items() if not n.endswith(fixed)}
+    refs = {n: c for n, c in consts.items() if n.endswith(fixed)}
     keys = {n: parameter_key(n, u) for n, (_, _, u) in fitted.items()}
     lines_c = []
     for n, (v, s, u) in consts.items():
         err = f" ± {s:.3g}" if s is not None and math.isfinite(s) and s > 0 else ""
-        what = "reference, fixed" if n in refs else f"key {keys[n]}"
+        what = ("cap, fixed: held flat beyond it" if n.endswith("_cap") else
+                "reference, fixed" if n in refs else f"key {keys[n]}")
         lines_c.append(f"    {n} = {v:.6g}{err} {'' if u == '-' else u}  ({what})")
     memory = getattr(law, "memory", False)  # a law with memory: `law_memory_file`
     params = []
@@ -95,6 +101,10 @@ def law_file_source(law: LawSpec, consts: dict, *, study_path: str, rmse_um: flo
     ref_lines = [f"{SYMBOLS[t.variable].upper()}_REF = {t.ref!r}  # z_s of "
                  f"{t.variable} [{t.unit}]" for t in law.terms if t.kind in
                  ("power", "hinge", "exp") and not memory]
+    ref_lines += [f"{SYMBOLS[t.variable].upper()}_CAP = {t.cap * t.ref!r}  # z_c of "
+                  f"{t.variable} [{t.unit}]: the exponential held flat beyond it"
+                  for t in law.terms if not memory and t.kind == "exp"
+                  and math.isfinite(t.cap)]
     phi = "" if memory else " * ".join(_term_code(law, k, keys)
                                        for k in range(1, len(law.terms) + 1))
     if law.form != "deposit":

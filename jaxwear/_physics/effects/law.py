@@ -22,6 +22,11 @@ wear-weighted median of the states met in the data):
   presses (`effects.shape.swept_kernel`): extra wear not tied to sliding (impacts,
   fretting, cold flow), Φ over the variables of events in the cycle.
 
+An exponential may be **bounded** (`law.search.bounded`): held flat beyond a cap
+x_c = z_c / z_s above every state met, `exp(b (min(x, x_c) − 1))`, where it would otherwise
+make the rate grow without bound where a prediction goes (a longer test, a higher load);
+the cap is a held value (`law_cap_k`, `CAP_NONE` where there is none), never fitted.
+
 A = D = 0 is the model as written (nesting). Why one effect with the kinds, variables and
 references as held parameters (`LawSpec.held`): they are values in the parameters, not
 structure, so every candidate runs on the program compiled once (a compilation of the wear
@@ -30,7 +35,7 @@ loop costs more than a fit's evaluations); only the continuous constants are fit
 `LawSpec` is one candidate: its study parameters, free keys, formula and constants in the
 variables' units. `LAW_SEARCH` is registered only while a search runs (`searching`): it is
 not a library candidate (`diagnose` never screens it), and its 17 parameters stay out of
-every other model's parameters.
+every other model's parameters (19: the two caps held too).
 """
 
 from __future__ import annotations
@@ -70,6 +75,9 @@ KIND_CONSTANTS = {"none": (), "power": ("a",), "hinge": ("x0", "a"), "step": ("x
                   "exp": ("b",)}
 HINGE_MIN_EXPONENT = 0.5  # a hinge's slope at its threshold stays finite
 POWER_FLOOR = 1e-3  # x below it read as it (a power law of a state that starts at 0)
+# an exponential's cap x_c where it has none (`Term.cap` inf): far above any state, so
+# min(x, CAP_NONE) = x (finite, so the held parameter stays a number the packing checks)
+CAP_NONE = 1e300
 
 
 def _p(default, off, lower, upper, doc, *, log=False, scale=1.0):
@@ -98,17 +106,21 @@ def _parameters() -> dict:
                                 f"kind of term {k} (index, held)"),
             f"law_ref_{k}": _p(1.0, 1.0, 1e-300, 1e300, f"z_s of term {k}: the reference "
                                f"(held, the variable's unit)"),
+            f"law_cap_{k}": _p(CAP_NONE, CAP_NONE, -1e300, CAP_NONE,
+                               f"x_c of term {k}: an exponential held flat beyond x = x_c "
+                               f"(held, in units of the reference; {CAP_NONE:g}: none)"),
         })
     return out
 
 
-def law_term(kind, x, a, x0, w, b):
+def law_term(kind, x, a, x0, w, b, cap=CAP_NONE):
     """φ(x) of `kind` (index into `KINDS`, traced) at x (...): every kind computed, one
-    selected (all finite, so the unselected ones' gradients are zero, never NaN)."""
+    selected (all finite, so the unselected ones' gradients are zero, never NaN). `cap`:
+    the exponential's x_c, beyond which it is held flat (module docstring)."""
     power = safe_power(jnp.maximum(x, POWER_FLOOR), a)
     hinge = safe_power(jnp.maximum(x - x0, 0.0), jnp.maximum(a, HINGE_MIN_EXPONENT))
     step = jax.nn.sigmoid((x - x0) / w)
-    expo = jnp.exp(jnp.clip(b * (x - 1.0), -50.0, 50.0))
+    expo = jnp.exp(jnp.clip(b * (jnp.minimum(x, cap) - 1.0), -50.0, 50.0))
     k = jnp.round(kind)
     return jnp.select([k == 1, k == 2, k == 3, k == 4], [power, hinge, step, expo], 1.0)
 
@@ -134,7 +146,7 @@ def law_phi(e: dict, z: dict, shape) -> jax.Array:
                        len(LAW_VARIABLES) - 1)
         x = jnp.take(Z, idx, axis=0) / e[f"law_ref_{k}"]
         phi = phi * law_term(e[f"law_kind_{k}"], x, e[f"law_a_{k}"], e[f"law_x0_{k}"],
-                             e[f"law_w_{k}"], e[f"law_b_{k}"])
+                             e[f"law_w_{k}"], e[f"law_b_{k}"], e[f"law_cap_{k}"])
     return phi
 
 
@@ -181,7 +193,8 @@ def searching():
 @dataclass(frozen=True)
 class Term:
     """One term: its kind, variable, reference z_s (the variable's unit) and constants
-    (normalised: x0, w in units of z_s)."""
+    (normalised: x0, w in units of z_s); `cap`: an exponential's x_c = z_c / z_s beyond
+    which it is held flat (`law.search.bounded`; inf: none)."""
 
     kind: str
     variable: str
@@ -190,6 +203,7 @@ class Term:
     x0: float = 1.0
     w: float = 0.1
     b: float = 0.0
+    cap: float = math.inf
 
     @property
     def unit(self) -> str:
@@ -226,16 +240,20 @@ class LawSpec:
                                                                      1.0)
             out.update({f"law_a_{k}": t.a, f"law_x0_{k}": t.x0, f"law_w_{k}": t.w,
                         f"law_b_{k}": t.b,
+                        f"law_cap_{k}": t.cap if t.cap < CAP_NONE else CAP_NONE,
                         f"law_var_{k}": float(LAW_VARIABLES.index(t.variable)),
                         f"law_kind_{k}": float(KINDS.index(t.kind)), f"law_ref_{k}": t.ref})
         return out
 
     def with_values(self, values: dict) -> LawSpec:
-        """This law with its fitted constants from `values` (study keys)."""
+        """This law with its fitted constants from `values` (study keys; a cap where
+        `values` holds one, else its own)."""
         terms = []
         for k, t in enumerate(self.terms, 1):
             kw = {c: float(values.get(f"law_{c}_{k}", getattr(t, c)))
-                  for c in ("a", "x0", "w", "b")}
+                  for c in ("a", "x0", "w", "b", "cap")}
+            if kw["cap"] >= CAP_NONE:
+                kw["cap"] = math.inf
             terms.append(Term(t.kind, t.variable, t.ref, **kw))
         return LawSpec(self.form, tuple(terms),
                        float(values.get(self.strength_key, self.strength)))
@@ -254,8 +272,9 @@ SYMBOLS = {"pressure_MPa": "p", "sliding_speed_m_per_s": "v", "sliding_distance_
 def constants(law: LawSpec, se: dict | None = None) -> dict:
     """{NAME: (value, stderr, unit)}: the law's constants in the variables' units (the
     normalised ones times z_s; delta method for the errors), the strength first and each
-    reference as a fixed constant (stderr 0: chosen, not fitted). `se`: standard errors
-    of the study keys (absent: NaN)."""
+    reference, and an exponential's cap `{sym}_cap` where it is bounded, as a fixed
+    constant (stderr 0: chosen, not fitted). `se`: standard errors of the study keys
+    (absent: NaN)."""
     if getattr(law, "memory", False):  # a law with memory (`effects.law_memory`)
         return law.constants(se)
     se = se or {}
@@ -289,6 +308,8 @@ def constants(law: LawSpec, se: dict | None = None) -> dict:
             z0 = 1e12 * t.ref if flat else t.ref / t.b
             out[f"{sym}_e"] = (z0, math.nan if flat else s(f"law_b_{k}", t.ref / t.b ** 2),
                                u)
+            if math.isfinite(t.cap):
+                out[f"{sym}_cap"] = (t.cap * t.ref, 0.0, u)
     return out
 
 
@@ -302,6 +323,8 @@ def term_formula(t: Term, k: int) -> str:
     if t.kind == "step":
         return f"1/(1 + exp(−({z} − {z}0)/{z}_width))"
     if t.kind == "exp":
+        if math.isfinite(t.cap):
+            return f"exp((min({z}, {z}_cap) − {z}_ref)/{z}_e)"
         return f"exp(({z} − {z}_ref)/{z}_e)"
     return "1"
 
@@ -333,5 +356,5 @@ def law_phi_numpy(law: LawSpec, z: dict):
         elif t.kind == "step":
             out = out / (1.0 + np.exp(-(x - t.x0) / t.w))
         elif t.kind == "exp":
-            out = out * np.exp(np.clip(t.b * (x - 1.0), -50.0, 50.0))
+            out = out * np.exp(np.clip(t.b * (np.minimum(x, t.cap) - 1.0), -50.0, 50.0))
     return out

@@ -5,8 +5,10 @@
 2. **Fit** (`search`, starts by forward runs in `start`): each through the wear loop by the
    one least-squares core, on one compiled model; then, where the history shows, laws with
    memory (`memory`).
-3. **Guard** (`search.unbounded`, `search.undetermined`): a law unbounded where a prediction
-   goes is refused, constants the data do not determine are named.
+3. **Guard** (`search.unbounded`, `search.bounded`, `search.undetermined`): a law unbounded
+   where a prediction goes is refused where no cap bounds it (a negative power of a state
+   that reaches zero), an exponential that grows too much beyond the states met is held
+   flat above them (said), constants the data do not determine are named.
 4. **Rank** (`search.rank`): the simplest law within one standard error of the best
    left-out error; found only where it predicts (`result.LawResult.status`).
 

@@ -55,6 +55,10 @@ class LawFit:
     # the law's fit (`_fit.Fit`) and its model, for that check (not reported)
     fit: object = field(default=None, repr=False, compare=False)
     model: object = field(default=None, repr=False, compare=False)
+    # its exponentials held flat above the states met (`law.search.bounded`): one dict a
+    # bounded term ({term, variable, symbol, cap, unit, top_met, hi_met, growth,
+    # growth_capped, reason}, the answer's with `in_sample_change_um`); () where none
+    bounded: tuple = ()
 
     @property
     def complexity(self) -> int:
@@ -88,6 +92,7 @@ class LawFit:
                 "at_noise_level": bool(self.at_noise), "p_combined": _num(self.p_combined),
                 "undetermined": list(self.undetermined), "start": self.start,
                 "complexity": self.complexity, "refused": self.refused or None,
+                "bounded": _bounded_json(self.bounded),
                 "loo_linearised_um": _num(self.loo_linear_um),
                 "numerical": None if self.numerical is None else self.numerical.to_json()}
 
@@ -215,6 +220,8 @@ class LawResult:
                 if b is not None else {"formula": None, "file": None, "effect": None,
                                        "constants": {}, "rmse_um": None,
                                        "loo_rmse_um": None, "numerical": None})
+        # the answer's exponentials held flat beyond a cap (`law.search.bounded`): say which
+        head["bounded"] = [] if b is None else _bounded_json(b.bounded)
         return {**head, "status": self.status, "lead_reasons": list(self.lead_reasons),
                 "form": None if b is None else b.law.form,
                 "front": [{"formula": f.formula, "complexity": f.complexity,
@@ -253,7 +260,14 @@ def _law_json(f: LawFit) -> dict:
             "constants": {k: {"value": _num(v), "stderr": _num(s), "unit": u}
                           for k, (v, s, u) in f.constants.items()},
             "rmse_um": _num(f.rmse_um), "loo_rmse_um": _num(f.loo_rmse_um),
-            "complexity": f.complexity, "undetermined": list(f.undetermined)}
+            "complexity": f.complexity, "undetermined": list(f.undetermined),
+            "bounded": _bounded_json(f.bounded)}
+
+
+def _bounded_json(caps) -> list:
+    """The bounded terms (`LawFit.bounded`) in JSON: numbers as `json_float`."""
+    return [{k: (_num(v) if isinstance(v, float) else v) for k, v in c.items()}
+            for c in caps]
 
 
 def _fmt(x) -> str:
@@ -267,7 +281,8 @@ def law_sentence(res: LawResult) -> str:
     (`LawResult.status` "lead") is called a lead with the reasons, never the law found;
     constants the data do not determine, named; laws of another structure the data do not
     tell from it (`LawResult.equivalents`), named with where they part; refused laws
-    (unbounded), named."""
+    (unbounded), named; an exponential held flat beyond a cap (`LawFit.bounded`), said
+    with where and why."""
     b = res.best
     refused = ("" if not res.refused else " Refused as unbounded where a prediction goes: "
                + "; ".join(f"{f.law.label} ({f.refused})" for f in res.refused) + ".")
@@ -307,6 +322,7 @@ def law_sentence(res: LawResult) -> str:
            f"{'they trade' if many else 'it trades'} off against the others), so "
            f"{'they are' if many else 'it is'} a lead, not a measurement."
            if b.undetermined else "") + und_num
+    und += "".join(f" It is bounded: {c['reason']}." for c in b.bounded)
     if res.worse_than_shape:
         return (f"No law of the grammar explains the misfit as well as the shape: the best "
                 f"tried, {b.formula}, with {cs}, reaches {b.rmse_um:.3f} µm, "

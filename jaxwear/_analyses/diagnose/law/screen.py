@@ -129,7 +129,8 @@ def screen_grammar(linear: dict, samples: dict, grids, forms=("factor", "deposit
     law of the grammar (module docstring), best first. `samples`: {form: {variable: (n,)}}
     states met, equal weights (`law.start.resample`); `grids`: (variable object, form)
     -> the one-term laws of the grid (`law.search.single_laws`); `bounded`: law -> "" or why it
-    is refused (`law.search.unbounded`): refused laws are not screened."""
+    is refused (`law.search.unbounded`: only what no cap can bound): refused laws are not
+    screened."""
     out = []
     for form in forms:
         Z = samples.get(form)
