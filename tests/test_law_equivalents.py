@@ -226,6 +226,34 @@ def test_a_lead_with_an_undetermined_term_gives_the_screens_changes_of_that_term
     assert swaps([_fit(lead, 0.3126, se_ok)], screened, n_rows=2880) == []
 
 
+def test_a_swap_skips_the_undetermined_terms_twin_variable():
+    """The rich design's step(p)·power(v), seed 3: the lead step(p)·step(turn) with the
+    turn's step undetermined. The load's turn per crank degree and per second differ by
+    the crank's speed, one constant per experiment, so step(p)·step(ω) is not a change the
+    data can tell better; the screen's next structures keeping step(p) are fitted in its
+    place (a power of ω, another kind, stays a swap)."""
+    from jaxwear._analyses.diagnose.law.search import swaps
+
+    step_p = Term("step", "pressure_MPa", 1.5, x0=1.0, w=0.07)
+    lead = LawSpec("factor", (Term("step", "load_turn_deg_per_deg", 0.3, x0=0.1, w=1.0),
+                              step_p), 2.0)
+    se = {"law_gain": 0.2, "law_x0_1": 3.0, "law_w_1": 3.0, "law_x0_2": 0.02,
+          "law_w_2": 0.01}
+    f = _fit(lead, 0.3135, se)
+    assert {"turn0", "turn_width"} <= set(f.undetermined) and "p0" not in f.undetermined
+    twin = LawSpec("factor", (Term("step", "load_turn_rate_deg_per_s", 40.0, x0=0.1,
+                                   w=1.0), step_p), 1.0)
+    exp_h = LawSpec("factor", (step_p, Term("exp", "worn_depth_um", 5.0, b=1.0)), 1.0)
+    power_v = LawSpec("factor", (step_p, Term("power", "sliding_speed_m_per_s", 0.05,
+                                              a=1.0)), 1.0)
+    power_w = LawSpec("factor", (step_p, Term("power", "load_turn_rate_deg_per_s", 40.0,
+                                              a=1.0)), 1.0)
+    screened = [(8317.0, lead), (8298.0, twin), (8070.0, exp_h), (8016.0, power_v),
+                (8000.0, power_w)]
+    got = [g[1].label for g in swaps([f], screened, n_rows=2880)]
+    assert got == [exp_h.label, power_v.label, power_w.label]
+
+
 def test_a_single_undetermined_term_is_changed_for_the_screens_next_single_laws():
     """The rich design's exponential of the worn depth (seed 3): a hinge in h with its
     threshold undetermined; the screen's next one-term laws (the exponential, the power

@@ -76,7 +76,10 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
     misfit (the linearisation fails: a sharp step's threshold) is halved, at most
     `LOO_HALVINGS` times. Why: `loo`'s linearised prediction of the left-out rows from an
     undamped step blew up to 819 µm for a smooth step in the worn depth whose in-sample
-    RMSE was at the noise (issue 48), and ranked a good law last."""
+    RMSE was at the noise (issue 48), and ranked a good law last. An experiment whose step
+    no fraction makes lower the left-in misfit is given the worse of the last forward run
+    and the linearised prediction: a step cut to an eighth predicts nearly as the fit to
+    every experiment does, whose error on the rows it has seen understates theirs."""
     if predict is None:
         # a left-out step whose integration needs more than twice the attempts the fit's
         # own runs took is stiff there: halved like a step that raises the misfit, not
@@ -95,7 +98,9 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
     for name, rows, keep, step in _left_out_steps(model, rw, Jw):
         data_in = np.flatnonzero(keep[:n])
         q0 = float(rw[keep] @ rw[keep])
-        best = None
+        # the undamped step's linearised prediction of the rows left out (`loo`'s)
+        linear = float(np.sqrt(np.mean((noise_um * (rw[rows] + Jw[rows] @ step)) ** 2)))
+        best, accepted = None, False
         for _ in range(LOO_HALVINGS + 1):
             u = u0.copy()
             u[free] = np.clip(u0[free] + step, lo[free], hi[free])
@@ -107,8 +112,19 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
                 q = float(r[data_in] @ r[data_in] + prior @ prior)
                 best = float(np.sqrt(np.mean((d[rows] - measured[rows]) ** 2)))
                 if q <= q0 * (1 + 1e-9):
+                    accepted = True
                     break
             step = 0.5 * step
+        if best is not None and not accepted and math.isfinite(linear):
+            # no fraction of the step lowered the left-in misfit: the last one tried (an
+            # eighth) is nearly the fit to every experiment, which has seen the rows left
+            # out, so its error understates theirs. The worse of it and the linearised
+            # prediction stands. Measured (issue 48, the generator's power of the
+            # pressure, rich design, seed 3): a lead exp(ω)·hinge(p) with two constants
+            # undetermined checked to 0.3145 µm left out (0.3143 in-sample; linearised
+            # 0.3214) and outranked the hidden power(p) alone (0.3213, every constant
+            # determined, the same in-sample RMSE)
+            best = max(best, linear)
         if best is not None:
             out[name] = best
     return (out if len(out) > 1 else {}), runs
