@@ -26,6 +26,49 @@ def test_fitted_values_outside_their_input_ranges_are_flagged():
     assert parameter_flags(["K_d_per_Pa"], [float("nan")], "rig")  # not finite: outside
 
 
+def test_a_clearance_held_at_the_end_of_its_range_by_the_fits_bound_is_flagged():
+    """A fitted clearance is bounded by the range it is held to as an input (0.1 µm to
+    100 mm, docs/plausibility.md): at an end (to 1e-6) the bound, not the data, set it, and
+    the flag says so. Just inside, a K_d at its table's end (not a bound of the fit: K_d is
+    fitted on (0, inf)) and an effect strength at its `off` bound (the nested model without
+    the effect) pass."""
+    flags = parameter_flags(["clearance_mm/a", "clearance_mm/b", "clearance_mm/c",
+                             "K_d_per_Pa", "backing_compliance_um_per_MPa"],
+                            [1e-4 * (1 + 1e-12), 1.001e-4, 100.0, 1e-20, 0.0], "rig")
+    assert len(flags) == 2 and all(f.startswith(OUTSIDE) for f in flags), flags
+    assert "clearance_mm/a = 0.0001 is held at the lower end" in flags[0], flags[0]
+    assert "clearance_mm/c = 100 is held at the upper end" in flags[1], flags[1]
+    assert "by the fit's bound" in flags[0]
+
+
+def test_a_fitted_clearance_is_bounded_by_its_plausible_range():
+    """The fit's box on each clearance is the plausible range (0.1 µm to 100 mm), in the
+    log coordinate u = ln(c / c_nominal): the tolerance prior alone tends to a constant as
+    c -> 0 and stops nothing (a held-out study's fit walked to 1.3e-8 mm). The prior is
+    truncated to the same range for the posterior."""
+    import math
+
+    from jaxwear._inference.packing import packing_of, study_columns
+    from jaxwear._study.study import load_study
+
+    study = load_study(Path(__file__).parent / "data" / "heldout41" / "unsymmetric"
+                       / "study.toml")
+    cols = study_columns(study, ["K_d_per_Pa", "clearance_mm"],
+                         [study.params(e) for e in study.experiments])
+    pk = packing_of(cols)
+    lo, hi = pk.bounds_u()
+    i = pk.index("clearance_mm/n276-r15000")
+    assert math.isclose(lo[i], math.log(1e-4 / 0.05)) and math.isclose(hi[i],
+                                                                        math.log(100 / 0.05))
+    k = pk.index("K_d_per_Pa")
+    assert lo[k] == -np.inf and hi[k] == np.inf
+    at_lo = np.zeros(pk.size)
+    at_lo[i] = lo[i]
+    assert np.isfinite(float(pk.log_prior(at_lo)))  # a fit held at the bound is inside
+    at_lo[i] = lo[i] - 1e-3
+    assert float(pk.log_prior(at_lo)) == -np.inf
+
+
 def _pred(at, depth, upper):
     return Prediction("a", at, "revolutions", depth, depth - 1.0, upper, None, depth - 0.5,
                       depth + 0.5, 0.5, 0.6)

@@ -38,6 +38,7 @@ from jaxwear._physics.effects import (
     product_pairs,
 )
 from jaxwear._physics.params import PARAMETER_KEYS
+from jaxwear._study.plausible import key_range
 
 _UNITS = (("_m_per_Pa_s", "m/(Pa·s)"), ("_N_per_m", "N/m"), ("_m_per_s2", "m/s²"),
           ("_per_Pa", "1/Pa"), ("_ratio", "-"), ("_GPa", "GPa"), ("_rpm", "r/min"),
@@ -206,7 +207,8 @@ class Packing(eqx.Module):
 
     def log_prior(self, u):
         """Log prior density of u (traceable, up to a constant), for the posterior (NUTS):
-        a Gaussian prior on the value where the column has one; uniform in the value within
+        a Gaussian prior on the value where the column has one (truncated to its bounds);
+        uniform in the value within
         a bounded parameter's bounds (an effect's: log-uniform for its log-fitted shape
         parameters; −inf outside); otherwise weakly informative on u
         (log parameters: a factor 100 per standard deviation; linear: 10 scales); plus the
@@ -218,6 +220,11 @@ class Packing(eqx.Module):
                 lp = lp - 0.5 * ((vals[i] - c.prior_centre) / c.prior_sd) ** 2
                 if c.log:
                     lp = lp + u[i]  # log |d value / d u| (value = start·e^u)
+                if c.bounded:  # truncated to the plausible range (a clearance's); the
+                    # slack keeps a fit held at a bound (u = ln(lower/start)) inside
+                    inside = ((vals[i] >= c.lower * (1 - 1e-9))
+                              & (vals[i] <= c.upper * (1 + 1e-9)))
+                    lp = lp + jnp.where(inside, 0.0, -jnp.inf)
             elif c.bounded:
                 inside = (vals[i] >= c.lower) & (vals[i] <= c.upper)
                 lp = lp + jnp.where(inside, 0.0, -jnp.inf)
@@ -284,15 +291,35 @@ def with_registration(study, keys: list[str]) -> list[str]:
     return list(keys)
 
 
+def clearance_bounds_mm(preset: str | None) -> tuple[float, float]:
+    """Bounds on a fitted clearance [mm]: the plausible range a clearance is held to as an
+    input (`_plausible.key_range`, docs/plausibility.md: 0.1 µm to 100 mm), else (0, inf).
+
+    Why a bound and not only the tolerance prior: the prior row (c − c_nominal)/τ tends to
+    the constant −c_nominal/τ as c → 0, and below ~0.1 µm the contact no longer sees the
+    clearance either, so where the data pull a clearance down (a model that lacks the data's
+    physics: a symmetric contact fitted to unsymmetric wear) nothing stops the walk in
+    u = ln(c/c_nominal): a held-out study's fit stopped at 1.9e-6 mm, or at 1.3e-8 mm with a
+    slightly different integrator, wherever the step test happened to stop it, and the
+    candidates refitted from there failed (trials at e^1044 x nominal). At the bound the
+    clearance is held, and `_outside.parameter_flags` says so (OUTSIDE THE MODEL)."""
+    r = key_range("clearance_mm", preset)
+    if r is None:
+        return 0.0, math.inf
+    return float(r.lo), float(r.hi)
+
+
 def study_columns(study, keys: list[str], plist) -> list[tuple[Column, float]]:
     """Columns for the study keys `keys` with their study values (key units) as starts.
 
     `plist`: each experiment's `Params`. Clearances are one per experiment with the
-    tolerance prior (τ = 0 holds them at nominal: no column; τ = inf: no prior row);
+    tolerance prior (τ = 0 holds them at nominal: no column; τ = inf: no prior row) and
+    the plausible range as bounds (`clearance_bounds_mm`);
     registration offsets one per profile experiment with their prior; effect strengths
     start at `off` (nested: the fit starts from the model without them)."""
     specs = effect_parameter_specs()
     tol_mm = study.clearance_tolerance_um / 1e3
+    c_lo, c_hi = clearance_bounds_mm(study.preset)
     out = []
     for key in keys:
         if key == "clearance_mm":
@@ -300,8 +327,8 @@ def study_columns(study, keys: list[str], plist) -> list[tuple[Column, float]]:
                 continue
             for i, e in enumerate(study.experiments):
                 c = float(plist[i].clearance) * 1e3
-                out.append((Column(f"clearance_mm/{e.name}", key, i, True, 1.0, 1e-3, 0.0,
-                                   math.inf, prior_sd=tol_mm, prior_centre=c), c))
+                out.append((Column(f"clearance_mm/{e.name}", key, i, True, 1.0, 1e-3, c_lo,
+                                   c_hi, prior_sd=tol_mm, prior_centre=c), c))
         elif key == "angle_offset_deg":
             if not study.angle_tolerance_deg > 0:
                 continue

@@ -46,6 +46,10 @@ _BS_A = np.array([[0.0, 0.0, 0.0, 0.0], [0.5, 0.0, 0.0, 0.0], [0.0, 0.75, 0.0, 0
 
 
 _BS_BW = np.array([*_BS_B, 0.0])  # weights of the stages' work (3rd order)
+STABILITY = 2.5
+"""The pair's stability limit on the negative real axis, |λ ΔN| ≤ 2.5 (2.51 for any
+3-stage 3rd-order Runge-Kutta method): each step is capped at STABILITY / λ with λ the
+wear-rate bound K_d max_j k_j(h) S_cycle at the step's depth (`stability_cap`)."""
 STATE_TOL = 1e-3  # the hidden states' local error a step (`Effect.memory_rate`) [-]
 
 
@@ -142,12 +146,34 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
         return (dy, work, jnp.max(sol.residual),
                 jnp.asarray(sol.iterations, jnp.int32), ws)
 
+    mem_stiff = jnp.zeros(())
+    for eff in effects:  # hidden states that relax on their own (`_regime_rates`)
+        mem_stiff = jnp.maximum(mem_stiff, eff.memory_stiffness(p))
+
+    def stability_cap(h, S, reg):
+        """The longest step [cycles, or the clock's unit] the pair takes stably at depth h
+        in regime `reg`: STABILITY / λ, λ = K_d max_j k_j(h) S_cycle, the bound of
+        `_regime_rates` at the current depth (a thinner layer is stiffer). On the stiff boom
+        the controller alone ran into the limit and back: 282 of 1 042 attempts rejected
+        (boom, 25 h, 360 x 360), 172 of 834 with the cap, the answer within 0.0002 µm
+        (its tolerance 0.002 µm; docs/performance.md). A cap is no decision of the
+        controller's: it only shortens proposals, each step is still accepted or rejected
+        on its error. In the clock τ of running-in (dh/dτ = rate / factor) λ is divided
+        by the factor."""
+        lam = jnp.maximum(p.wear_coefficient * per_cycle_slide[reg]
+                          * jnp.max(stiffness_per_area(h, p, cfg.double_layer)), mem_stiff)
+        cap = STABILITY / jnp.maximum(lam, 1e-300)
+        if clock is not None:
+            cap = cap * clock.block_factor(p, S, per_cycle_slide[reg], 0.0)
+        return lax.stop_gradient(cap)
+
     def attempt(c):
         (h, S, seg, pos, dt, k1, w1, k1_ok, err, steps, rej, snaps, vol, res, its, worn,
          ws) = c
         reg = regime_of[seg]
         s_cyc = per_cycle_slide[reg]
         rem = span[seg] - pos
+        dt = jnp.minimum(dt, stability_cap(h[:n], S, reg))
         clipped = dt >= rem * (1 - 1e-9)
         if replay is not None:
             # the trace's decision: a piece's length in τ moves with the clock's parameters

@@ -7,7 +7,8 @@ Both are answers the model gives outside what it describes, and they come first:
 
 - `parameter_flags`: a fitted value outside the plausible range its key is held to as an
   input (`_plausible.key_range`: the table of docs/plausibility.md, an effect strength's
-  own bounds);
+  own bounds), or held at an end of it by the fit's bound (a clearance: the fit is bounded
+  by that range, `_packing.clearance_bounds_mm`);
 - `forecast_flags`: a forecast whose prediction band lies wholly below a depth already
   measured at or before its count (maximum depth never decreases), by more than three
   noise levels (a scan's maximum is the largest of many noisy points).
@@ -43,7 +44,27 @@ def parameter_flags(names, values, preset: str | None) -> list[str]:
                        f"model's range instead of measuring within it; its other answers "
                        f"are not to be trusted (`jaxwear diagnose` looks for the physics "
                        f"the model lacks)")
+        elif _held_at_edge(str(name).split("/")[0], v, r):
+            edge = "lower" if abs(v - r.lo) <= abs(v - r.hi) else "upper"
+            out.append(f"{OUTSIDE}: {name} = {v:.4g} is held at the {edge} end of the "
+                       f"plausible range {r} ({r.reason}) by the fit's bound: the data pull "
+                       f"it further, out of the model's range; its other answers are not to "
+                       f"be trusted (`jaxwear diagnose` looks for the physics the model "
+                       f"lacks)")
     return out
+
+
+# fitted study keys whose plausible range is also the fit's bound (`_packing.study_columns`)
+BOUNDED_BY_RANGE = ("clearance_mm",)
+
+
+def _held_at_edge(key: str, v: float, r) -> bool:
+    """A fitted value at (to 1e-6 relative) an end of its plausible range where the fit
+    holds that key to the range: the bound, not the data, set it."""
+    if key not in BOUNDED_BY_RANGE:
+        return False
+    return any(math.isfinite(e) and abs(v - e) <= 1e-6 * max(abs(e), 1e-300)
+               for e in (r.lo, r.hi))
 
 
 def forecast_flags(predictions, measured: dict, noise_um: float, unit: str) -> list[str]:
