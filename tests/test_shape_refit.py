@@ -129,3 +129,23 @@ def test_the_factor_start_is_the_linearised_refits_minimum_with_its_prior():
     assert abs(a[2]) < 1e-2 * sd  # the unseen direction stays within its prior
     assert abs(np.linalg.lstsq(A, rho, rcond=None)[0][2]) > 100.0 * sd  # without: huge
 
+
+def test_the_law_models_forward_program_is_compiled_ahead_of_the_search(analysed):
+    """`law.search.warm` (run beside the shape's refit) leaves the search no program to
+    compile: the forward run of another law's start (`start_of`'s, the left-out checks')
+    traces nothing, as its evaluation does not."""
+    from jaxwear._analyses.diagnose.law.search import law_model, prescreen, warm
+    from jaxwear._analyses.diagnose.law.start import forward_rmse
+    from jaxwear._inference.residual import traces, traces_since
+    from jaxwear._physics.effects.law import searching
+
+    model, base, linear = analysed
+    todo = prescreen(linear.linear)
+    assert len(todo) >= 2
+    warm(model, base, linear.linear)
+    before = traces()
+    with searching():
+        lm = law_model(model, base, todo[-1][1])  # not the law warm ran: the same programs
+        assert math.isfinite(forward_rmse(lm, model.measured))
+        lm.evaluate(np.zeros(len(lm.names)))
+    assert traces_since(before) == {"jacobian": 0, "forward": 0}
