@@ -53,16 +53,25 @@ def _blown_up(scale):
         pf = lin.penalised_fit(*a, **k)
         return replace(pf, a=scale * pf.a)
 
+    # a factor's start is solved with the refit's prior rows (`refit._factor_start`, by
+    # `psolve`), a deposit's by NNLS: both scaled
     return SimpleNamespace(block_penalty=lin.block_penalty, penalised_fit=penalised_fit,
+                           psolve=lambda *a, **k: scale * lin.psolve(*a, **k),
                            nonnegative_fit=lambda *a, **k: scale * lin.nonnegative_fit(*a, **k))
 
 
-def test_an_unusable_linearised_start_still_gives_the_refits_rmse(study, monkeypatch):
+@pytest.fixture(scope="module")
+def analysed(study):
+    """(the base model, its fit, the shape's linear analysis with its refit pending)."""
     model = Model(study, candidates=[])
     base = fit_masked(model, model.base_mask, np.zeros(len(model.names)), noise_um=NOISE,
                       label="base")
-    linear = shape_analysis(model, base, NOISE, math.inf, numerical=False,
-                            defer=True)
+    return model, base, shape_analysis(model, base, NOISE, math.inf, numerical=False,
+                                       defer=True)
+
+
+def test_an_unusable_linearised_start_still_gives_the_refits_rmse(analysed, monkeypatch):
+    model, base, linear = analysed
     assert linear.best is not None, linear.sentence  # a significant variable: a refit
     monkeypatch.setattr(refit_module, "lin", _blown_up(BLOW_UP))
     shp = linear.finished()
@@ -100,3 +109,43 @@ def test_a_law_is_a_lead_where_the_shape_has_no_rmse_to_compare_with():
     assert res.sentence.startswith("A lead, not a law found") and why in res.sentence
     ok = LawResult(fit, (fit,), 100, 0.30, 0.39, 0.40, 1.0, shape_rmse_um=0.305)
     assert ok.status == "found" and ok.to_json()["shape_unchecked"] is None
+
+
+def test_the_factor_start_is_the_linearised_refits_minimum_with_its_prior():
+    """The refit's N(0, FACTOR_SD²) prior on every coefficient is in its linearised start:
+    on orthogonal columns of norms s_i and no roughness penalty the minimum of
+    |ρ − A a|² + |a|²/SD² is a_i = s_i ρ'e_i / (s_i² + 1/SD²) (ridge regression in closed
+    form), so a direction the data hardly see (s → 0) starts near 0, not at ρ'e_i / s_i."""
+    rng = np.random.default_rng(0)
+    Q = np.linalg.qr(rng.standard_normal((40, 3)))[0]
+    s = np.array([30.0, 3.0, 1e-3])
+    A = Q * s
+    rho = Q @ np.array([60.0, -2.0, 0.5]) + 0.1 * rng.standard_normal(40)
+    sd = refit_module.FACTOR_SD
+    Zs = [lin.sum_zero(4)]  # one block of 4 coefficients summing to zero (3 columns)
+    a = refit_module._factor_start(A, np.zeros((3, 3)), rho, 0.0, Zs)
+    expect = s * (Q.T @ rho) / (s ** 2 + 1.0 / sd ** 2)
+    assert np.allclose(a, expect, rtol=1e-10, atol=1e-12)
+    assert abs(a[2]) < 1e-2 * sd  # the unseen direction stays within its prior
+    assert abs(np.linalg.lstsq(A, rho, rcond=None)[0][2]) > 100.0 * sd  # without: huge
+
+
+def test_the_law_models_forward_program_is_compiled_ahead_of_the_search(analysed):
+    """`law.search.warm` (run beside the shape's refit) leaves the search no program to
+    compile: the forward run of another law's start (`start_of`'s, the left-out checks')
+    traces nothing, as its evaluation does not."""
+    from jaxwear._analyses.diagnose.law.search import law_model, prescreen, warm
+    from jaxwear._analyses.diagnose.law.start import forward_rmse
+    from jaxwear._inference.residual import traces, traces_since
+    from jaxwear._physics.effects.law import searching
+
+    model, base, linear = analysed
+    todo = prescreen(linear.linear)
+    assert len(todo) >= 2
+    warm(model, base, linear.linear)
+    before = traces()
+    with searching():
+        lm = law_model(model, base, todo[-1][1])  # not the law warm ran: the same programs
+        assert math.isfinite(forward_rmse(lm, model.measured))
+        lm.evaluate(np.zeros(len(lm.names)))
+    assert traces_since(before) == {"jacobian": 0, "forward": 0}

@@ -496,17 +496,22 @@ def law_off(lm: Model, model: Model, law: LawSpec):
 
 
 def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
-    """The law model's program traced and compiled (one for every law of the search) by
-    one evaluation of the first candidate's start, ahead of `search`: diagnose runs it in
-    the background while the shape's correction is refitted through the loop (tracing
-    and compiling the law model took 10-17 s of the search's 21-73 s on the impact
-    study). Failures are left to the search, which meets them again and reports them."""
+    """The law model's programs traced and compiled (one each for every law of the
+    search) by one evaluation and one forward run of the first candidate's start, ahead
+    of `search`: diagnose runs it in the background while the shape's correction is
+    refitted through the loop (tracing and compiling the law model took 10-17 s of the
+    search's 21-73 s on the impact study). The forward program is the starts' and the
+    left-out checks' (`start_of`, `loo_refined`): compiled at the search's first start, it
+    was 11.8 s of wall there on the fatigue study (load ~9), while the search and the
+    second shape refit held both cores; here the core beside the first refit is mostly
+    free. Failures are left to the search, which meets them again and reports them."""
     try:
         todo = prescreen(linear)
         if todo:
             with searching():
                 lm = law_model(model, fit, todo[0][1])
                 lm.evaluate(np.zeros(len(lm.names)))
+                lm.predict(np.zeros(len(lm.names)))
     except Exception:  # noqa: BLE001 (the search reports it where it matters)
         return
 
