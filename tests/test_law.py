@@ -194,6 +194,8 @@ def test_an_undetermined_law_is_ranked_by_its_linearised_left_out_error_where_wo
     # without the undetermined constants the lead's checked error stands and it answers
     sure = dataclasses.replace(lead, undetermined=())
     assert rank([sure, simple]) == [sure, simple]
+    # the lead whose undetermined terms the search changes is the checked errors' best
+    assert rank([lead, simple], linearised=False) == [lead, simple]
 
 
 @pytest.fixture(scope="module")
