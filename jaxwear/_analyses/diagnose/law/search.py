@@ -113,11 +113,6 @@ LAW_KEYS = ("law_gain", "law_deposit", "law_a_1", "law_x0_1", "law_w_1", "law_b_
 # a law's fitted constants at most: its strength and two terms of two constants each
 MAX_FREE_LAW = 5
 THRESHOLD_QUANTILES = (0.1, 0.25, 0.4, 0.5, 0.6, 0.75, 0.9)
-# an exponential's rates b per span of the states met (Φ grows e^|b| over the range): every
-# whole growth e^1-e^4. Why not ±1, ±4 only: on the generator's exponential of the worn
-# depth (h_e = 6 µm over 0-18 µm met: b = 3 per span; rich design, seed 3) neither was
-# within the screen's best twelve structures and the truth's was never fitted
-EXP_RATES = (-4.0, -3.0, -2.0, -1.0, 1.0, 2.0, 3.0, 4.0)
 # the constants that make a term 1 everywhere (a product's second term at its start)
 NEUTRAL = {"power": {"a": 0.0}, "exp": {"b": 0.0}}
 
@@ -158,7 +153,7 @@ def single_laws(var, form: str, peak: float | None = None) -> list[LawSpec]:
             out.append(Term("hinge", var.name, ref, a=a, x0=x0))
         for w in (0.02, 0.1):
             out.append(Term("step", var.name, ref, x0=x0, w=w * span))
-    for bs in EXP_RATES:
+    for bs in (-4.0, -1.0, 1.0, 4.0):
         out.append(Term("exp", var.name, ref, b=bs / span))
     return [LawSpec(form, (t,)) for t in out]
 
