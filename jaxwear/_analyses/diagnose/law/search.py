@@ -286,24 +286,24 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     def bound(law, f):
         return bounded(law, ranges.get(law.form, {}), own_tops(tops.get(law.form, {}), f))
 
-    def screen_refuse(law):
-        # the screen also leaves out an exponential whose Φ grows more than `EXP_GROWTH`
-        # -fold beyond the states met (its strength not yet fitted): a law that would
-        # answer only by its cap. A fitted law that grows so is bounded (`bound`), not
-        # refused. Why (measured, 2026-11-29, rich design, quick): with every exponential
-        # screened, g_power_p seeds 2 and 3 answered exp(p), bounded, determined, where
-        # power(p) was the truth and the left-out errors do not tell them apart (0.3154
-        # against 0.3213 µm only by checks that pass cut steps); and the screen's extra
-        # exponentials crowded the swaps on g_step_p_power_v seed 3
+    def refuse_steep(law):
+        # `refuse`, and an exponential whose rate grows more than `EXP_GROWTH`-fold beyond
+        # the states met: left out of the screen (Φ's growth, its strength not yet fitted:
+        # a law that would answer only by its cap) and, unless `BOUND_EXPONENTIALS`,
+        # refused once fitted. Why (measured, 2026-11-29, rich design, quick): with every
+        # exponential screened and fitted ones bounded, g_power_p seeds 2 and 3 answered a
+        # bounded exp(p) where power(p) was the truth (left-out errors 0.3154 against
+        # 0.3213 µm, by checks that pass cut steps), and the screen's extra exponentials
+        # crowded the swaps on g_step_p_power_v seed 3
         why = refuse(law)
         for t in law.terms:
             g = None if why else exp_growth(law, t, ranges.get(law.form, {}))
             if g is not None and g[0] > math.log(EXP_GROWTH):
                 why = (f"{g[1]} of {t.variable} that grows {math.exp(min(g[0], 700.0)):.3g}"
-                       f"-fold beyond the states met (screen)")
+                       f"-fold from the upper end of the states met to twice it")
         return why
 
-    screened = screen_grammar(linear, samples, grid, forms, screen_refuse)
+    screened = screen_grammar(linear, samples, grid, forms, refuse_steep)
     todo = picks(screened, len(linear["rho"]), n)
     _log(verbose, f"  law search: {len(screened)} one- and two-term laws screened; through "
                   f"the loop: " + "; ".join(f"{law.label} (χ² {d:.0f})" for d, law in todo))
@@ -398,10 +398,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             se = {nm: float(s) for nm, s in zip(lm.names, f.stderr)}
             # a law with memory is bounded by its form (a film's state within [0, 1], a
             # damage's factor a saturating step)
-            why = "" if src == "memory" else refuse(found)
+            why = ("" if src == "memory" else refuse(found) if BOUND_EXPONENTIALS
+                   else refuse_steep(found))
             caps = ()
-            if not why and src != "memory" and not BOUND_EXPONENTIALS:
-                why = screen_refuse(found)  # its fitted growth, refused (`BOUND_EXPONENTIALS`)
             if not why and src != "memory":
                 # an exponential held flat above the states met where it would grow too
                 # much beyond them (`bounded`): the cap is above every state of the fit,
