@@ -10,7 +10,8 @@
    that reaches zero), an exponential that grows too much beyond the states met is held
    flat above them (said), constants the data do not determine are named.
 4. **Rank** (`search.rank`): the simplest law within one standard error of the best
-   left-out error; found only where it predicts (`result.LawResult.status`).
+   left-out error, a lead after a determined law the evidence far prefers
+   (`search.outranked`); found only where it predicts (`result.LawResult.status`).
 
 `result` holds what the search returns and its sentence. The modules import one another
 directly (no names are re-exported here).
