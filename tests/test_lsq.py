@@ -432,3 +432,58 @@ def test_settled_stops_on_the_data_misfit_and_says_so():
                          [0.0, 0.2])
     chi = 0.5 * float(out.point.r @ out.point.r) / SIGMA ** 2
     assert 0.0 <= chi - 0.5 * float(best.fun @ best.fun) < 1.5
+
+
+def test_settled_rmse_stops_on_the_relative_misfit_and_says_so():
+    """`settled_rmse`: the misfit stop relative to the RMSE itself (the shape's refit,
+    whose RMSE enters only comparisons with tolerances of 1 % (`LOO_TIE`) and 5 %). With a
+    Jacobian at half its true scale the parameter stop needs 25 evaluations, creeping the
+    last ~0.4 % of the RMSE over its last 9; stopping once three accepted steps lowered the
+    RMSE by less than 0.2 % ends sooner, says which stop it was, and is within half of
+    that 1 % of the true least squares minimum (scipy's, with the true Jacobian). A
+    threshold of 0 never stops it before the parameter stop."""
+    y = data(0)
+    plain = lsq.solve(exp_model(y, jacobian_scale=0.5), np.array([0.0, 0.2]),
+                      noise_um=SIGMA, max_evaluations=40)
+    out = lsq.solve(exp_model(y, jacobian_scale=0.5), np.array([0.0, 0.2]),
+                    noise_um=SIGMA, max_evaluations=40, settled_rmse=2e-3)
+    assert out.status == "converged" and "lowered the data's RMSE by" in out.message
+    assert out.evaluations < plain.evaluations
+    assert 0.0 <= out.point.rms_um / least_squares_rmse(y) - 1.0 < 5e-3
+    never = lsq.solve(exp_model(y, jacobian_scale=0.5), np.array([0.0, 0.2]),
+                      noise_um=SIGMA, max_evaluations=40, settled_rmse=0.0)
+    assert never.evaluations == plain.evaluations and "RMSE" not in never.message
+
+
+def test_settled_rmse_is_not_fooled_by_rejected_trials():
+    """Three trials in a row that fail (a trust region too wide for the model) lower the
+    misfit by nothing, yet the misfit has not settled: `settled_rmse` counts accepted
+    steps only, so the fit goes on to the minimum's neighbourhood (within 0.5 % of scipy's
+    RMSE) instead of stopping at its start."""
+    from jaxwear._core.errors import TrialFailed
+
+    y = data(1)
+    inner = exp_model(y)
+    calls = []
+
+    def evaluate(u):
+        calls.append(u)
+        if 2 <= len(calls) <= 4:  # the three trials after the start
+            raise TrialFailed("the adaptive loop ran out of attempts")
+        return inner(u)
+
+    out = lsq.solve(evaluate, np.array([0.0, 0.2]), noise_um=SIGMA, max_evaluations=40,
+                    settled_rmse=1e-3)
+    assert out.evaluations > 4
+    start_rmse = inner(np.array([0.0, 0.2])).rms_um
+    assert out.point.rms_um < 0.5 * start_rmse
+    best = least_squares_rmse(y)
+    assert 0.0 <= out.point.rms_um / best - 1.0 < 5e-3
+
+
+def least_squares_rmse(y) -> float:
+    """The RMSE of the least-squares minimum of a·exp(-k t) against y (scipy's)."""
+    from scipy.optimize import least_squares
+
+    best = least_squares(lambda u: (math.exp(u[0]) * np.exp(-u[1] * T) - y), [0.0, 0.2])
+    return math.sqrt(float(best.fun @ best.fun) / T.size)

@@ -249,6 +249,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
           free=None, lower=None, upper=None, noise_um: float | None = None,
           noise_dof: float = math.inf, max_evaluations: int = 30, se_tol: float = SE_TOL,
           max_rejections: int = 6, label: str = "fit", settled: float | None = None,
+          settled_rmse: float | None = None,
           log: Callable[[str], None] | None = None,
           project: Callable[[np.ndarray], np.ndarray] | None = None,
           describe: Callable[[np.ndarray], str] | None = None) -> Outcome:
@@ -272,6 +273,12 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
       may still trade against them; status "converged", the message says it is the
       misfit that settled and how far the next step would still move the parameters).
       None: parameters only.
+    - `settled_rmse`: the same stop relative to the misfit itself, for a fit whose RMSE
+      enters only comparisons with a tolerance of a few per cent: the last
+      `SETTLED_EVALUATIONS` accepted steps together lowered the data rows' RMSE by less
+      than this fraction of it (rejected trials do not count: a run of them is a trust
+      region too wide, not a settled misfit). Either of `settled` and `settled_rmse` stops
+      the fit; None: not used.
     - `label`, `log`: progress, one line per evaluation.
     - `project`: u ↦ u inside constraints the box cannot state (a bound on a value that
       depends on two coordinates), applied to every trial after the box.
@@ -353,6 +360,9 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
     step_size = np.asarray(1e2)  # a host array: no program of its own (`_core.host`)
     rejections = 0  # trials in a row that were rejected or gained nothing (< NO_GAIN)
     gains: list[float] = []  # ½χ² each evaluation lowered (0 where rejected)
+    # the data rows' Σr² [µm²] at the start and after each accepted step (`settled_rmse`:
+    # a run of rejected trials is a trust region too wide, not a settled misfit)
+    rss = [float(pt.r @ pt.r)]
     gauss_newton_failed, ratio_at_failure = False, math.inf
     say(f"    {label}: start, rms {pt.rms_um:.4f} µm, σ {sigma:.3g} µm"
         f"{'' if estimated else ' (stated)'}")
@@ -407,6 +417,16 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
                            f"{sum(gains[-SETTLED_EVALUATIONS:]):.2g} (< {settled:g}); the next "
                            f"Gauss-Newton step would still move a parameter by {ratio:.2g} "
                            f"standard errors along a flat direction", cov, ratio, pred, floor)
+        if settled_rmse is not None and len(rss) > SETTLED_EVALUATIONS:
+            # the data rows' RMSE now against SETTLED_EVALUATIONS accepted steps ago
+            fell = 1.0 - math.sqrt(rss[-1] / max(rss[-1 - SETTLED_EVALUATIONS], 1e-300))
+            if fell < settled_rmse:
+                return outcome("converged", f"converged in the misfit: the last "
+                               f"{SETTLED_EVALUATIONS} accepted steps lowered the data's RMSE by "
+                               f"{100 * fell:.2g} % (< {100 * settled_rmse:g} %); the next "
+                               f"Gauss-Newton step would still move a parameter by "
+                               f"{ratio:.2g} standard errors along a flat direction",
+                               cov, ratio, pred, floor)
         if evals >= max_evaluations:
             return outcome("budget", f"not converged within {max_evaluations} model "
                            f"evaluations: the next Gauss-Newton step is {ratio:.2g} standard "
@@ -451,6 +471,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
             rejections = rejections + 1 if gain < NO_GAIN else 0
             if estimated:
                 sigma = noise_estimate(pt, cov.k_eff)
+            rss.append(float(pt.r @ pt.r))
         else:
             gains.append(0.0)
             rejections += 1
