@@ -102,3 +102,52 @@ def _cond_any(pred, t_fun, f_fun, args, sequential):
         return out, jax.tree.map(lambda _: True, out)
 
     return f(pred, args)
+
+
+LANES = 16
+"""Lanes per chunk of `in_chunks`: a 16-lane rig sweep (120 x 120) ran 1.2x faster per lane
+than single calls, 256 lanes at once 0.8x (arrays of lanes x steps x nodes out of the
+cache; benchmarks/RESULTS-kernel.md, 2026-11-29)."""
+
+
+def in_chunks(fun: Callable, *operands, lanes: int = LANES):
+    """`fun(*operands)`; batched, the lanes `lanes` at a time (`lax.map` over chunks, each
+    chunk vmapped; the last chunk padded with repeats of the last lane), so that the
+    batched arrays stay the size of a chunk's however wide the batch. The same
+    restrictions as `cond_any` (no reverse-mode derivatives through the operands)."""
+    run, consts = _hoisted(fun, operands)
+
+    @custom_vmap
+    def f(args):
+        return run(*args)
+
+    @f.def_vmap
+    def rule(axis_size, in_batched, args):
+        (flags,) = in_batched
+        leaves, tree = jax.tree.flatten(args)
+        flags = jax.tree.leaves(flags)
+        if axis_size <= lanes:
+            in_axes = jax.tree.unflatten(tree, [0 if b else None for b in flags])
+            out = jax.vmap(lambda a: run(*a), in_axes=(in_axes,), axis_size=axis_size)(args)
+            return out, jax.tree.map(lambda _: True, out)
+        n = -(-axis_size // lanes)
+        pad = n * lanes - axis_size
+
+        def chunked(x):  # (B, ...) -> (n, lanes, ...), padded by repeating the last lane
+            if pad:
+                x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)])
+            return x.reshape((n, lanes) + x.shape[1:])
+
+        batched = [chunked(x) for x, b in zip(leaves, flags) if b]
+
+        def chunk(ls):
+            it = iter(ls)
+            a = jax.tree.unflatten(tree, [next(it) if b else x for x, b in zip(leaves, flags)])
+            in_axes = jax.tree.unflatten(tree, [0 if b else None for b in flags])
+            return jax.vmap(lambda a: run(*a), in_axes=(in_axes,))(a)
+
+        out = jax.tree.map(lambda x: x.reshape((n * lanes,) + x.shape[2:])[:axis_size],
+                           lax.map(chunk, batched))
+        return out, jax.tree.map(lambda _: True, out)
+
+    return f((consts, operands))

@@ -30,7 +30,7 @@ import numpy as np
 from jax import lax
 from jax.custom_batching import custom_vmap
 
-from jaxwear._core.batching import cond_any
+from jaxwear._core.batching import cond_any, in_chunks
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, StepArray, StepNodeArray
 
@@ -446,8 +446,10 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
         better = jnp.all(jnp.isfinite(pair), axis=1) & (m_pair < m_along)
         return jnp.where(better[:, None], pair, along)
 
+    # `in_chunks`: batched, the solve runs 16 lanes at a time (its arrays the size of 16
+    # lanes' however wide the batch; the data is held out of differentiation)
     if start is None:
-        e_star, r_star, hess, its = newton(data, cold(data), iterations)
+        e_star, r_star, hess, its = in_chunks(lambda d: newton(d, cold(d), iterations), data)
     else:
         # Warm start, moved out along the load until the node facing the load touches the
         # (further worn) bore: a sweep over all nodes for the deepest gap cost a fifth of a
@@ -480,14 +482,17 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
             h1 = tuple(jnp.where(take, a, b) for a, b in zip(h1, hess))
             return e1, r1, h1, its + i1, jnp.linalg.norm(r1, axis=1) > d[-1]
 
-        def attempt(carry, k):
-            return cond_any((k == 0) | jnp.any(carry[-1]), run, lambda k, c, d: c, k, carry,
-                            data), None
+        def tries(e0, d):
+            def attempt(carry, k):
+                return cond_any((k == 0) | jnp.any(carry[-1]), run, lambda k, c, d: c, k,
+                                carry, d), None
 
-        zero = jnp.zeros_like(load)
-        first = (e0, jnp.zeros_like(e0), (zero, zero, zero), jnp.zeros((), jnp.int32),
-                 jnp.isnan(e0[:, 0]))
-        (e_star, r_star, hess, its, _), _ = lax.scan(attempt, first, jnp.arange(2))
+            zero = jnp.zeros_like(d[2])
+            first = (e0, jnp.zeros_like(e0), (zero, zero, zero), jnp.zeros((), jnp.int32),
+                     jnp.isnan(e0[:, 0]))
+            return lax.scan(attempt, first, jnp.arange(2))[0][:4]
+
+        e_star, r_star, hess, its = in_chunks(tries, e0, data)
     e_star = sg(e_star)
     r = _residual_at(e_star, sg(r_star), nx, ny, g, kA, W)  # differentiable in g, k, W
     e = e_star - jnp.stack(_solve2(tuple(map(sg, hess)), r[:, 0], r[:, 1]), axis=1)
