@@ -160,10 +160,11 @@ def _method(method: str) -> str:
     if method not in ("auto", "vmap", "map"):
         raise ValueError(f"sweep: method must be 'auto', 'vmap' or 'map', got {method!r}")
     if method == "auto":
-        # Measured on CPU (64 nodes x 72 steps, 16 points): lax.map 0.035 s/point, vmap
-        # 0.20 s/point. Batched, the contact solver's while loops run until the slowest lane
-        # converges and its warm-start fallback (a lax.cond) becomes a select that always
-        # runs the cold solve; a CPU has no idle lanes to fill. Accelerators do.
+        # On CPU the two are level since the contact solve branches per lane under vmap
+        # (issue 50, 2026-11-29; 256 points at 120 x 120, eq 23: single calls 1.0x, vmap
+        # 1.06-1.2x, lax.map 1.0-1.3x, within the shared host's noise; it was vmap 0.075x).
+        # lax.map stays: the adaptive integrator's lanes take different step counts, and a
+        # batch waits for its slowest lane. Accelerators fill their lanes.
         return "map" if jax.default_backend() == "cpu" else "vmap"
     return method
 
@@ -208,8 +209,9 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
     - `chunk`: grid points per batched call; memory grows with it, compilation happens once
       (the last chunk is padded by repeating a point).
     - `method`: `"vmap"` (one batched wear loop per chunk), `"map"` (`lax.map`: the chunk's
-      points one after the other inside one compiled call) or `"auto"`: `"map"` on CPU,
-      where it is ~6x faster, `"vmap"` on GPU/TPU.
+      points one after the other inside one compiled call) or `"auto"`: `"map"` on CPU
+      (as fast as `"vmap"` there for eq 23, and free of the adaptive integrator's waits for
+      a batch's slowest lane), `"vmap"` on GPU/TPU.
     - `progress`: report chunks on stderr.
     - `choose_resolution`: for a `Study` that leaves `nodes`/`steps_per_rev` open, pick
       them by the error at the grid's corners (default); False runs at the study's values.

@@ -21,12 +21,16 @@ derivative): the forward pass spends no sweep over the grid on it.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.custom_batching import custom_vmap
 
+from jaxwear._core.batching import cond_any, in_chunks
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, StepArray, StepNodeArray
 
@@ -96,7 +100,11 @@ def _newton_1d(load, cosj, g, kA, iters):
         df = jnp.sum(jnp.where(act, kA * cosj * cosj, 0.0), axis=1)
         ok = df > 0
         s_new = jnp.where(ok & ~done, s - f / jnp.where(ok, df, 1.0), s)
-        done = done | (jnp.abs(f) <= 1e-13 * jnp.maximum(load, 1e-300))
+        # A step that did not move is at its fixed point: every later iteration returns
+        # the same s. Round-off can hold |f| just above the tolerance there (1.28e-13 |W|
+        # on one step of a rig sweep's point, 120 x 120), and the loop ran on to its 40
+        # iterations for nothing: batched, every lane with it (issue 50).
+        done = done | (jnp.abs(f) <= 1e-13 * jnp.maximum(load, 1e-300)) | (s_new == s)
         return i + 1, s_new, done
 
     _, s, _ = lax.while_loop(cond, body, (0, s, load == 0))
@@ -191,77 +199,184 @@ def _newton_2d(e0, nx, ny, g, kA, W, wnorm, iters, tol, cap):
     warm solve leaves a median of 210 of 360 steps unconverged after its first iteration
     and 24 after its second, with a tail of iterations that fix a contact arc's edge node
     on a few steps. Each step's iterates are the same either way: its sums over the nodes
-    are the same row reduction."""
+    are the same row reduction.
+
+    Batched (`jax.vmap`: a sweep's lanes) the iteration pools every lane's steps
+    (`_newton_pooled`): a plain vmap ran each Newton loop until the slowest lane converged,
+    its gathered quarter per lane (issue 50).
+    """
+    f = custom_vmap(functools.partial(_newton_lane, tol=tol))
+    f.def_vmap(functools.partial(_newton_pooled, tol=tol))
+    return f(e0, nx, ny, g, kA, W, wnorm, jnp.asarray(iters), cap)
+
+
+def _newton_step(hess, r, ridge, cap):
+    """The capped Newton step (sx, sy) from Hessian `hess` and residual `r` (components)."""
+    sx, sy = _solve2(hess, *r, ridge)
+    sx, sy = -sx, -sy
+    sx = jnp.where(jnp.isfinite(sx), sx, 0.0)
+    sy = jnp.where(jnp.isfinite(sy), sy, 0.0)
+    scale = jnp.minimum(1.0, cap / jnp.maximum(jnp.sqrt(sx * sx + sy * sy), 1e-300))
+    return sx * scale, sy * scale
+
+
+def _norm(x, y):
+    return jnp.sqrt(x * x + y * y)
+
+
+def _pack(e, r, m, step, alpha, hess):
+    """The iteration's state, one (steps, 11) array (ex, ey, rx, ry, potential, sx, sy,
+    alpha, hxx, hxy, hyy): its update is one select, not one per component."""
+    return jnp.stack([*e, *r, m, *step, alpha, *hess], axis=1)
+
+
+def _unconverged(s, lim):
+    return _norm(s[:, 2], s[:, 3]) > lim
+
+
+def _newton_start(e0, nx, ny, g, kA, W, ridge, cap):
+    """The state (steps, 11) at the offsets `e0` (steps, 2)."""
+    ex0, ey0 = e0[:, 0], e0[:, 1]
+    r0, m0, h0 = _moments(ex0, ey0, nx, ny, g, kA, W[:, 0], W[:, 1])
+    return _pack((ex0, ey0), r0, m0, _newton_step(h0, r0, ridge, cap), jnp.ones_like(m0), h0)
+
+
+def _newton_iterate(s, nx, ny, g, kA, wx, wy, lim, ridge, cap):
+    """One damped Newton iteration of the rows of state `s` (rows, 11) whose loads are
+    (wx, wy) and tolerances `lim` (each (rows,)); `g`, `kA` (1 or rows, nodes); `ridge`,
+    `cap` scalars or (rows,)."""
+    ex, ey, rx, ry, m, sx, sy, alpha = (s[:, k] for k in range(8))
+    tx, ty = ex + alpha * sx, ey + alpha * sy
+    rt, mt, ht = _moments(tx, ty, nx, ny, g, kA, wx, wy)
+    rn = _norm(rx, ry)
+    active = rn > lim
+    decrease = mt <= m + 1e-4 * alpha * (rx * sx + ry * sy)
+    # Round-off hides the decrease of a near-converged step; accept a smaller residual.
+    accept = active & (decrease | (_norm(*rt) < 0.5 * rn))
+    cand = _pack((tx, ty), rt, mt, _newton_step(ht, rt, ridge, cap), jnp.ones_like(mt), ht)
+    s = s.at[:, 7].set(jnp.where(active, 0.5 * alpha, alpha))
+    return jnp.where(accept[:, None], cand, s)
+
+
+def _quarter(steps, *node_data):
+    """The rows of `_newton_2d`'s second phase: a quarter of the steps where there are 64 or
+    more and the nodes' data is shared by every step (gathering rows needs it), else all."""
+    return steps // 4 if steps >= 64 and all(a.shape[0] == 1 for a in node_data) else steps
+
+
+def _newton_lane(e0, nx, ny, g, kA, W, wnorm, iters, cap, *, tol):
+    """`_newton_2d` of one joint (unbatched)."""
     ridge = 1e-9 * jnp.max(kA)
     steps = e0.shape[0]
-
-    def newton_step(hess, r):
-        sx, sy = _solve2(hess, *r, ridge)
-        sx, sy = -sx, -sy
-        sx = jnp.where(jnp.isfinite(sx), sx, 0.0)
-        sy = jnp.where(jnp.isfinite(sy), sy, 0.0)
-        scale = jnp.minimum(1.0, cap / jnp.maximum(jnp.sqrt(sx * sx + sy * sy), 1e-300))
-        return sx * scale, sy * scale
-
-    norm = lambda x, y: jnp.sqrt(x * x + y * y)  # noqa: E731
     limit = tol * jnp.maximum(wnorm, 1e-300)
-
-    # The state is one (steps, 11) array (ex, ey, rx, ry, potential, sx, sy, alpha, hxx,
-    # hxy, hyy): its update is one select, not one per component.
-    def pack(e, r, m, step, alpha, hess):
-        return jnp.stack([*e, *r, m, *step, alpha, *hess], axis=1)
-
-    def unconverged(s, lim):
-        return norm(s[:, 2], s[:, 3]) > lim
+    wx, wy = W[:, 0], W[:, 1]
 
     def iteration(wx, wy, lim):
-        """One damped Newton iteration of the rows whose loads are (wx, wy), tolerance
-        `lim` (each (rows,))."""
         def body(c):
             i, s = c
-            ex, ey, rx, ry, m, sx, sy, alpha = (s[:, k] for k in range(8))
-            tx, ty = ex + alpha * sx, ey + alpha * sy
-            rt, mt, ht = _moments(tx, ty, nx, ny, g, kA, wx, wy)
-            rn = norm(rx, ry)
-            active = rn > lim
-            decrease = mt <= m + 1e-4 * alpha * (rx * sx + ry * sy)
-            # Round-off hides the decrease of a near-converged step; accept a smaller
-            # residual.
-            accept = active & (decrease | (norm(*rt) < 0.5 * rn))
-            cand = pack((tx, ty), rt, mt, newton_step(ht, rt), jnp.ones_like(mt), ht)
-            s = s.at[:, 7].set(jnp.where(active, 0.5 * alpha, alpha))
-            return i + 1, jnp.where(accept[:, None], cand, s)
+            return i + 1, _newton_iterate(s, nx, ny, g, kA, wx, wy, lim, ridge, cap)
         return body
 
-    wx, wy = W[:, 0], W[:, 1]
-    ex0, ey0 = e0[:, 0], e0[:, 1]
-    r0, m0, h0 = _moments(ex0, ey0, nx, ny, g, kA, wx, wy)
-    state0 = pack((ex0, ey0), r0, m0, newton_step(h0, r0), jnp.ones_like(m0), h0)
-    # Gathering rows needs the nodes' data shared by every step (as `_unsymmetric`'s is).
-    rows = steps // 4 if steps >= 64 and all(a.shape[0] == 1 for a in (nx, ny, g, kA)) \
-        else steps
+    state0 = _newton_start(e0, nx, ny, g, kA, W, ridge, cap)
+    rows = _quarter(steps, nx, ny, g, kA)
 
     def full_cond(c):
         i, s = c
-        todo = unconverged(s, limit)
+        todo = _unconverged(s, limit)
         return (i < iters) & (jnp.sum(todo) > rows if rows < steps else jnp.any(todo))
 
     i, s = lax.while_loop(full_cond, iteration(wx, wy, limit), (0, state0))
     if rows < steps:
         # At most `rows` steps left: gather them (padded with repeats of the first, whose
         # iterates are the same, so that the scatter back writes one value per step).
-        todo = unconverged(s, limit)
+        todo = _unconverged(s, limit)
         idx = jnp.nonzero(todo, size=rows, fill_value=0)[0]
         idx = jnp.where(jnp.arange(rows) < jnp.sum(todo), idx, idx[0])
         lim = limit[idx]
 
         def few_cond(c):
             i, sub = c
-            return (i < iters) & jnp.any(unconverged(sub, lim))
+            return (i < iters) & jnp.any(_unconverged(sub, lim))
 
         i, sub = lax.while_loop(few_cond, iteration(wx[idx], wy[idx], lim), (i, s[idx]))
         s = s.at[idx].set(sub)
     return s[:, 0:2], s[:, 2:4], (s[:, 8], s[:, 9], s[:, 10]), i
+
+
+def _newton_pooled(axis_size, in_batched, e0, nx, ny, g, kA, W, wnorm, iters, cap, *, tol):
+    """`_newton_2d` of a batch of `axis_size` lanes (the `custom_vmap` rule): the lanes'
+    steps iterate as one pool. Phase one runs every lane's steps while more than a quarter
+    of all the steps are unconverged; phase two gathers the unconverged steps of every lane
+    into a quarter as many rows (each row with its lane's node data). Under a plain vmap
+    each phase ran until its slowest lane was done, with a quarter of the steps per lane:
+    lanes that need 2 to 5 iterations (a 16-lane rig sweep, 120 x 120) all ran 5.
+
+    Every step's iterates are those of an unbatched solve (one loop counter for all: every
+    step starts at iteration 0; a converged step is frozen), and each lane's iteration count
+    is the one it takes alone: the iteration after which its last step converged."""
+    B = axis_size
+    e0_b, nx_b, ny_b, g_b, kA_b, W_b, wn_b, it_b, cap_b = in_batched
+    if nx_b or ny_b or it_b or not _quarter(e0.shape[-2], nx, ny, g[0] if g_b else g,
+                                            kA[0] if kA_b else kA) < e0.shape[-2]:
+        # no second phase to pool (few steps, or node data that differs by step): per lane
+        axes = [0 if b else None for b in in_batched]
+        out = jax.vmap(functools.partial(_newton_lane, tol=tol), in_axes=axes,
+                       axis_size=B)(e0, nx, ny, g, kA, W, wnorm, iters, cap)
+        return out, jax.tree.map(lambda _: True, out)
+
+    def lanes(x, batched):
+        return x if batched else jnp.broadcast_to(x, (B,) + jnp.shape(x))
+
+    e0, g, kA, W, wnorm, cap = (lanes(x, b) for x, b in ((e0, e0_b), (g, g_b), (kA, kA_b),
+                                                         (W, W_b), (wnorm, wn_b), (cap, cap_b)))
+    steps = e0.shape[1]
+    ridge = 1e-9 * jnp.max(kA, axis=(1, 2))  # (B,): each lane's own
+    limit = tol * jnp.maximum(wnorm, 1e-300)  # (B, steps)
+    each = functools.partial(jax.vmap, axis_size=B)
+    state0 = each(_newton_start, in_axes=(0, None, None, 0, 0, 0, 0, 0))(
+        e0, nx, ny, g, kA, W, ridge, cap)
+    pool = B * _quarter(steps, nx, ny, g[0], kA[0])
+    lane_todo = lambda s: jnp.any(each(_unconverged)(s, limit), axis=1)  # noqa: E731
+    # the iteration after which each lane's last step converged (-1: not yet)
+    done0 = jnp.where(lane_todo(state0), -1, 0)
+
+    def full_cond(c):
+        i, s, _ = c
+        return (i < iters) & (jnp.sum(each(_unconverged)(s, limit)) > pool)
+
+    def full_body(c):
+        i, s, done = c
+        s = each(_newton_iterate, in_axes=(0, None, None, 0, 0, 0, 0, 0, 0, 0))(
+            s, nx, ny, g, kA, W[..., 0], W[..., 1], limit, ridge, cap)
+        return i + 1, s, jnp.where((done < 0) & ~lane_todo(s), i + 1, done)
+
+    i, s, done = lax.while_loop(full_cond, full_body, (0, state0, done0))
+    # the unconverged steps of all lanes, padded with repeats of the first
+    flat = s.reshape(B * steps, -1)
+    todo = _unconverged(flat, limit.reshape(-1))
+    idx = jnp.nonzero(todo, size=pool, fill_value=0)[0]
+    idx = jnp.where(jnp.arange(pool) < jnp.sum(todo), idx, idx[0])
+    lane = idx // steps
+    lim = limit.reshape(-1)[idx]
+    wx, wy = W[..., 0].reshape(-1)[idx], W[..., 1].reshape(-1)[idx]
+    g_rows, kA_rows = g[lane, 0], kA[lane, 0]  # (pool, nodes)
+    ridge_rows, cap_rows = ridge[lane], cap[lane]
+
+    def few_cond(c):
+        i, sub, _ = c
+        return (i < iters) & jnp.any(_unconverged(sub, lim))
+
+    def few_body(c):
+        i, sub, done = c
+        sub = _newton_iterate(sub, nx, ny, g_rows, kA_rows, wx, wy, lim, ridge_rows, cap_rows)
+        left = jnp.zeros(B, bool).at[lane].max(_unconverged(sub, lim))
+        return i + 1, sub, jnp.where((done < 0) & ~left, i + 1, done)
+
+    i, sub, done = lax.while_loop(few_cond, few_body, (i, flat[idx], done))
+    s = flat.at[idx].set(sub).reshape(B, steps, -1)
+    its = jnp.where(done < 0, i, done)
+    out = (s[..., 0:2], s[..., 2:4], (s[..., 8], s[..., 9], s[..., 10]), its)
+    return out, jax.tree.map(lambda _: True, out)
 
 
 def _pair_start(angle, nx, ny, g, kA, W):
@@ -303,13 +418,20 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
     W = jnp.stack([load * ux, load * uy], axis=1)
     kA = k * area
     cap = 0.25 * sg(jnp.min(g))
-    newton = lambda e_init, its: _newton_2d(e_init, nx, ny, sg(g), sg(kA), sg(W), sg(load),
-                                            its, tol, cap)
+    # The solve's data, passed to its branches explicitly (not closed over): `cond_any`
+    # needs every batched value among its operands.
+    data = (sg(ux), sg(uy), sg(load), sg(angle), sg(g), sg(kA), sg(W), cap,
+            tol * jnp.maximum(sg(load), 1e-300))
 
-    def cold():
-        cosj = nx * sg(ux)[:, None] + ny * sg(uy)[:, None]
-        s0 = _newton_1d(sg(load), cosj, sg(g), sg(kA), iterations)
-        along = jnp.stack([s0 * sg(ux), s0 * sg(uy)], axis=1)
+    def newton(d, e_init, its):
+        ux, uy, load, angle, g, kA, W, cap, limit = d
+        return _newton_2d(e_init, nx, ny, g, kA, W, load, its, tol, cap)
+
+    def cold(d):
+        ux, uy, load, angle, g, kA, W, cap, limit = d
+        cosj = nx * ux[:, None] + ny * uy[:, None]
+        s0 = _newton_1d(load, cosj, g, kA, iterations)
+        along = jnp.stack([s0 * ux, s0 * uy], axis=1)
         # The 1-D start presses the pin along the load onto the node nearest it. Under a
         # light load (an indentation far below the gap's change from node to node) the
         # answer rests on the two nodes either side of the load, and the pin must slide
@@ -318,16 +440,16 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
         # indentation; issue 41, "contact solve did not converge" on a light load file).
         # Pressed on those two nodes alone is the exact answer there; each step starts
         # from whichever of the two has the lower potential.
-        pair = _pair_start(sg(angle), nx, ny, sg(g), sg(kA), sg(W))
-        m_along = _moments(along[:, 0], along[:, 1], nx, ny, sg(g), sg(kA), sg(W)[:, 0],
-                           sg(W)[:, 1])[1]
-        m_pair = _moments(pair[:, 0], pair[:, 1], nx, ny, sg(g), sg(kA), sg(W)[:, 0],
-                          sg(W)[:, 1])[1]
+        pair = _pair_start(angle, nx, ny, g, kA, W)
+        m_along = _moments(along[:, 0], along[:, 1], nx, ny, g, kA, W[:, 0], W[:, 1])[1]
+        m_pair = _moments(pair[:, 0], pair[:, 1], nx, ny, g, kA, W[:, 0], W[:, 1])[1]
         better = jnp.all(jnp.isfinite(pair), axis=1) & (m_pair < m_along)
         return jnp.where(better[:, None], pair, along)
 
+    # `in_chunks`: batched, the solve runs 16 lanes at a time (its arrays the size of 16
+    # lanes' however wide the batch; the data is held out of differentiation)
     if start is None:
-        e_star, r_star, hess, its = newton(cold(), iterations)
+        e_star, r_star, hess, its = in_chunks(lambda d: newton(d, cold(d), iterations), data)
     else:
         # Warm start, moved out along the load until the node facing the load touches the
         # (further worn) bore: a sweep over all nodes for the deepest gap cost a fifth of a
@@ -337,32 +459,40 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
         e0 = sg(start)
         gap = _facing_gap(e0, sg(angle), nx, ny, sg(g))
         e0 = e0 - jnp.minimum(gap, 0.0)[:, None] * jnp.stack([sg(ux), sg(uy)], 1)
-        limit = tol * jnp.maximum(sg(load), 1e-300)
 
         # Two tries in one loop, so that a program holds one Newton solve, not three (compile
         # time is most of a cold answer): first from the warm start (<= 12 iterations; rows
         # of NaN, each regime's first solve in the wear loops, from the cold start); then,
-        # rarely, the steps that did not converge again from the cold start.
-        def attempt(carry, k):
+        # rarely, the steps that did not converge again from the cold start. Both branches
+        # are `cond_any`: batched (a sweep under vmap) a plain cond ran the cold start and
+        # the second try on every update of every lane, more than half of the batched
+        # program's time (issue 50; benchmarks/RESULTS-kernel.md, 2026-11-29). The cold
+        # start runs lane by lane (`sequential`): it is once per regime, and its
+        # (steps, nodes) arrays stay in the cache, which a wide batch's do not.
+        def run(k, carry, d):
             e, r, hess, its, todo = carry
+            init = cond_any(jnp.any(todo),
+                            lambda todo, e, d: jnp.where(todo[:, None], cold(d), e),
+                            lambda todo, e, d: e, todo, e, d, sequential=True)
+            e1, r1, h1, i1 = newton(d, init, jnp.where(k == 0, min(iterations, 12),
+                                                       iterations))
+            take = (k == 0) | todo
+            e1 = jnp.where(take[:, None], e1, e)
+            r1 = jnp.where(take[:, None], r1, r)
+            h1 = tuple(jnp.where(take, a, b) for a, b in zip(h1, hess))
+            return e1, r1, h1, its + i1, jnp.linalg.norm(r1, axis=1) > d[-1]
 
-            def run(_):
-                init = lax.cond(jnp.any(todo), lambda: jnp.where(todo[:, None], cold(), e),
-                                lambda: e)
-                e1, r1, h1, i1 = newton(init, jnp.where(k == 0, min(iterations, 12),
-                                                        iterations))
-                take = (k == 0) | todo
-                e1 = jnp.where(take[:, None], e1, e)
-                r1 = jnp.where(take[:, None], r1, r)
-                h1 = tuple(jnp.where(take, a, b) for a, b in zip(h1, hess))
-                return e1, r1, h1, its + i1, jnp.linalg.norm(r1, axis=1) > limit
+        def tries(e0, d):
+            def attempt(carry, k):
+                return cond_any((k == 0) | jnp.any(carry[-1]), run, lambda k, c, d: c, k,
+                                carry, d), None
 
-            return lax.cond((k == 0) | jnp.any(todo), run, lambda c: c, carry), None
+            zero = jnp.zeros_like(d[2])
+            first = (e0, jnp.zeros_like(e0), (zero, zero, zero), jnp.zeros((), jnp.int32),
+                     jnp.isnan(e0[:, 0]))
+            return lax.scan(attempt, first, jnp.arange(2))[0][:4]
 
-        zero = jnp.zeros_like(load)
-        first = (e0, jnp.zeros_like(e0), (zero, zero, zero), jnp.zeros((), jnp.int32),
-                 jnp.isnan(e0[:, 0]))
-        (e_star, r_star, hess, its, _), _ = lax.scan(attempt, first, jnp.arange(2))
+        e_star, r_star, hess, its = in_chunks(tries, e0, data)
     e_star = sg(e_star)
     r = _residual_at(e_star, sg(r_star), nx, ny, g, kA, W)  # differentiable in g, k, W
     e = e_star - jnp.stack(_solve2(tuple(map(sg, hess)), r[:, 0], r[:, 1]), axis=1)
