@@ -320,3 +320,54 @@ def test_a_moved_proposal_in_the_supports_coordinates_fits_a_prior_box():
         # the sd's Monte Carlo error: that of the mean of (a − 50)², var 100⁴/180
         assert abs(wp @ (a - 50.0) ** 2 - sd ** 2) < 4 * 100 ** 2 / math.sqrt(180 * ess), name
     assert share["y"] >= 1.25 * share["x"], share
+
+
+def test_the_laplace_proposal_in_the_supports_coordinates_starts_on_the_box():
+    """The same miniature, its Laplace fit far wider than the box along the undetermined
+    direction (the amplitude's linearised spread): carried to the support's coordinates and
+    combined with the box (`laplace_start`), the first round is already the answer (k̂ ≤
+    0.5, weights' ESS over ESS_SHARE_GOOD of its draws), every value's ESS reaches 400 in
+    fewer draws than from the Laplace t in x (which must move first: measured 250-408
+    against 550-1418 per batch over three cases and four seeds), and the box's mean and sd
+    are recovered within 4 Monte Carlo errors."""
+    from jaxwear._analyses.predict.importance import SupportCoordinates
+
+    pk = _running_in_packing()
+    u_hat = np.array([0.0, 0.0, -0.78, 0.0])  # the product's linear coordinate 0.22
+    L = np.array([[0.05, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 0.02, 0], [0.1, 0, 0.3, 4.0]])
+
+    def values(x):
+        return np.array([pk.values_np(u) for u in u_hat + x @ L.T])
+
+    def logp(x):
+        u, v = u_hat + x @ L.T, values(x)
+        lp = (-0.5 * (u[:, 0] / 0.05) ** 2 - 0.5 * ((v[:, 1] - 0.1) / 0.005) ** 2
+              - 0.5 * ((u[:, 2] + 0.78) / 0.02) ** 2 - u[:, 3])
+        ok = ((v[:, 1] >= 0) & (v[:, 1] <= 1) & (v[:, 2] >= 0) & (v[:, 2] <= 100)
+              & (v[:, 3] >= 1e-3) & (v[:, 3] <= 1e5))
+        return np.where(ok, lp, -np.inf)
+
+    def enough(x, w, k):
+        v, wp = values(x.reshape(-1, 4)), (w / 2).reshape(-1)
+        ess = min(ess_of(wp, v[:, i]) for i in range(4))
+        return ess >= 400 and max(k) <= K_GOOD, x.shape[1] * 1.1 * 400 / ess, f"ESS {ess:.0f}"
+
+    coords = SupportCoordinates(pk, u_hat, L, 0.0, scaled=False, given=True)
+    start = coords.laplace_start(np.zeros(4), np.eye(4))
+    assert start is not None
+    total = {}
+    for name, (m0, c0) in (("x", (np.zeros(4), np.eye(4))), ("y", start)):
+        x, w, hist = importance_sample(logp, m0, c0, 1000, 2, np.random.default_rng(1),
+                                       rounds=2, support=lambda x_: np.isfinite(logp(x_)),
+                                       enough=enough, coords=coords, start_in_y=name == "y")
+        total[name] = sum(h["draws"] for h in hist)
+        if name == "y":
+            assert len(hist) == 1 and hist[0]["proposal"] == "support coordinates", hist
+            assert max(hist[0]["k_hat"]) <= K_GOOD, hist
+            assert min(hist[0]["ess"]) >= ESS_SHARE_GOOD * hist[0]["draws"], hist
+        a, wp = values(x.reshape(-1, 4))[:, 2], (w / 2).reshape(-1)
+        ess, sd = ess_of(wp, a), 100 / math.sqrt(12)
+        assert ess >= 400
+        assert abs(wp @ a - 50.0) < 4 * sd / math.sqrt(ess), name
+        assert abs(wp @ (a - 50.0) ** 2 - sd ** 2) < 4 * 100 ** 2 / math.sqrt(180 * ess), name
+    assert total["y"] < total["x"], total
