@@ -68,6 +68,7 @@ from jaxwear._core.errors import InputError
 from jaxwear._core.jit import jit
 from jaxwear._core.log import log as _log
 from jaxwear._inference.evaluation import forward_run
+from jaxwear._physics.effects import product_pairs
 
 NU = 7.0  # the proposal's Student-t degrees of freedom
 K_GOOD, K_USABLE = 0.5, 0.7  # PSIS k̂ thresholds (Vehtari et al. 2024)
@@ -140,10 +141,11 @@ def systematic_resample(w, n: int, rng) -> np.ndarray:
 
 
 class SupportCoordinates:
-    """Coordinates y in which the prior's bounds are no bounds, for the moved proposals
-    (`importance_sample`'s `coords`): a bounded parameter's value a (its logarithm for a
-    log-fitted column, whose prior is then log-uniform) mapped by logit((a − lo)/(hi − lo))
-    (one bound: ln(a − lo) or ln(hi − a)); unbounded columns and ln σ kept. A product
+    """Coordinates y in which the prior's bounds are no bounds, for the proposals
+    (`importance_sample`'s `coords`, `laplace_start`): a bounded parameter's value a (its
+    logarithm for a log-fitted column, whose prior is then log-uniform) mapped by
+    logit((a − lo)/(hi − lo)) (one bound: ln(a − lo) or ln(hi − a)); unbounded columns and
+    ln σ kept. A product
     strength (value = linear · e^(−u_partner), `Packing`) keeps its linear coordinate,
     the product the data see, and its value's map takes the partner's place (the partner's
     own bounds are left to the support's rejection).
@@ -170,7 +172,7 @@ class SupportCoordinates:
         self.start = np.asarray(packing.start, np.float64)
         cols = packing.columns
         self.scale = np.array([c.scale for c in cols], np.float64)
-        self.pairs = list(packing._pairs())
+        self.pairs = list(product_pairs(packing.keys))
         strengths = {i for i, _ in self.pairs}
         partners = [j for _, j in self.pairs]
         if any(j in strengths for j in partners) or len(set(partners)) < len(partners):
