@@ -226,3 +226,148 @@ def test_sampling_tolerance_bounds_the_log_likelihoods_error():
     fit = SimpleNamespace(noise_um=5.0, error_dof=10.0)
     assert sampling_tolerance_m(problem(3, 4), fit) < sampling_tolerance_m(
         problem(3, 4), None, noise_um=5.0)
+
+
+def _running_in_packing():
+    """A packing as the boom's with running-in: K_d (log, unbounded), a clearance (linear,
+    Gaussian prior truncated to [0, 1] mm), the running-in amplitude (linear, uniform on
+    [0, 100], a product strength: value = linear · e^(−u_distance)) and its distance (log,
+    log-uniform on [1e-3, 1e5] m)."""
+    from jaxwear._inference.packing import Column, packing_of
+
+    return packing_of([
+        (Column("K_d_per_Pa", "K_d_per_Pa", None, True, 1.0, 1.0, 0.0, math.inf), 1.5e-14),
+        (Column("clearance_mm/b", "clearance_mm", 0, False, 0.01, 1e-3, 0.0, 1.0,
+                prior_sd=0.005, prior_centre=0.1), 0.1),
+        (Column("running_in_amplitude", "running_in_amplitude", None, False, 1.0, 1.0, 0.0,
+                100.0, strength=True), 1.0),
+        (Column("running_in_distance_m", "running_in_distance_m", None, True, 1.0, 1.0, 1e-3,
+                1e5), 20.0)])
+
+
+@pytest.mark.parametrize("given", [True, False])
+def test_support_coordinates_invert_and_their_jacobian_is_the_finite_differences(given):
+    """x ↦ y ↦ x is the identity to round-off, and log |det ∂y/∂x| (which enters the moved
+    proposal's density) agrees with a central-difference Jacobian's; with the noise
+    estimated, x's last coordinate ln σ scales u = û + (σ/σ̂) L v."""
+    from jaxwear._analyses.predict.importance import SupportCoordinates
+
+    pk = _running_in_packing()
+    assert pk._pairs() == [(2, 3)]
+    L = np.linalg.cholesky(np.array([[1, 0.3, 0, 0], [0.3, 1, 0, 0.2], [0, 0, 2, 0.5],
+                                     [0, 0.2, 0.5, 1.5]])) * 0.3
+    c = SupportCoordinates(pk, np.array([0.1, 0.2, 1.0, 0.5]), L, math.log(2.0),
+                           scaled=not given, given=given)
+    d = 4 + (0 if given else 1)
+    x = np.random.default_rng(0).standard_normal((40, d)) * 0.5
+    y, logdet = c.y(x)
+    assert np.all(np.isfinite(y)) and np.all(np.isfinite(logdet))
+    np.testing.assert_allclose(c.x(y), x, atol=1e-10)
+    h = 1e-6
+    for k in range(5):
+        J = np.stack([(c.y(x[k] + h * e)[0][0] - c.y(x[k] - h * e)[0][0]) / (2 * h)
+                      for e in np.eye(d)], axis=1)
+        assert abs(np.linalg.slogdet(J)[1] - logdet[k]) < 1e-6
+    # outside the amplitude's box (value < 0): no y
+    u_out = np.array([0.1, 0.2, -1.5, 0.5])  # linear coordinate 1 − 1.5 < 0
+    x_out = np.linalg.solve(L, u_out - np.array([0.1, 0.2, 1.0, 0.5]))
+    if not given:
+        x_out = np.append(x_out, math.log(2.0))
+    assert np.all(np.isnan(c.y(x_out[None, :])[0]))
+
+
+def test_a_moved_proposal_in_the_supports_coordinates_fits_a_prior_box():
+    """The boom's running-in posterior in miniature: the data determine the product a·S_r
+    (the amplitude's linear coordinate, N(2, 0.2²)), K_d and the clearance, not a, whose
+    posterior is then its prior, uniform on [0, 100] (mean 50, sd 100/√12; S_r ∝ 1/a stays
+    inside its own bounds for every a above 6e-4). From a Laplace proposal far wider than the
+    posterior along the undetermined direction (as the boom's), the second round's
+    proposal moved in the support's coordinates has ≥ 1.25x the weights' ESS of the one
+    moved in the whitened x (measured 1.4-1.6x over three seeds, 0.71-0.84 of the draws),
+    and both recover the box's mean and sd within 4 Monte Carlo errors."""
+    from jaxwear._analyses.predict.importance import SupportCoordinates
+
+    pk = _running_in_packing()
+    u_hat = np.array([0.0, 0.0, 2.0, 0.0])
+    L = np.diag([0.05, 0.5, 0.2, 4.0])
+
+    def logp(x):
+        u = u_hat + x @ L.T
+        v = np.array([pk.values_np(ui) for ui in u])
+        # likelihood on K_d and the product, the clearance's prior, the amplitude's uniform
+        # prior in its value (− u_distance: the pair's Jacobian), S_r's log-uniform (flat)
+        lp = (-0.5 * (u[:, 0] / 0.05) ** 2 - 0.5 * ((v[:, 1] - 0.1) / 0.005) ** 2
+              - 0.5 * ((u[:, 2] - 2.0) / 0.2) ** 2 - u[:, 3])
+        ok = ((v[:, 1] >= 0) & (v[:, 1] <= 1) & (v[:, 2] >= 0) & (v[:, 2] <= 100)
+              & (v[:, 3] >= 1e-3) & (v[:, 3] <= 1e5))
+        return np.where(ok, lp, -np.inf)
+
+    coords = SupportCoordinates(pk, u_hat, L, 0.0, scaled=False, given=True)
+    share = {}
+    for name, cc in (("x", None), ("y", coords)):
+        x, w, hist = importance_sample(logp, np.zeros(4), np.eye(4), 1000, 2,
+                                       np.random.default_rng(0), rounds=2,
+                                       support=lambda x_: np.isfinite(logp(x_)), coords=cc)
+        assert len(hist) == 2 and hist[1]["draws"] == 1000, hist
+        assert hist[1]["proposal"] == ("support coordinates" if cc else "whitened"), hist
+        assert max(hist[1]["k_hat"]) <= K_GOOD, hist
+        share[name] = min(hist[1]["ess"]) / 1000
+        xf, wp = x.reshape(-1, 4), (w / 2).reshape(-1)
+        a = np.array([pk.values_np(u) for u in u_hat + xf @ L.T])[:, 2]
+        ess = ess_of(wp, a)
+        sd = 100 / math.sqrt(12)
+        assert abs(wp @ a - 50.0) < 4 * sd / math.sqrt(ess), name
+        # the sd's Monte Carlo error: that of the mean of (a − 50)², var 100⁴/180
+        assert abs(wp @ (a - 50.0) ** 2 - sd ** 2) < 4 * 100 ** 2 / math.sqrt(180 * ess), name
+    assert share["y"] >= 1.25 * share["x"], share
+
+
+def test_the_laplace_proposal_in_the_supports_coordinates_starts_on_the_box():
+    """The same miniature, its Laplace fit far wider than the box along the undetermined
+    direction (the amplitude's linearised spread): carried to the support's coordinates and
+    combined with the box (`laplace_start`), the first round is already the answer (k̂ ≤
+    0.5, weights' ESS over ESS_SHARE_GOOD of its draws), every value's ESS reaches 400 in
+    fewer draws than from the Laplace t in x (which must move first: measured 250-408
+    against 550-1418 per batch over three cases and four seeds), and the box's mean and sd
+    are recovered within 4 Monte Carlo errors."""
+    from jaxwear._analyses.predict.importance import SupportCoordinates
+
+    pk = _running_in_packing()
+    u_hat = np.array([0.0, 0.0, -0.78, 0.0])  # the product's linear coordinate 0.22
+    L = np.array([[0.05, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 0.02, 0], [0.1, 0, 0.3, 4.0]])
+
+    def values(x):
+        return np.array([pk.values_np(u) for u in u_hat + x @ L.T])
+
+    def logp(x):
+        u, v = u_hat + x @ L.T, values(x)
+        lp = (-0.5 * (u[:, 0] / 0.05) ** 2 - 0.5 * ((v[:, 1] - 0.1) / 0.005) ** 2
+              - 0.5 * ((u[:, 2] + 0.78) / 0.02) ** 2 - u[:, 3])
+        ok = ((v[:, 1] >= 0) & (v[:, 1] <= 1) & (v[:, 2] >= 0) & (v[:, 2] <= 100)
+              & (v[:, 3] >= 1e-3) & (v[:, 3] <= 1e5))
+        return np.where(ok, lp, -np.inf)
+
+    def enough(x, w, k):
+        v, wp = values(x.reshape(-1, 4)), (w / 2).reshape(-1)
+        ess = min(ess_of(wp, v[:, i]) for i in range(4))
+        return ess >= 400 and max(k) <= K_GOOD, x.shape[1] * 1.1 * 400 / ess, f"ESS {ess:.0f}"
+
+    coords = SupportCoordinates(pk, u_hat, L, 0.0, scaled=False, given=True)
+    start = coords.laplace_start(np.zeros(4), np.eye(4))
+    assert start is not None
+    total = {}
+    for name, (m0, c0) in (("x", (np.zeros(4), np.eye(4))), ("y", start)):
+        x, w, hist = importance_sample(logp, m0, c0, 1000, 2, np.random.default_rng(1),
+                                       rounds=2, support=lambda x_: np.isfinite(logp(x_)),
+                                       enough=enough, coords=coords, start_in_y=name == "y")
+        total[name] = sum(h["draws"] for h in hist)
+        if name == "y":
+            assert len(hist) == 1 and hist[0]["proposal"] == "support coordinates", hist
+            assert max(hist[0]["k_hat"]) <= K_GOOD, hist
+            assert min(hist[0]["ess"]) >= ESS_SHARE_GOOD * hist[0]["draws"], hist
+        a, wp = values(x.reshape(-1, 4))[:, 2], (w / 2).reshape(-1)
+        ess, sd = ess_of(wp, a), 100 / math.sqrt(12)
+        assert ess >= 400
+        assert abs(wp @ a - 50.0) < 4 * sd / math.sqrt(ess), name
+        assert abs(wp @ (a - 50.0) ** 2 - sd ** 2) < 4 * 100 ** 2 / math.sqrt(180 * ess), name
+    assert total["y"] < total["x"], total

@@ -28,6 +28,43 @@ def draw_quantile(y, q: float):
         return np.where((g == 0) | (lo == hi), lo, lo + g * (hi - lo))
 
 
+def predictive_quantile(max_um, past, noise_um, q: float, iters: int = 80):
+    """Quantile `q` at each point of the posterior predictive of a new measurement: the
+    mixture over the D draws of N(max_d, σ_d²), a draw `past` the limit (or not finite)
+    counting as +inf (`draws.new_measurements`). `max_um` (D, S) [µm], `past` (D, S) bool,
+    `noise_um` (D,) [µm] → (S,) [µm], +inf where more than 1 − q of the draws are past.
+
+    Why not the quantile of one noisy measurement per draw (`new_um`): the noise is
+    integrated exactly here, so only the draws' own Monte Carlo error is left. Simulated at
+    the boom's 25 h band (draws' sd 10.6 µm, σ = 5 µm, 200 draws), the 5 % edge's sd over
+    repetitions 1.72 µm one noise value per draw, 1.21 µm integrated: the same as twice
+    the draws (each a forecast run). Found by bisection on the mixture's CDF (`iters`
+    halvings of a bracket ±10 σ around the draws: below 1e-12 µm)."""
+    from scipy import special
+
+    m = np.asarray(max_um, np.float64)
+    sig = np.asarray(noise_um, np.float64)[:, None] * np.ones_like(m)
+    out_ = np.asarray(past, bool) | ~np.isfinite(m)
+    mf = np.where(out_, np.nan, m)
+    with np.errstate(invalid="ignore"):
+        lo = np.nanmin(mf - 10.0 * sig, axis=0)
+        hi = np.nanmax(mf + 10.0 * sig, axis=0)
+    reach = np.mean(~out_, axis=0)  # the CDF's limit at +inf
+    ok = reach >= q
+    lo, hi = np.where(ok, lo, 0.0), np.where(ok, hi, 0.0)
+
+    def cdf(x):
+        z = (x[None, :] - m) / np.where(sig > 0, sig, 1.0)
+        c = np.where(sig > 0, special.ndtr(z), (x[None, :] >= m).astype(float))
+        return np.mean(np.where(out_, 0.0, c), axis=0)
+
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        below = cdf(mid) < q
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return np.where(ok, 0.5 * (lo + hi), np.inf)
+
+
 def t_quantile(level: float, dof: float) -> float:
     """Two-sided central quantile: Student-t with `dof` (normal when dof is inf)."""
     from scipy import stats  # here: scipy.stats costs ~0.4 s of `import jaxwear`
@@ -136,7 +173,10 @@ def _assemble(asked: Asked, fitted: Fitted, points, flags, snaps, J, draws, extr
             y = draws["new_um"][:, ei, :S]
             depth = np.median(d, axis=0)
             c_lo, c_hi = np.quantile(d, alpha, axis=0), np.quantile(d, 1 - alpha, axis=0)
-            p_lo, p_hi = draw_quantile(y, alpha), draw_quantile(y, 1 - alpha)
+            # the noise integrated (`predictive_quantile`); `new_um` is +inf past the limit
+            past = np.isposinf(y)
+            p_lo, p_hi = (predictive_quantile(d, past, draws["noise"], a)
+                          for a in (alpha, 1 - alpha))
             with np.errstate(invalid="ignore"):  # NaN past worn-through draws (unused)
                 sd_m, sd_p = np.std(d, axis=0), np.std(y, axis=0)
         layer = float(study.params(e).layer_thickness) * 1e6

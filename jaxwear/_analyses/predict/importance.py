@@ -6,7 +6,11 @@ likelihood and whitened coordinates z = (v, ln σ), u = û + (σ/σ̂) L v). Pro
 multivariate Student-t with `NU` degrees of freedom centred at the fit, unit scale in v
 (the Laplace approximation is N(0, I) there) and, when the noise is estimated, scale
 1/√(2ν_σ) in ln σ (ν_σ its degrees of freedom): heavier tails than the posterior's where
-the Laplace approximation is right, so that the weights p/q stay bounded. Each draw costs
+the Laplace approximation is right, so that the weights p/q stay bounded. Where the prior
+bounds parameters, the proposal lives in coordinates where it does not
+(`SupportCoordinates.laplace_start`: the Laplace t carried there, each bounded direction
+combined with its box; a direction the data leave to its prior then starts as that box, not
+as the linearisation's spread, of which 7 % fell inside the box on the boom). Each draw costs
 one forward run of the wear model (no gradient: a fifth to a third of NUTS's cost per
 evaluation, and ~7 evaluations per NUTS step saved), on `workers` threads.
 
@@ -14,7 +18,10 @@ Weights are smoothed by PSIS (Vehtari et al. 2024, `arviz.psislw`) per batch; it
 whether they can be trusted: k̂ ≤ 0.5 good, ≤ 0.7 usable (the estimates' error then
 converges, slowly), > 0.7 unreliable (flagged). When the first round's k̂ exceeds 0.5 the
 proposal is moved to the weighted moments of the draws (mean and covariance, t tails
-kept) and sampled again (`rounds`); so it is where the weights' ESS is below
+kept) and sampled again (`rounds`), in coordinates where the prior's bounds are none
+(`SupportCoordinates`: a bounded parameter's logit; a posterior that is its prior's box,
+as the boom's running-in amplitude, is a logistic there, which the t fits, where in the
+whitened coordinates it fitted the box's edges badly); so it is where the weights' ESS is below
 `ESS_SHARE_GOOD` of the draws (a proposal far wider than the posterior: reliable weights,
 carried by few draws). A round that may move the proposal for its few effective draws
 decides on a pilot of a quarter of them. The last round is the answer; it grows from its
@@ -61,6 +68,7 @@ from jaxwear._core.errors import InputError
 from jaxwear._core.jit import jit
 from jaxwear._core.log import log as _log
 from jaxwear._inference.evaluation import forward_run
+from jaxwear._physics.effects import product_pairs
 
 NU = 7.0  # the proposal's Student-t degrees of freedom
 K_GOOD, K_USABLE = 0.5, 0.7  # PSIS k̂ thresholds (Vehtari et al. 2024)
@@ -132,28 +140,208 @@ def systematic_resample(w, n: int, rng) -> np.ndarray:
     return np.minimum(np.searchsorted(np.cumsum(w), pos), len(w) - 1)
 
 
+class SupportCoordinates:
+    """Coordinates y in which the prior's bounds are no bounds, for the proposals
+    (`importance_sample`'s `coords`, `laplace_start`): a bounded parameter's value a (its
+    logarithm for a log-fitted column, whose prior is then log-uniform) mapped by
+    logit((a − lo)/(hi − lo)) (one bound: ln(a − lo) or ln(hi − a)); unbounded columns and
+    ln σ kept. A product
+    strength (value = linear · e^(−u_partner), `Packing`) keeps its linear coordinate,
+    the product the data see, and its value's map takes the partner's place (the partner's
+    own bounds are left to the support's rejection).
+
+    Why: where the data leave a parameter to its prior, its posterior is nearly that prior,
+    a box: the boom with running-in (3 rows for 4 parameters) determines the running-in
+    product a·S_r, while the amplitude a is uniform on [0, 100] (posterior mean 50.6, sd 29.0
+    against the box's 50, 28.9) and the distance follows as S_r ∝ 1/a. A t moment-matched to
+    that in the whitened x underweights the box's edges (there the weights concentrate: the
+    distance's ESS was a third of the draws); uniform on the box is the logistic
+    distribution in y, which a t₇ fits closely, and no draw falls outside the box.
+
+    x = (v, ln σ) are the sampler's whitened coordinates (u = û + f L v, f = σ/σ̂ where the
+    noise is estimated, else 1; `_predict_nuts.Whitening`). `y(x)` gives (y (n, d),
+    log |det ∂y/∂x| (n,)), NaN outside the bounds; `x(y)` its inverse (NaN where none)."""
+
+    def __init__(self, packing, u_hat, L, log_noise_hat, scaled: bool, given: bool):
+        self.packing = packing
+        self.u_hat = np.asarray(u_hat, np.float64)
+        self.L = np.asarray(L, np.float64)
+        self.log_noise_hat = float(log_noise_hat)
+        self.scaled, self.given = bool(scaled), bool(given)
+        self.p = len(self.u_hat)
+        self.start = np.asarray(packing.start, np.float64)
+        cols = packing.columns
+        self.scale = np.array([c.scale for c in cols], np.float64)
+        self.pairs = list(product_pairs(packing.keys))
+        strengths = {i for i, _ in self.pairs}
+        partners = [j for _, j in self.pairs]
+        if any(j in strengths for j in partners) or len(set(partners)) < len(partners):
+            raise ValueError("a product strength's partner is itself paired")
+        lo = np.array([c.lower for c in cols], np.float64)
+        hi = np.array([c.upper for c in cols], np.float64)
+        self.log = np.array([c.log for c in cols], bool)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.lo = np.where(self.log, np.where(lo > 0, np.log(np.where(lo > 0, lo, 1.0)),
+                                                  -np.inf), lo)
+            self.hi = np.where(self.log, np.where(np.isfinite(hi) & (hi > 0), np.log(
+                np.where(np.isfinite(hi) & (hi > 0), hi, 1.0)), np.inf), hi)
+        bounded = [c.bounded for c in cols]
+        # slot k of y: ("u", k) keeps u_k; ("a", i) maps column i's bounded a
+        self.slots = [("a", k) if bounded[k] else ("u", k) for k in range(self.p)]
+        for i, j in self.pairs:
+            self.slots[i] = ("u", i)
+            self.slots[j] = ("a", i) if bounded[i] else ("a", j) if bounded[j] else ("u", j)
+        self.logdet_L = float(np.sum(np.log(np.abs(np.diag(self.L)))))
+
+    @property
+    def any_bounded(self) -> bool:
+        return any(kind == "a" for kind, _ in self.slots)
+
+    def laplace_start(self, mean, chol):
+        """(centre (d,), Cholesky factor (d, d)) in y of the Laplace proposal t(mean, chol
+        cholᵀ) in x, its covariance carried by the Jacobian at the centre and combined with
+        each two-sided bounded slot's box prior moment-matched in y (the logistic's
+        variance π²/3, centre 0) as a Gaussian's precisions add: the Laplace fit has no row
+        for a uniform prior, so where the data leave a direction to the box (the boom's
+        running-in amplitude: a standard error of 494 on [0, 100]) its Laplace spread is the
+        linearisation's, not the posterior's; where the data determine it the box adds
+        little. None where the centre has no y (a fit held at a bound)."""
+        mean, chol = np.asarray(mean, np.float64), np.asarray(chol, np.float64)
+        y0 = self.y(mean[None, :])[0][0]
+        if not np.all(np.isfinite(y0)):
+            return None
+        h = 1e-5
+        B = np.stack([(self.y((mean + h * c)[None, :])[0][0]
+                       - self.y((mean - h * c)[None, :])[0][0]) / (2 * h) for c in chol.T],
+                     axis=1)  # ∂y/∂x chol: cov_y = B Bᵀ
+        prec_box = np.zeros(len(y0))
+        for k, (kind, i) in enumerate(self.slots):
+            if kind == "a" and math.isfinite(self.lo[i]) and math.isfinite(self.hi[i]):
+                prec_box[k] = 3.0 / math.pi ** 2
+        try:
+            prec = np.linalg.inv(B @ B.T)
+            cov = np.linalg.inv(0.5 * (prec + prec.T) + np.diag(prec_box))
+            cov = 0.5 * (cov + cov.T)
+            centre = cov @ (prec @ y0)
+            L = np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            return None
+        if not (np.all(np.isfinite(centre)) and np.all(np.isfinite(L))):
+            return None
+        return centre, L
+
+    def _f(self, x):
+        return np.exp(x[:, self.p] - self.log_noise_hat) if self.scaled and not self.given \
+            else np.ones(len(x))
+
+    def _g(self, i, a):
+        """(y, ∂y/∂a) of column i's bounded quantity a (n,)."""
+        lo, hi = self.lo[i], self.hi[i]
+        if math.isfinite(lo) and math.isfinite(hi):
+            t = (a - lo) / (hi - lo)
+            return (np.where((t > 0) & (t < 1), np.log(t) - np.log1p(-t), np.nan),
+                    1.0 / (t * (1 - t) * (hi - lo)))
+        if math.isfinite(lo):
+            return np.where(a > lo, np.log(a - lo), np.nan), 1.0 / (a - lo)
+        return np.where(a < hi, np.log(hi - a), np.nan), -1.0 / (hi - a)
+
+    def _g_inv(self, i, y):
+        lo, hi = self.lo[i], self.hi[i]
+        if math.isfinite(lo) and math.isfinite(hi):
+            return lo + (hi - lo) * special.expit(y)
+        return lo + np.exp(y) if math.isfinite(lo) else hi - np.exp(y)
+
+    def y(self, x):
+        x = np.atleast_2d(np.asarray(x, np.float64))
+        f = self._f(x)
+        u = self.u_hat[None, :] + f[:, None] * (x[:, :self.p] @ self.L.T)
+        y = np.array(x, np.float64)
+        y[:, :self.p] = u
+        logdet = np.full(len(x), self.logdet_L) + self.p * np.log(f)
+        s, sc = self.start, self.scale
+        partner = dict(self.pairs)
+        with np.errstate(all="ignore"):
+            for k, (kind, i) in enumerate(self.slots):
+                if kind == "u":
+                    continue
+                # a = ln value (log column) or the value; ∂a/∂u_k, u_k the slot's own
+                if self.log[i]:
+                    a = math.log(s[i]) + u[:, i]
+                    da = np.ones(len(x))
+                else:
+                    a = s[i] + sc[i] * u[:, i]
+                    da = np.full(len(x), sc[i])
+                if i in partner:  # value · e^(−u_partner): the slot is the partner's
+                    j = partner[i]
+                    if self.log[i]:
+                        a = a - u[:, j]
+                        da = -np.ones(len(x))
+                    else:
+                        a = a * np.exp(-u[:, j])
+                        da = -a
+                y[:, k], dy = self._g(i, a)
+                # ∂y/∂u is triangular (a slot reads its own u and, for a strength's value,
+                # the kept linear coordinate, whose row reads nothing else): its
+                # determinant is the diagonal's product
+                logdet += np.log(np.abs(dy * da))
+        bad = ~np.all(np.isfinite(y), axis=1) | ~np.isfinite(logdet)
+        y[bad] = np.nan
+        logdet[bad] = np.nan
+        return y, logdet
+
+    def x(self, y):
+        y = np.atleast_2d(np.asarray(y, np.float64))
+        x = np.array(y, np.float64)
+        u = x[:, :self.p]  # a view: the "u" slots are u already; the others filled below
+        s, sc = self.start, self.scale
+        partner = dict(self.pairs)
+        with np.errstate(all="ignore"):
+            for k, (kind, i) in enumerate(self.slots):
+                if kind == "u":
+                    continue
+                a = self._g_inv(i, y[:, k])
+                if i in partner:  # solve a(u_i, u_k) for the partner's u_k
+                    if self.log[i]:
+                        u[:, k] = math.log(s[i]) + u[:, i] - a
+                    else:
+                        u[:, k] = np.log((s[i] + sc[i] * u[:, i]) / a)
+                else:
+                    u[:, k] = a - math.log(s[i]) if self.log[i] else (a - s[i]) / sc[i]
+        f = self._f(x)
+        x[:, :self.p] = np.linalg.solve(self.L, (u - self.u_hat[None, :]).T).T / f[:, None]
+        x[~np.all(np.isfinite(x), axis=1)] = np.nan
+        return x
+
+
 MAX_OVERSAMPLE = 1000  # proposal draws per kept draw at most, where a support is given
 
 
-def truncated_sample(rng, mean, chol, n: int, nu: float, support=None):
+def truncated_sample(rng, mean, chol, n: int, nu: float, support=None, to_x=None):
     """n draws of the t proposal restricted to `support` (x (m, d) ↦ bool (m,), cheap: no
     model run), by rejection; and how many were rejected. Self-normalised importance
     weights are unchanged by the restriction (q/Z instead of q: a constant factor), so the
     model runs only where the density can be finite. Past `MAX_OVERSAMPLE` x n proposals
-    the rest are plain proposal draws (their weights are 0)."""
+    the rest are plain proposal draws (their weights are 0). `to_x`: the t is drawn in
+    other coordinates (`SupportCoordinates.x`): returns (x, the t's draws, rejected)."""
+    conv = (lambda t: t) if to_x is None else to_x
     if support is None:
-        return t_sample(rng, mean, chol, n, nu), 0
-    kept, tried, have = [], 0, 0
+        t = t_sample(rng, mean, chol, n, nu)
+        return (conv(t), 0) if to_x is None else (conv(t), t, 0)
+    kept, kept_t, tried, have = [], [], 0, 0
     while have < n and tried < MAX_OVERSAMPLE * n:
-        x = t_sample(rng, mean, chol, n, nu)
+        t = t_sample(rng, mean, chol, n, nu)
+        x = conv(t)
         tried += n
-        x = x[np.asarray(support(x), bool)]
-        kept.append(x)
-        have += len(x)
+        ok = np.asarray(support(x), bool) & np.all(np.isfinite(x), axis=1)
+        kept.append(x[ok])
+        kept_t.append(t[ok])
+        have += int(ok.sum())
     if have < n:
-        kept.append(t_sample(rng, mean, chol, n - have, nu))
-    x = np.concatenate(kept)[:n]
-    return x, tried - min(have, n)
+        t = t_sample(rng, mean, chol, n - have, nu)
+        kept.append(conv(t))
+        kept_t.append(t)
+    x, t = np.concatenate(kept)[:n], np.concatenate(kept_t)[:n]
+    return (x, tried - min(have, n)) if to_x is None else (x, t, tried - min(have, n))
 
 
 PILOT_SHARE = 0.25  # a round that may move the proposal starts with this share of its draws
@@ -163,7 +351,8 @@ GROW_MARGIN = 1.1  # draws for the ESS still missing: the linear estimate times 
 
 
 def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
-                      rounds: int = 2, nu: float = NU, log=None, support=None, enough=None):
+                      rounds: int = 2, nu: float = NU, log=None, support=None, enough=None,
+                      coords=None, start_in_y: bool = False):
     """PSIS importance sampling of a density from a multivariate-t proposal (module
     docstring). `log_density`: x (n, d) ↦ log densities (n,) up to a constant (-inf
     outside the support); `mean` (d,), `chol` (d, d): the proposal's centre and scale;
@@ -181,19 +370,29 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
     good) grows from its pilot until `enough(x, w, k)` says so or `draws` per batch are
     drawn: `enough` maps the draws (chains, m, d), their weights and k̂ per batch to (done,
     draws per batch it expects to need, a line for the log); None: all `draws`.
-    Returns (draws (chains, m, d), normalised smoothed weights (chains, m), each batch's
-    normalised on its own, the rounds' history: draws per batch, k̂ and weights' ESS per
-    batch)."""
+    `coords`: a `SupportCoordinates`; a moved proposal is then the t moment-matched in its
+    coordinates y (q(x) = t(y(x)) |det ∂y/∂x|), x's moments the fallback (a weighted draw
+    without y); `start_in_y`: `mean`, `chol` are already in y (`SupportCoordinates.
+    laplace_start`). Returns (draws (chains, m, d), normalised smoothed weights (chains, m), each
+    batch's normalised on its own, the rounds' history: draws per batch, k̂ and weights'
+    ESS per batch, the proposal's coordinates)."""
     mean, chol = np.asarray(mean, np.float64), np.asarray(chol, np.float64)
     d = len(mean)
     history = []
+    in_y = bool(start_in_y)  # the proposal's t is in `coords`' y, else in x
 
     def sample(m):
         """m more draws per batch from the current proposal: (x (chains, m, d), raw log
         weights (chains, m), proposals rejected outside the support)."""
-        x, rejected = truncated_sample(rng, mean, chol, chains * m, nu, support)
+        if in_y:
+            x, y, rejected = truncated_sample(rng, mean, chol, chains * m, nu, support,
+                                              to_x=coords.x)
+            lq = t_logpdf(y, mean, chol, nu) + coords.y(x)[1]
+        else:
+            x, rejected = truncated_sample(rng, mean, chol, chains * m, nu, support)
+            lq = t_logpdf(x, mean, chol, nu)
         lp = np.asarray(log_density(x), np.float64)
-        lw = np.where(np.isfinite(lp), lp - t_logpdf(x, mean, chol, nu), -np.inf)
+        lw = np.where(np.isfinite(lp) & np.isfinite(lq), lp - lq, -np.inf)
         return x.reshape(chains, m, d), lw.reshape(chains, m), rejected
 
     def weigh(lw):
@@ -241,6 +440,7 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
                 x, lw, rejected = more(x, lw, rejected, draws - m)
             w, k, ess, good = weigh(lw)
         history.append({"round": r + 1, "draws": int(x.shape[1]),
+                        "proposal": "support coordinates" if in_y else "whitened",
                         "k_hat": [float(v) for v in k], "ess": ess,
                         "outside_support": int(np.sum(~np.isfinite(lw))),
                         "proposals_rejected": int(rejected)})
@@ -254,15 +454,23 @@ def importance_sample(log_density, mean, chol, draws: int, chains: int, rng, *,
                 + f" ({time.perf_counter() - t0:.0f} s)")
         if not moves:
             break
-        # move the proposal to the draws' weighted moments (t tails kept)
+        # move the proposal to the draws' weighted moments (t tails kept), in the support's
+        # coordinates where they are given and every weighted draw has them
         wp = (w / chains).reshape(-1)
         xf = x.reshape(-1, d)
+        to_y = False
+        if coords is not None:
+            yf = coords.y(xf)[0]
+            to_y = bool(np.all(np.isfinite(yf[wp > 0])))
+            if to_y:
+                xf, wp = yf[wp > 0], wp[wp > 0]
         centre = wp @ xf
         c = (xf - centre).T @ ((xf - centre) * wp[:, None])
         c = 0.5 * (c + c.T) + 1e-12 * np.trace(c) * np.eye(d)
         try:
             chol = np.linalg.cholesky(c * (nu - 2) / nu if nu > 2 else c)
             mean = centre
+            in_y = to_y
         except np.linalg.LinAlgError:
             # no pilot is an answer: its round grows from the same proposal
             if x.shape[1] < draws:
@@ -333,10 +541,14 @@ def batch_r_hat(h, idx) -> float:
         return float(_arviz().rhat(np.stack([h[i] for i in idx])))
 
 
-def _share_in_support(in_support, mean, chol, rng, n: int = 4000) -> float:
+def _share_in_support(in_support, mean, chol, rng, n: int = 4000, to_x=None) -> float:
     """Share of `n` draws of the proposal t(mean, chol) inside the support (`in_support`:
-    x (n, d) ↦ bool (n,))."""
-    return float(np.mean(np.asarray(in_support(jnp.asarray(t_sample(rng, mean, chol, n))))))
+    x (n, d) ↦ bool (n,)); `to_x`: the t is in other coordinates (`SupportCoordinates.x`)."""
+    x = t_sample(rng, mean, chol, n)
+    x = x if to_x is None else to_x(x)
+    ok = np.all(np.isfinite(x), axis=1)
+    return float(np.mean(ok & np.asarray(in_support(jnp.asarray(np.where(ok[:, None], x,
+                                                                             0.0))))))
 
 
 def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.9,
@@ -366,11 +578,6 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     p = len(names)
     given = noise_um is not None
     problem_in = problem
-    problem, white, logp, z_fit = sampling_setup(problem, result, noise_um, cov)
-    # the draws' forecasts at the density's tolerance (a depth error far below the noise)
-    tol_m = sampling_tolerance_m(problem, result, noise_um)
-    fprob = with_tolerance(fprob, tol_m)
-    problem_in = with_tolerance(problem_in, tol_m)
     d = p + (0 if given else 1)
 
     def z_of(x):
@@ -379,7 +586,33 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
             z["log_noise"] = x[p]
         return z
 
-    logp_x = jit(lambda x: logp(z_of(x)))
+    built = {}
+
+    def compiled(logp_):
+        """The program the draws run (x (d,) ↦ log density), compiled by the setup's check
+        of the start: one compilation, where a jit of z and another of x compiled the same
+        density twice (~6 s of CPU on the boom with running-in, as NUTS found for its
+        own)."""
+        f = jit(lambda x: logp_(z_of(x)))
+        built["f"] = f
+
+        def first_call(z):
+            x0 = jnp.concatenate([jnp.ravel(z["v"])] + ([] if given else [
+                jnp.ravel(z["log_noise"])]))
+            t0_ = time.perf_counter()
+            out_ = jax.block_until_ready(f(x0))
+            built["t_compile"] = time.perf_counter() - t0_
+            return out_
+
+        return first_call
+
+    problem, white, logp, z_fit = sampling_setup(problem, result, noise_um, cov,
+                                                 compiled=compiled)
+    # the draws' forecasts at the density's tolerance (a depth error far below the noise)
+    tol_m = sampling_tolerance_m(problem, result, noise_um)
+    fprob = with_tolerance(fprob, tol_m)
+    problem_in = with_tolerance(problem_in, tol_m)
+    logp_x, t_compile = built["f"], built["t_compile"]
     mean = np.zeros(d)
     scale = np.ones(d)
     if not given:
@@ -387,9 +620,6 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
         # ln σ̂ of a Gaussian sample with ν degrees of freedom has sd ≈ 1/√(2ν)
         scale[p] = 1.0 / math.sqrt(2.0 * max(float(result.error_dof), 1.0))
     chol = np.diag(scale)
-    t0 = time.perf_counter()
-    logp_x(jnp.asarray(mean)).block_until_ready()
-    t_compile = time.perf_counter() - t0
     t0 = time.perf_counter()
     for _ in range(3):
         logp_x(jnp.asarray(mean)).block_until_ready()
@@ -406,7 +636,17 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     # every draw then runs the model once; the share inside, for the log
     prior = prior_density(problem, noise_um, white)
     in_support = jit(jax.vmap(lambda xx: jnp.isfinite(prior(z_of(xx))[2])))
-    inside = _share_in_support(in_support, mean, chol, np.random.default_rng([seed, 1]))
+    try:  # where the prior bounds a parameter, the proposals live in the support's y
+        coords = SupportCoordinates(problem.packing, white.u_hat, white.L, white.log_noise_hat,
+                                    white.scaled, given)
+        coords = coords if coords.any_bounded else None
+    except ValueError:
+        coords = None
+    start = None if coords is None else coords.laplace_start(mean, chol)
+    if start is not None:
+        mean, chol = start
+    inside = _share_in_support(in_support, mean, chol, np.random.default_rng([seed, 1]),
+                               to_x=None if start is None else coords.x)
     est = (n * t_eval + n_pred * t_fc) / par
     _log(verbose, f"predict/importance: {p} parameters{'' if given else ' + noise'}; log "
                   f"density {t_eval * 1e3:.0f} ms (compiled in {t_compile:.0f} s), forecast "
@@ -461,7 +701,8 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
     x, w, history = importance_sample(evaluate, mean, chol, draws, chains, rng, rounds=rounds,
                                       log=(lambda m: _log(True, m)) if verbose else None,
                                       support=lambda xs: np.asarray(in_support(jnp.asarray(xs))),
-                                      enough=enough if ess_target > 0 else None)
+                                      enough=enough if ess_target > 0 else None,
+                                      coords=coords, start_in_y=start is not None)
     t_run = time.perf_counter() - t0
     m_drawn = x.shape[1]
     xf = x.reshape(-1, d)
@@ -549,7 +790,9 @@ def run_importance(problem, result, fprob, fprob_fine=None, *, noise_um=None, le
 
     extra_json["importance"] = {
         "sampler": f"importance sampling, Laplace proposal (multivariate t, {NU:g} dof, in "
-                   f"the whitened coordinates), Pareto-smoothed (PSIS)",
+                   f"the support's coordinates where the prior bounds a parameter, else the "
+                   f"whitened ones), Pareto-smoothed (PSIS)",
+        "proposal": history[-1]["proposal"],
         "chains": chains, "draws": m_drawn, "max_draws": draws, "ess_target": ess_target,
         "rounds": len(history), "seed": seed,
         "k_hat": k_max, "k_hat_per_batch": history[-1]["k_hat"],
