@@ -22,7 +22,8 @@ uncertainties from the generator's 0.04 and 2, yet χ² differs by ~0.5 between 
    each, started from the last refit's answer moved by the regression); on each side the
    t where the profile's Δχ² is 1 is found by a secant on the signed root √Δχ² (linear
    in t where χ² is quadratic: `side_end`), `PROFILE_POINTS` refits a side at most. The
-   interval [low, high] of the constant is reported, and the constant's `stderr` becomes
+   interval [low, high] where the profile is within Δχ² = 1 of its lowest point (all the
+   points together, `interval_from_points`) is reported, and the constant's `stderr` becomes
    the larger of its two sides (at least the linearised one: a refit of few evaluations
    stops above the conditional minimum, so its Δχ² is an upper bound of the profile's
    and an interval narrower than the linear one is not trusted), so that `uncertainty`
@@ -142,12 +143,53 @@ def _secant(pts: list, bound: float) -> float | None:
     return t if t > 0 else None
 
 
+def interval_from_points(points, t_low: float = -math.inf, t_high: float = math.inf):
+    """The profile's interval from its evaluated points (t, Δχ²) (the answer's (0, 0)
+    among them; Δχ² against the answer's χ²): its lowest point (t_m, Δ_m), and on each
+    side the t where Δχ² = Δ_m + 1, interpolated on the signed root √(Δχ² − Δ_m) between
+    the points that bracket it, else extrapolated by the secant of the side's last two
+    points (at most `GROW` times the last one's distance, within [`t_low`, `t_high`]),
+    else (no point beyond the lowest on that side) `GROW` times the farthest point's
+    distance. Why from the lowest point: where the answer is not the minimum of the
+    misfit profiled (a fit stopped along a flat valley, a linear correction), Δχ² = 1
+    above the answer is not an interval of the likelihood (on the hinge the corrected
+    misfit's profile fell 7.7 below the answer's). Returns (t at the low end, at the
+    high end, t_m, Δ_m, (low end bracketed, high end bracketed))."""
+    pts = sorted((float(t), float(d)) for t, d in points if math.isfinite(d))
+    if not pts:
+        return math.nan, math.nan, 0.0, 0.0, (False, False)
+    m = min(range(len(pts)), key=lambda i: pts[i][1])
+    tm, dm = pts[m]
+    far = max((abs(t - tm) for t, _ in pts), default=0.0)
+
+    def end(side: int):
+        seq = pts[m::-1] if side < 0 else pts[m:]
+        room = (tm - t_low) if side < 0 else (t_high - tm)
+        rs = [(abs(t - tm), math.sqrt(max(d - dm, 0.0))) for t, d in seq]
+        for k in range(1, len(rs)):
+            if rs[k][1] >= 1.0:
+                (a, ra), (b, rb) = rs[k - 1], rs[k]
+                dist = a + (1.0 - ra) * (b - a) / (rb - ra) if rb > ra else b
+                return tm + side * min(dist, room), True
+        if len(rs) >= 2:
+            dist = _secant(rs, max(room, 0.0))
+            dist = rs[-1][0] if dist is None else dist
+        else:
+            dist = min(GROW * far, room) if far > 0 else 0.0
+        return tm + side * dist, False
+
+    (lo_t, lo_ok), (hi_t, hi_ok) = end(-1), end(1)
+    return lo_t, hi_t, tm, dm, (lo_ok, hi_ok)
+
+
 @dataclasses.dataclass(frozen=True)
 class Profile:
     """The check of the answer's linearised standard errors and the profiles made
     (module docstring): per constant checked, the Δχ² at ∓/± `k` standard errors
     (`check`: NAME -> (Δχ² below, Δχ² above)); per constant profiled (`intervals`: NAME
-    -> {low, high, stderr_linear, points: [[value, Δχ²], ...], reached}); the χ² scale
+    -> {low, high, stderr_linear, minimum (the value at the profile's lowest point),
+    delta_chi2_minimum (its Δχ² against the answer), points: [[value, Δχ²], ...],
+    reached (each end bracketed by points, not extrapolated)}); the χ² scale
     [µm] (`lsq.error_scale`), the forward runs and model evaluations added and their CPU
     seconds; why nothing was checked where nothing was."""
 
@@ -206,6 +248,8 @@ class Profile:
             out["profile"] = {"low": num(iv["low"]), "high": num(iv["high"]),
                               "stderr_linear": num(iv["stderr_linear"]),
                               "reached": list(iv["reached"]),
+                              "minimum": num(iv.get("minimum")),
+                              "delta_chi2_minimum": num(iv.get("delta_chi2_minimum")),
                               "points": [[num(v), num(d)] for v, d in iv["points"]]}
         return out
 
@@ -241,7 +285,10 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
     u_fit = np.asarray(ev0.u, np.float64)
     n = len(lm.measured)
     rss = float(np.sum((ev0.pred - lm.measured) ** 2))
-    scale, _ = lsq.error_scale(rss, n, f.cov.k_eff, float(noise_um), nu, False)
+    # the scale of the standard errors as the core chose it (`lsq.solve`'s outcome: k_eff
+    # of the covariance at σ)
+    k_eff = lsq.covariance(lsq.whitened(ev0.point(), float(noise_um), free)[1], n).k_eff
+    scale, _ = lsq.error_scale(rss, n, k_eff, float(noise_um), nu, False)
     lo, hi = lm.bounds_u()
     num = lf.numerical
     corrected = (num is not None and getattr(num, "corrected", False)
@@ -321,13 +368,14 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
     if not bad:
         return out(prof)
 
-    # the profiles' centre and reference: the answer (corrected). A law candidate's fit
-    # stops once ½χ² settles (`SETTLED_CHI2`), and the correction is one linear step:
-    # along a flat valley a refit may come out below the centre (the hinge: Δχ² −0.57 a
-    # standard error away; three more evaluations of the whole fit lowered it by 0.025
-    # only, so no polish is made). Such a Δχ² is clipped to 0 by the secant, which
-    # widens that side (Δχ² = 1 above the answer, not above the minimum), and the lowest
-    # is reported (`lowest_delta_chi2`).
+    # the profiles' centre: the answer (corrected). A law candidate's fit stops once ½χ²
+    # settles (`SETTLED_CHI2`), and the correction is one linear step: along a flat
+    # valley a refit may come out below the centre (the hinge: Δχ² −0.57 a standard
+    # error away on the fit's rows, −7.7 on the corrected rows; three more evaluations
+    # of the whole fit lowered it by 0.025 only, so no polish is made). The secant's
+    # search clips such a Δχ² to 0 (it steps on), and the interval is taken around the
+    # profile's lowest point (`interval_from_points`), the lowest reported
+    # (`lowest_delta_chi2`, and each profile's `minimum`).
     Cc, ref, uc = C, base, u0
     lowest = 0.0
     cs = dict(lf.constants)
@@ -360,7 +408,7 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
                 last.update(t=t, u=np.asarray(g.ev.u, np.float64))
                 dc = chi2(g.ev.pred, g.ev.r_prior) - ref
                 lowest = min(lowest, dc)
-                pts.append((value_at(g.ev.u, nm), dc))
+                pts.append((float(g.ev.u[j] - uc[j]), value_at(g.ev.u, nm), dc))
                 _log(verbose, f"      {nm} {value_at(g.ev.u, nm):.5g}: Δχ² {dc:.3g} "
                               f"({g.evaluations} evaluations, {g.status})")
                 return dc
@@ -370,25 +418,34 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
             # curved valley the refit follows (the hinge's: Δχ² 40-75 at 2 SE on the
             # line, the profile's Δχ² = 1 beyond 1 SE)
             room = (uc[j] - lo[j]) if sgn < 0 else (hi[j] - uc[j])
-            t_end, _, ok = side_end(delta, sgn * se_u, bound=max(room, 0.0))
-            u_end = uc.copy()
-            u_end[j] = uc[j] + t_end
-            ends.append(value_at(u_end, nm))
-            reached.append(bool(ok))
+            side_end(delta, sgn * se_u, bound=max(room, 0.0))
+        # the interval from every point of the profile (both sides and the answer),
+        # around its lowest (`interval_from_points`)
+        t_lo, t_hi, t_m, d_m, reached = interval_from_points(
+            [(0.0, 0.0)] + [(t, d) for t, _, d in pts], lo[j] - uc[j], hi[j] - uc[j])
+
+        def value_t(t, nm=nm, j=j):
+            u = uc.copy()
+            u[j] = uc[j] + t
+            return value_at(u, nm)
+
         v, s_lin, unit = cs[nm]
         # the reported value less the centre's (0 but for rounding: the centre is the
         # corrected answer, or the fit's where no correction was made)
         shift = v - value_at(u0, nm)
+        ends = [value_t(t_lo), value_t(t_hi)]
         low, high = min(ends) + shift, max(ends) + shift
         wide = max(high - v, v - low)
         se_new = max(s_lin, wide) if math.isfinite(wide) else s_lin
         cs[nm] = (v, se_new, unit)
         intervals[nm] = {"low": low, "high": high, "stderr_linear": s_lin,
-                         "reached": tuple(reached),
-                         "points": sorted((pv + shift, d) for pv, d in pts)}
+                         "reached": tuple(reached), "minimum": value_t(t_m) + shift,
+                         "delta_chi2_minimum": d_m,
+                         "points": sorted((pv + shift, d) for _, pv, d in pts)}
         more = "" if all(reached) else ", an end extrapolated"
-        _log(verbose, f"    {nm}: profile [{low:.4g}, {high:.4g}] (Δχ² = 1{more}), standard "
-                      f"error {s_lin:.3g} -> {se_new:.3g}")
+        _log(verbose, f"    {nm}: profile [{low:.4g}, {high:.4g}] (Δχ² = 1 above its lowest, "
+                      f"{d_m:.3g} at {value_t(t_m) + shift:.4g}{more}), standard error "
+                      f"{s_lin:.3g} -> {se_new:.3g}")
     prof = dataclasses.replace(prof, intervals=intervals, forward_runs=runs,
                                lowest_delta_chi2=lowest)
     return out(prof, constants=cs)
