@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxwear._analyses.diagnose.law.profile import ROOT_TOL, side_end
+from jaxwear._analyses.diagnose.law.profile import ROOT_TOL, interval_from_points, side_end
 from jaxwear._inference import lsq
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -94,6 +94,26 @@ def test_a_side_whose_model_does_not_run_ends_unreached_at_its_last_estimate():
     assert not reached and math.isnan(pts[-1][1]) and 0.5 < t <= 4 * 0.5 + 1e-12
     t, _, _ = side_end(lambda t: (t / 10.0) ** 2, 1.0, bound=3.0)
     assert t <= 3.0
+
+
+def test_the_interval_is_taken_around_the_lowest_point_of_the_profile():
+    """Where the answer is not the minimum of the misfit profiled (a fit stopped along a
+    flat valley): the profile Δχ²(t) = ((t − 0.3)/0.5)² − 0.36, against the answer at
+    t = 0, is lowest at t = 0.3 (Δ −0.36) and within 1 of it on [−0.2, 0.8]; from points
+    on both sides the interval is that one (interpolated on the root), not the one
+    within Δχ² = 1 of the answer ([−0.4, 1.0])."""
+    def prof(t):
+        return ((t - 0.3) / 0.5) ** 2 - 0.36
+
+    pts = [(t, prof(t)) for t in (-0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0)]
+    lo, hi, tm, dm, ok = interval_from_points(pts)
+    assert ok == (True, True) and tm == 0.25 and math.isclose(dm, prof(0.25))
+    # the root is linear in t on each side of the true minimum: the ends exact but for
+    # the lowest point sampled (0.25, not 0.3)
+    assert abs(lo + 0.2) < 0.03 and abs(hi - 0.8) < 0.03, (lo, hi)
+    # an end no point brackets is extrapolated, flagged, and kept within the bound
+    lo2, hi2, _, _, ok2 = interval_from_points(pts[:5], t_high=0.6)
+    assert ok2 == (True, False) and hi2 <= 0.6 and abs(lo2 + 0.2) < 0.03
 
 
 @pytest.fixture(scope="module")

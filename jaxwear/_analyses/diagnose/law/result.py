@@ -345,7 +345,16 @@ def law_sentence(res: LawResult) -> str:
                 f" ± {'are' if len(prof.intervals) > 1 else 'is'} from the profile of the "
                 f"misfit (" + ", ".join(
                     f"{k} in [{iv['low']:.4g}, {iv['high']:.4g}]"
-                    for k, iv in prof.intervals.items()) + " at Δχ² = 1).")
+                    for k, iv in prof.intervals.items()) + " at Δχ² = 1)")
+        low = {k: iv for k, iv in prof.intervals.items()
+               if (iv.get("delta_chi2_minimum") or 0.0) < -1.0}
+        und += ("." if not low else
+                f"; the profile's misfit is lowest "
+                f"{-min(iv['delta_chi2_minimum'] for iv in low.values()):.2g} below the "
+                f"answer's, at " + ", ".join(f"{k} = {iv['minimum']:.4g}"
+                                              for k, iv in low.items())
+                + ": the answer is not the minimum of its misfit, and the intervals are "
+                  "around the profile's lowest point.")
     if res.worse_than_shape:
         return (f"No law of the grammar explains the misfit as well as the shape: the best "
                 f"tried, {b.formula}, with {cs}, reaches {b.rmse_um:.3f} µm, "
