@@ -226,7 +226,8 @@ class LawResult:
                  # the constants checked against a finer resolution (`law.numerical`)
                  "numerical": None if b.numerical is None else b.numerical.to_json(),
                  # the linearised errors checked, profiles where they fail (`law.profile`)
-                 "profile": None if b.profile is None else b.profile.to_json()}
+                 "profile": (None if getattr(b, "profile", None) is None
+                             else b.profile.to_json())}
                 if b is not None else {"formula": None, "file": None, "effect": None,
                                        "constants": {}, "rmse_um": None,
                                        "loo_rmse_um": None, "numerical": None,
