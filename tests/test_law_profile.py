@@ -224,3 +224,29 @@ def test_where_the_check_fails_a_quadratic_misfit_profiles_back_to_its_standard_
     text = law_sentence(LawResult(out, (out,), 1, 0.3, 0.4, 0.45, 1.0,
                                   shape_rmse_um=out.rmse_um))
     assert "profile of the misfit" in text and "a1 in [" in text, text
+
+
+def test_constants_beyond_the_profiles_budget_keep_their_linear_errors_and_are_named(
+        power_fit, monkeypatch):
+    """With the profiles' budget spent (here none: `PROFILE_BUDGET` 0), the constants
+    that fail the check keep their linearised standard errors, no refit is made, and the
+    JSON and the sentence name them."""
+    from jaxwear._analyses.diagnose import Model
+    from jaxwear._analyses.diagnose.law import profile as mod
+    from jaxwear._analyses.diagnose.law.result import LawResult, law_sentence
+    from jaxwear._physics.effects.law import searching
+
+    lf, _ = power_fit
+    real = Model.predict
+    monkeypatch.setattr(Model, "predict", lambda self, u, **kw: real(self, u, **kw) + 0.05)
+    monkeypatch.setattr(mod, "PROFILE_BUDGET", 0)
+    with searching():
+        out = mod.profile_law(lf, 0.3, math.inf)
+    prof = out.profile
+    assert not prof.intervals and set(prof.over_budget) == {"A", "a1"}, prof
+    assert prof.model_evaluations == prof.forward_runs  # the check's runs only
+    assert out.constants == lf.constants
+    assert sorted(out.to_json()["profile"]["not_profiled_budget"]) == ["A", "a1"]
+    text = law_sentence(LawResult(out, (out,), 1, 0.3, 0.4, 0.45, 1.0,
+                                  shape_rmse_um=out.rmse_um))
+    assert "not profiled" in text and "linearised one" in text, text

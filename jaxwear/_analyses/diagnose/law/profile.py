@@ -21,7 +21,8 @@ uncertainties from the generator's 0.04 and 2, yet χ² differs by ~0.5 between 
    (`_fit.fit_masked`, the law fit's own compiled model, `PROFILE_EVALUATIONS` at most
    each, started from the last refit's answer moved by the regression); on each side the
    t where the profile's Δχ² is 1 is found by a secant on the signed root √Δχ² (linear
-   in t where χ² is quadratic: `side_end`), `PROFILE_POINTS` refits a side at most. The
+   in t where χ² is quadratic: `side_end`), `PROFILE_POINTS` refits a side at most, the
+   constants that fail worst first, `PROFILE_BUDGET` evaluations for all of them. The
    interval [low, high] where the profile is within Δχ² = 1 of its lowest point (all the
    points together, `interval_from_points`) is reported, and the constant's `stderr` becomes
    the larger of its two sides (at least the linearised one: a refit of few evaluations
@@ -68,6 +69,11 @@ ROOT_TOL = 0.1  # a side's end found where |√Δχ² − 1| is below this (Δχ
 # Δχ² did not rise: a flat side). Why not 4: on the hinge a side whose first refit came
 # out below the answer stepped to 4 SE and met Δχ² 8-57, three refits of 4 evaluations
 GROW = 2.5
+# model evaluations the profiles of one answer may spend (soft: a profile started ends);
+# the constants that fail the check worst are profiled first, those left keep their
+# linearised errors and are named (`Profile.over_budget`). Why 64: the hinge's three
+# profiles took 59 (81 s of CPU under load), a law of 5 constants could take 120
+PROFILE_BUDGET = 64
 
 
 def constant_keys(law) -> dict:
@@ -209,6 +215,8 @@ class Profile:
     # the misfit checked and profiled is the corrected constants' (the rows moved by the
     # finer level's δ, `law.numerical`), else the fit's own
     corrected_rows: bool = False
+    # constants that failed the check but were not profiled (`PROFILE_BUDGET` spent)
+    over_budget: tuple = ()
 
     def passes(self, name: str) -> bool:
         """Δχ² at ∓/± k SE within `CHECK_RTOL` of the Gauss-Newton model's on both sides,
@@ -228,6 +236,8 @@ class Profile:
                 "model_evaluations": self.model_evaluations, "cpu_s": self.cpu_s,
                 "lowest_delta_chi2": num(self.lowest_delta_chi2),
                 "on_corrected_rows": self.corrected_rows,
+                "not_profiled_budget": list(self.over_budget),
+                "budget_evaluations": PROFILE_BUDGET,
                 "why": self.why or None}
 
     def constant_json(self, name: str) -> dict:
@@ -380,7 +390,16 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
     lowest = 0.0
     cs = dict(lf.constants)
     intervals = {}
-    for nm in bad:
+
+    def severity(nm):  # how far the check's worse side is from the model's (NaN: worst)
+        gaps = [abs(a - b) for a, b in zip(check[nm], predicted[nm])]
+        return max((x if math.isfinite(x) else math.inf) for x in gaps)
+
+    e_prof, over = Model.own_evaluations(), []
+    for nm in sorted(bad, key=severity, reverse=True):
+        if Model.own_evaluations() - e_prof >= PROFILE_BUDGET:
+            over.append(nm)
+            continue
         j = todo[nm]
         p = pos[j]
         reg = Cc[:, p] / Cc[p, p]  # the others' regression on column j (per unit of u_j)
@@ -446,6 +465,9 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
         _log(verbose, f"    {nm}: profile [{low:.4g}, {high:.4g}] (Δχ² = 1 above its lowest, "
                       f"{d_m:.3g} at {value_t(t_m) + shift:.4g}{more}), standard error "
                       f"{s_lin:.3g} -> {se_new:.3g}")
+    if over:
+        _log(verbose, f"    not profiled ({PROFILE_BUDGET} evaluations spent): "
+                      f"{', '.join(over)}: their linearised errors stand")
     prof = dataclasses.replace(prof, intervals=intervals, forward_runs=runs,
-                               lowest_delta_chi2=lowest)
+                               lowest_delta_chi2=lowest, over_budget=tuple(over))
     return out(prof, constants=cs)

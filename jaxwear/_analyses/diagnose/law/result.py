@@ -339,6 +339,10 @@ def law_sentence(res: LawResult) -> str:
            if b.undetermined else "") + und_num
     und += "".join(f" It is bounded: {c['reason']}." for c in b.bounded)
     prof = getattr(b, "profile", None)
+    if prof is not None and prof.over_budget:
+        und += (f" The misfit is not quadratic in {', '.join(prof.over_budget)} either "
+                f"(checked at ± {prof.k:g} standard errors), not profiled (the profiles' "
+                f"budget spent): the ± there is the linearised one.")
     if prof is not None and prof.intervals:
         # the linearised errors that the misfit does not bear out (`law.profile`)
         und += (f" The misfit is not quadratic in {', '.join(prof.intervals)} (checked at "
