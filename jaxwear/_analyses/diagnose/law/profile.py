@@ -69,13 +69,15 @@ ROOT_TOL = 0.1  # a side's end found where |√Δχ² − 1| is below this (Δχ
 # Δχ² did not rise: a flat side). Why not 4: on the hinge a side whose first refit came
 # out below the answer stepped to 4 SE and met Δχ² 8-57, three refits of 4 evaluations
 GROW = 2.5
-# model evaluations the profiles of one answer may spend (soft: a profile started ends);
+# model evaluations the profiles of one answer may spend (a profile is started only where
+# the mean cost of those made, at least `PROFILE_COST`, still fits);
 # the constants that fail the check worst are profiled first, those left keep their
 # linearised errors and are named (`Profile.over_budget`). Why 40: a profile takes
-# 17-22 evaluations (measured, rich design's hinge seed 3: three in 59, 81 s of CPU under
-# load; the paper design's step(p)·power(v) seed 1, a 5-experiment study of the 2-minute
-# bar: three in 61, 50 s): two constants at most, the worst failing
+# 14-20 evaluations (measured, rich design's hinge seed 3: three in 52, 75-81 s of CPU
+# under load; the paper design's step(p)·power(v) seed 1, a 5-experiment study of the
+# 2-minute bar: three in 52, 50 s): two constants at most, the worst failing
 PROFILE_BUDGET = 40
+PROFILE_COST = 16  # evaluations a profile is expected to take before one is made
 
 
 def constant_keys(law) -> dict:
@@ -397,11 +399,15 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
         gaps = [abs(a - b) for a, b in zip(check[nm], predicted[nm])]
         return max((x if math.isfinite(x) else math.inf) for x in gaps)
 
-    e_prof, over = Model.own_evaluations(), []
+    e_prof, over, done = Model.own_evaluations(), [], 0
     for nm in sorted(bad, key=severity, reverse=True):
-        if Model.own_evaluations() - e_prof >= PROFILE_BUDGET:
+        # a profile is started where the budget holds it: what it will take estimated by
+        # the mean of those made (at least `PROFILE_COST`)
+        spent = Model.own_evaluations() - e_prof
+        if spent + max(PROFILE_COST, spent / max(done, 1)) > PROFILE_BUDGET:
             over.append(nm)
             continue
+        done += 1
         j = todo[nm]
         p = pos[j]
         reg = Cc[:, p] / Cc[p, p]  # the others' regression on column j (per unit of u_j)
