@@ -59,8 +59,9 @@ from jaxwear._inference import lsq
 from jaxwear._physics.effects.law import LAW_EFFECT, SYMBOLS, constants
 
 CHECK_K = 2.0  # the check at ± 2 standard errors: the recovery's bar (Δχ² = 4)
-# the check passes where √Δχ² / k is within this of 1 on both sides: the standard error
-# the misfit implies at ± k SE within 20 % of the linearised one (a z of 2 read as 2.4)
+# the check passes where the true Δχ² is within ((1 + this)² − 1) k² of the Gauss-Newton
+# model's on both sides: the standard error the misfit implies at ± k SE within about
+# 20 % of the linearised one (a z of 2 read as 2.4)
 CHECK_RTOL = 0.2
 PROFILE_POINTS = 3  # refits a side at most (a secant on 2-3 points)
 PROFILE_EVALUATIONS = 4  # model evaluations of one refit at most (its start included)
