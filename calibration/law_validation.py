@@ -133,6 +133,12 @@ def _against(case: str, truth: dict, found: dict) -> dict:
         out["constants"][k] = {"true": v, "found": f.get("value"), "stderr": se, "z": z}
         # the constants' numerical error (`law.numerical`, where checked): z against the
         # standard error and the numerical error together, √(SE² + numerical²)
+        if f.get("profile"):
+            # the standard error is the profile's (`diagnose.law.profile`): the misfit was
+            # not quadratic within 2 linearised standard errors
+            p = f["profile"]
+            out["constants"][k].update(profile=[p.get("low"), p.get("high")],
+                                       stderr_linear=p.get("stderr_linear"))
         n = f.get("numerical_error")
         if n is not None and z < math.inf:
             out["constants"][k].update(numerical_error=n,

@@ -125,6 +125,14 @@ class Model:
                            else np.asarray(columns, np.int32))
         return out
 
+    def with_defect(self, defect_um) -> Model:
+        """The same model with its rows corrected by `defect_um` (rows,) [µm] instead of
+        its own correction: the same compiled programs (the correction is a traced
+        array), e.g. a fit's rows moved to a finer resolution's (`law.profile`)."""
+        out = copy.copy(self)
+        object.__setattr__(out, "ext", self.ext.with_defect(np.asarray(defect_um, np.float64)))
+        return out
+
     def with_contact(self, contact: str | None) -> Model:
         """The same model with another contact choice (None: the study's)."""
         return self.variant(contact=contact)

@@ -97,6 +97,11 @@ class Numerical:
     corrected: bool = False
     why: str = ""
     fraction: float = 1.0  # of the linear step applied (halved where it overshot)
+    # δ (rows,) [µm]: the finer level's rows less the fit's at the answer, and the
+    # corrected answer's u (None where not corrected): the misfit the corrected constants
+    # minimise to first order, for their profile (`law.profile`); not reported
+    delta: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    u: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def to_json(self) -> dict:
         def num(x):
@@ -187,7 +192,8 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
                f"numerical error the linear step's")
     info = Numerical(level, finer, first, runs, time.process_time() - c0,
                      float(np.sqrt(np.mean(delta ** 2))), law is not None, why,
-                     1.0 if law is None else t)
+                     1.0 if law is None else t, delta=delta,
+                     u=None if law is None else np.asarray(u, np.float64))
     _log(verbose, f"    δ {info.rows_rms_um:.3g} µm RMS; the answer moves by "
                   f"{first:.2g} standard errors"
                   + (f" (× {t:g})" if law is not None and t < 1 else "") + "; "

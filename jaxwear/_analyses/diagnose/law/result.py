@@ -59,6 +59,9 @@ class LawFit:
     # bounded term ({term, variable, symbol, cap, unit, top_met, hi_met, growth,
     # growth_capped, reason}, the answer's with `in_sample_change_um`); () where none
     bounded: tuple = ()
+    # the check of its linearised standard errors and the profiles of the misfit made
+    # where it fails (`law.profile.Profile`), the best law's only; None where not checked
+    profile: object = None
 
     @property
     def complexity(self) -> int:
@@ -80,6 +83,10 @@ class LawFit:
                 n = self.numerical_error[k]
                 out[k]["numerical_error"] = _num(n)
                 out[k]["uncertainty"] = _num(_combined(s, n))
+            if self.profile is not None:
+                # the check of the quadratic approximation and, where it failed, the
+                # profile (`law.profile`): `stderr` is then the profile's
+                out[k].update(self.profile.constant_json(k))
         return out
 
     def to_json(self) -> dict:
@@ -94,7 +101,8 @@ class LawFit:
                 "complexity": self.complexity, "refused": self.refused or None,
                 "bounded": _bounded_json(self.bounded),
                 "loo_linearised_um": _num(self.loo_linear_um),
-                "numerical": None if self.numerical is None else self.numerical.to_json()}
+                "numerical": None if self.numerical is None else self.numerical.to_json(),
+                "profile": None if self.profile is None else self.profile.to_json()}
 
 
 def _combined(s, n) -> float:
@@ -216,10 +224,14 @@ class LawResult:
                  "constants": b.constants_json(),
                  "rmse_um": _num(b.rmse_um), "loo_rmse_um": _num(b.loo_rmse_um),
                  # the constants checked against a finer resolution (`law.numerical`)
-                 "numerical": None if b.numerical is None else b.numerical.to_json()}
+                 "numerical": None if b.numerical is None else b.numerical.to_json(),
+                 # the linearised errors checked, profiles where they fail (`law.profile`)
+                 "profile": (None if getattr(b, "profile", None) is None
+                             else b.profile.to_json())}
                 if b is not None else {"formula": None, "file": None, "effect": None,
                                        "constants": {}, "rmse_um": None,
-                                       "loo_rmse_um": None, "numerical": None})
+                                       "loo_rmse_um": None, "numerical": None,
+                                       "profile": None})
         # the answer's exponentials held flat beyond a cap (`law.search.bounded`): say which
         head["bounded"] = [] if b is None else _bounded_json(b.bounded)
         return {**head, "status": self.status, "lead_reasons": list(self.lead_reasons),
@@ -249,6 +261,9 @@ class LawResult:
                 "peer_fits": self.extra.get("peer_fits"),
                 "peer_model_evaluations": self.extra.get("peer_model_evaluations"),
                 "peer_cpu_s": self.extra.get("peer_cpu_s"),
+                # the evaluations the check of the answer's errors and its profiles added
+                # (`law.profile`; forward runs counted in them)
+                "profile_model_evaluations": self.extra.get("profile_model_evaluations"),
                 # the screen's best structures (`law.search.screen_top`), fitted or not
                 "screen_top": self.extra.get("screen_top", []), "summary": self.sentence}
 
@@ -323,6 +338,28 @@ def law_sentence(res: LawResult) -> str:
            f"{'they are' if many else 'it is'} a lead, not a measurement."
            if b.undetermined else "") + und_num
     und += "".join(f" It is bounded: {c['reason']}." for c in b.bounded)
+    prof = getattr(b, "profile", None)
+    if prof is not None and prof.over_budget:
+        und += (f" The misfit is not quadratic in {', '.join(prof.over_budget)} either "
+                f"(checked at ± {prof.k:g} standard errors), not profiled (the profiles' "
+                f"budget spent): the ± there is the linearised one.")
+    if prof is not None and prof.intervals:
+        # the linearised errors that the misfit does not bear out (`law.profile`)
+        und += (f" The misfit is not quadratic in {', '.join(prof.intervals)} (checked at "
+                f"± {prof.k:g} standard errors): {'their' if len(prof.intervals) > 1 else 'its'}"
+                f" ± {'are' if len(prof.intervals) > 1 else 'is'} from the profile of the "
+                f"misfit (" + ", ".join(
+                    f"{k} in [{iv['low']:.4g}, {iv['high']:.4g}]"
+                    for k, iv in prof.intervals.items()) + " at Δχ² = 1)")
+        low = {k: iv for k, iv in prof.intervals.items()
+               if (iv.get("delta_chi2_minimum") or 0.0) < -1.0}
+        und += ("." if not low else
+                f"; the profile's misfit is lowest "
+                f"{-min(iv['delta_chi2_minimum'] for iv in low.values()):.2g} below the "
+                f"answer's, at " + ", ".join(f"{k} = {iv['minimum']:.4g}"
+                                              for k, iv in low.items())
+                + ": the answer is not the minimum of its misfit, and the intervals are "
+                  "around the profile's lowest point.")
     if res.worse_than_shape:
         return (f"No law of the grammar explains the misfit as well as the shape: the best "
                 f"tried, {b.formula}, with {cs}, reaches {b.rmse_um:.3f} µm, "

@@ -67,6 +67,7 @@ from jaxwear._analyses.diagnose._stats import neighbour_pairs
 from jaxwear._analyses.diagnose.law.equivalent import equivalents, separation
 from jaxwear._analyses.diagnose.law.memory import after, memory_candidates
 from jaxwear._analyses.diagnose.law.numerical import correct_law
+from jaxwear._analyses.diagnose.law.profile import profile_law
 from jaxwear._analyses.diagnose.law.result import (  # noqa: F401 (the search's types)
     LAW_WORSE,
     LawFit,
@@ -255,7 +256,8 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
            n: int = PICKS, forms=("factor", "deposit"), prefer=None,
            correction: dict | None = None, shape_rmse_um: float | None = None,
            shape_why: str = "", max_evaluations: int = LAW_EVALUATIONS,
-           numerical: bool = True, verbose: bool = False) -> LawResult:
+           numerical: bool = True, profile: bool = True,
+           verbose: bool = False) -> LawResult:
     """The law search on the misfit left by `fit` (module docstring); `linear`: the shape
     analysis's linearised system (`ShapeResult.linear`) on top of the same fit; `forms`:
     those the search tries; `n`: laws of distinct structure fitted through the loop at
@@ -265,7 +267,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     has none) leaves that check unmade, and the law a lead that says so. `numerical`: the
     best law's constants checked against twice the nodes and steps per cycle and corrected
     to it (`law.numerical.correct_law`: one forward run there, a chord check or two at
-    this level). `prefer` and
+    this level). `profile`: the best law's linearised standard errors checked by two
+    forward runs a constant, and replaced by the profile of the misfit where it is not
+    quadratic (`law.profile.profile_law`). `prefer` and
     `correction` (the shape's choice and its refitted correction) are reported, not
     followed: the screen weighs every law of the grammar alike (issue 48)."""
     # the whole grammar is screened alike (module docstring); `prefer` and `correction`
@@ -433,6 +437,12 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
         with searching():
             ranked[0] = correct_law(ranked[0], noise_um, verbose=verbose)
         runs += ranked[0].numerical.forward_runs
+    if ranked and profile:
+        # the answer's linearised standard errors checked by forward runs, and where the
+        # misfit is not quadratic, replaced by its profile's (`law.profile`)
+        with searching():
+            ranked[0] = profile_law(ranked[0], noise_um, nu, verbose=verbose)
+        runs += ranked[0].profile.forward_runs
     if ranked and ranked[0].law.form in tops:
         # the corrected constants' own cap (`bounded`), checked by a forward run to
         # leave the fit's rows unchanged (the cap above every state met)
@@ -458,6 +468,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                            "loo_forward_runs": runs, "peer_fits": peers["fits"],
                            "peer_model_evaluations": peers["model_evaluations"],
                            "peer_cpu_s": peers["cpu_s"],
+                           "profile_model_evaluations": (
+                               None if best is None or best.profile is None
+                               else best.profile.model_evaluations),
                            "screen_top": screen_top(screened, len(linear["rho"]))},
                     shape_rmse_um=shape_rmse_um, refused=tuple(refused), ranges=rng,
                     equivalents=equal, separations=seps, shape_why=shape_why)
