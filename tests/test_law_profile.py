@@ -250,3 +250,31 @@ def test_constants_beyond_the_profiles_budget_keep_their_linear_errors_and_are_n
     text = law_sentence(LawResult(out, (out,), 1, 0.3, 0.4, 0.45, 1.0,
                                   shape_rmse_um=out.rmse_um))
     assert "not profiled" in text and "linearised one" in text, text
+
+
+def test_a_fit_that_ended_short_of_its_minimum_is_checked_but_not_profiled(
+        power_fit, monkeypatch):
+    """A law fit that stopped at its budget (`LawFit.status` "budget") has no minimum to
+    profile around: the constants that fail the check keep their linearised standard
+    errors, no refit is made, and the JSON and the sentence say why."""
+    import dataclasses
+
+    from jaxwear._analyses.diagnose import Model
+    from jaxwear._analyses.diagnose.law.profile import profile_law
+    from jaxwear._analyses.diagnose.law.result import LawResult, law_sentence
+    from jaxwear._physics.effects.law import searching
+
+    lf, _ = power_fit
+    lf = dataclasses.replace(lf, status="budget")
+    real = Model.predict
+    monkeypatch.setattr(Model, "predict", lambda self, u, **kw: real(self, u, **kw) + 0.05)
+    with searching():
+        out = profile_law(lf, 0.3, math.inf)
+    prof = out.profile
+    assert not prof.intervals and set(prof.unconverged) == {"A", "a1"}, prof
+    assert prof.model_evaluations == prof.forward_runs  # the check's runs only
+    assert out.constants == lf.constants
+    assert sorted(out.to_json()["profile"]["not_profiled_unconverged"]) == ["A", "a1"]
+    text = law_sentence(LawResult(out, (out,), 1, 0.3, 0.4, 0.45, 1.0,
+                                  shape_rmse_um=out.rmse_um))
+    assert "short of its minimum" in text and "linearised one" in text, text

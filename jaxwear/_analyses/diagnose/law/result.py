@@ -339,6 +339,10 @@ def law_sentence(res: LawResult) -> str:
            if b.undetermined else "") + und_num
     und += "".join(f" It is bounded: {c['reason']}." for c in b.bounded)
     prof = getattr(b, "profile", None)
+    if prof is not None and getattr(prof, "unconverged", ()):
+        und += (f" The misfit is not quadratic in {', '.join(prof.unconverged)} (checked at "
+                f"± {prof.k:g} standard errors) and the fit ended short of its minimum "
+                f"({b.status}): the ± there is the linearised one, not to be trusted.")
     if prof is not None and prof.over_budget:
         und += (f" The misfit is not quadratic in {', '.join(prof.over_budget)} either "
                 f"(checked at ± {prof.k:g} standard errors), not profiled (the profiles' "
