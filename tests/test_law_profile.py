@@ -278,3 +278,35 @@ def test_a_fit_that_ended_short_of_its_minimum_is_checked_but_not_profiled(
     text = law_sentence(LawResult(out, (out,), 1, 0.3, 0.4, 0.45, 1.0,
                                   shape_rmse_um=out.rmse_um))
     assert "short of its minimum" in text and "linearised one" in text, text
+
+
+def test_the_two_sides_of_a_profile_at_once_give_what_one_after_the_other_gives(
+        power_fit, monkeypatch):
+    """`SIDES_APART`: a profile's low side runs in a second thread beside its high side.
+    Each side is a chain of refits from the centre that does not read the other's, so
+    the points, the intervals and the standard errors are those of the sides run one
+    after the other, bit for bit, and the model evaluations of both threads are
+    counted (the check made to fail as above, so that both constants are profiled)."""
+    from jaxwear._analyses.diagnose import Model
+    from jaxwear._analyses.diagnose.law import profile as mod
+    from jaxwear._physics.effects.law import searching
+
+    lf, _ = power_fit
+    real = Model.predict
+    monkeypatch.setattr(Model, "predict", lambda self, u, **kw: real(self, u, **kw) + 0.05)
+    monkeypatch.setattr(mod.os, "cpu_count", lambda: 2)
+    out = {}
+    for apart in (False, True):
+        monkeypatch.setattr(mod, "SIDES_APART", apart)
+        e0 = Model.evaluations  # every thread's
+        with searching():
+            out[apart] = mod.profile_law(lf, 0.3, math.inf)
+        out[apart] = (out[apart], Model.evaluations - e0)
+    (one, n_one), (two, n_two) = out[False], out[True]
+    assert set(two.profile.intervals) == {"A", "a1"}
+    assert two.profile.intervals == one.profile.intervals
+    assert two.constants == one.constants
+    assert two.profile.lowest_delta_chi2 == one.profile.lowest_delta_chi2
+    # the evaluations the profile reports are those the model counted in both threads
+    assert n_two == n_one
+    assert two.profile.model_evaluations == one.profile.model_evaluations == n_one

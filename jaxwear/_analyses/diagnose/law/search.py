@@ -50,7 +50,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -64,8 +66,9 @@ from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._refit import _tests_for
 from jaxwear._analyses.diagnose._stats import neighbour_pairs
+from jaxwear._analyses.diagnose.law.ahead import Ahead
 from jaxwear._analyses.diagnose.law.equivalent import equivalents, separation
-from jaxwear._analyses.diagnose.law.memory import after, memory_candidates
+from jaxwear._analyses.diagnose.law.memory import after, memory_candidates, wanted
 from jaxwear._analyses.diagnose.law.numerical import correct_law
 from jaxwear._analyses.diagnose.law.profile import profile_law
 from jaxwear._analyses.diagnose.law.result import (  # noqa: F401 (the search's types)
@@ -86,6 +89,7 @@ from jaxwear._analyses.diagnose.law.screen import (
 )
 from jaxwear._analyses.diagnose.law.start import forward_rmse, resample, states_by_form
 from jaxwear._analyses.diagnose.shape.design import RANGE_QUANTILES
+from jaxwear._core.log import held
 from jaxwear._physics.effects.law import (
     DEPOSIT_LAW_VARIABLES,
     DERIVED,
@@ -256,7 +260,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
            n: int = PICKS, forms=("factor", "deposit"), prefer=None,
            correction: dict | None = None, shape_rmse_um: float | None = None,
            shape_why: str = "", max_evaluations: int = LAW_EVALUATIONS,
-           numerical: bool = True, profile: bool = True,
+           numerical: bool = True, profile: bool = True, ahead: bool | None = None,
            verbose: bool = False) -> LawResult:
     """The law search on the misfit left by `fit` (module docstring); `linear`: the shape
     analysis's linearised system (`ShapeResult.linear`) on top of the same fit; `forms`:
@@ -269,7 +273,9 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     to it (`law.numerical.correct_law`: one forward run there, a chord check or two at
     this level). `profile`: the best law's linearised standard errors checked by two
     forward runs a constant, and replaced by the profile of the misfit where it is not
-    quadratic (`law.profile.profile_law`). `prefer` and
+    quadratic (`law.profile.profile_law`). `ahead`: candidates whose fit depends on no
+    law fitted before them are fitted ahead on a second core (`law.ahead`: the same
+    answer; default: where the machine has more than one core). `prefer` and
     `correction` (the shape's choice and its refitted correction) are reported, not
     followed: the screen weighs every law of the grammar alike (issue 48)."""
     # the whole grammar is screened alike (module docstring); `prefer` and `correction`
@@ -342,94 +348,174 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 # step(p)·power(v), the screen's next)
                 break
 
+    # candidates fitted ahead on a second core (`law.ahead`): the screen's picks whose start
+    # no law fitted before them changes, the last first, and the laws with memory; the
+    # search takes them in its own order, runs itself what has not started, and discards
+    # what it skips
+    ahead = Ahead(enabled=(os.cpu_count() or 1) > 1 if ahead is None else ahead)
+    memo = {}  # the laws with memory taken from `ahead`: {id(law): (fitted, lines)}
+
+    def fit_checked(law, src):
+        """(the law fitted, its `Fit`, its model, and where usable (the law bounded, why it
+        is refused, its caps, its left-out errors by forward runs, their runs))."""
+        found, f, lm = fit_law(model, fit, law, noise_um, nu,
+                               max_evaluations=max_evaluations, verbose=verbose)
+        if f.status == "unusable" or f.values is None:
+            return found, f, lm, None
+        # a law with memory is bounded by its form (a film's state within [0, 1], a
+        # damage's factor a saturating step)
+        why = ("" if src == "memory" else refuse(found) if BOUND_EXPONENTIALS
+               else refuse_steep(found))
+        capped, caps = found, ()
+        if not why and src != "memory":
+            # an exponential held flat above the states met where it would grow too
+            # much beyond them (`bounded`): the cap is above every state of the fit,
+            # so its rows, RMSE and left-out errors are the uncapped fit's
+            capped, caps = bound(found, f)
+        per, k = ({}, 0) if why else loo_refined(lm, f, noise_um)  # refused: not ranked
+        return found, f, lm, (capped, why, caps, per, k)
+
+    def screen_ahead(law):
+        started, r_start = start_of(model, fit, variants(screened, law))
+        return started, r_start, fit_checked(started, "screen")
+
+    def memory_ahead():
+        # the starts as the search makes them once it tries laws with memory (whether it
+        # does depends on the laws fitted before: decided where it reaches them)
+        with held() as start_lines:
+            cands = memory_candidates(model, fit, prefer, correction, law_model, [],
+                                      noise_um, verbose=verbose)
+        out = []
+        for _, law, _ in cands:
+            with held() as lines:
+                out.append((law, fit_checked(law, "memory"), lines))
+        return start_lines, out
+
+    def memory_now():
+        skip, shp = any(f.at_noise for f in fitted), as_shape(fitted, shape_rmse_um)
+        if skip or not wanted(prefer, correction, fitted, noise_um, shp):
+            ahead.drop("memory")
+            return []
+        got = ahead.take("memory")
+        if got is None:
+            return memory_candidates(model, fit, prefer, correction, law_model, fitted,
+                                     noise_um, verbose=verbose, skip=skip, as_shape=shp)
+        (start_lines, out), _ = got
+        _replay(verbose, start_lines)
+        for law, done, lines in out:
+            memo[id(law)] = (done, lines)
+        return [(math.nan, law, "memory") for law, _, _ in out]
+
+    independent = [law for i, (_, law) in enumerate(todo) if i > 0 and from_fitted(
+        law, [SimpleNamespace(law=lw) for _, lw in todo[:i]], linear) is law]
+    queue = independent[::-1]
+
     with searching():
-        # the screen's picks, then the laws with memory, where the history shows or no law
-        # of the present states reaches the noise (`law.memory`)
-        for drop, law, src in after(screen_then_peer(),
-                                    lambda: memory_candidates(
-                model, fit, prefer, correction, law_model, fitted, noise_um,
-                verbose=verbose, skip=any(f.at_noise for f in fitted),
-                as_shape=as_shape(fitted, shape_rmse_um))):
-            peer = False
-            if same(law) in {same(f.law) for f in fitted + refused}:
-                continue  # fitted already (a pick, a peer, a neighbour)
-            if src in ("pruned", "swap"):
-                _log(verbose, f"    {law.label}: fitted as the "
-                              + ("determined neighbour" if src == "pruned" else
-                                 "screen's best change of the undetermined term")
-                              + " of a law whose constants the data do not determine")
-            elif fitted and any(f.at_noise for f in fitted):
-                # a law already fits to noise by diagnose's own tests (`after_noise`)
-                go, peer = after_noise(law, src, fitted, peers["fits"])
-                if not go:
-                    _log(verbose, f"    {law.label}: not fitted (a law already fits to "
-                                  f"noise)")
+        try:
+            # the last pick first, then the laws with memory: the search reaches the
+            # others first and runs them itself (`Ahead.take`)
+            for lw in queue[:1] + ["memory"] + queue[1:]:
+                if lw == "memory":
+                    ahead.submit("memory", memory_ahead)
+                else:
+                    ahead.submit(("screen", lw.label), screen_ahead, lw)
+            # the screen's picks, then the laws with memory, where the history shows or no
+            # law of the present states reaches the noise (`law.memory`)
+            for drop, law, src in after(screen_then_peer(), memory_now):
+                key = ("screen", law.label) if src == "screen" else None
+                peer = False
+                if same(law) in {same(f.law) for f in fitted + refused}:
+                    ahead.drop(key)
+                    continue  # fitted already (a pick, a peer, a neighbour)
+                if src in ("pruned", "swap"):
+                    _log(verbose, f"    {law.label}: fitted as the "
+                                  + ("determined neighbour" if src == "pruned" else
+                                     "screen's best change of the undetermined term")
+                                  + " of a law whose constants the data do not determine")
+                elif fitted and any(f.at_noise for f in fitted):
+                    # a law already fits to noise by diagnose's own tests (`after_noise`)
+                    go, peer = after_noise(law, src, fitted, peers["fits"])
+                    if not go:
+                        ahead.drop(key)
+                        _log(verbose, f"    {law.label}: not fitted (a law already fits "
+                                      f"to noise)")
+                        continue
+                if fitted and as_shape(fitted, shape_rmse_um) and src not in (
+                        "memory", "pruned", "swap"):
+                    # a law of two variables already fits as well as the shape's
+                    # correction (refitted through the loop): measured on the PV step,
+                    # the two laws fitted after the step in p·v (0.316 µm, the shape
+                    # 0.317) reached 0.400 and 0.360, and the search took 56 s of CPU
+                    # with them, 17.5 s without
+                    ahead.drop(key)
+                    _log(verbose, f"    {law.label}: not fitted (a law of two variables "
+                                  f"already fits as well as the shape)")
                     continue
-            if fitted and as_shape(fitted, shape_rmse_um) and src not in (
-                    "memory", "pruned", "swap"):
-                # a law of two variables already fits as well as the shape's correction
-                # (refitted through the loop): measured on the PV step, the two laws
-                # fitted after the step in p·v (0.316 µm, the shape 0.317) reached 0.400
-                # and 0.360, and the search took 56 s of CPU with them, 17.5 s without
-                _log(verbose, f"    {law.label}: not fitted (a law of two variables already "
-                              f"fits as well as the shape)")
-                continue
-            if peer:
-                peers["fits"] += 1
-                c_peer, e_peer = time.process_time(), Model.own_evaluations()
-                _log(verbose, f"    {law.label}: fitted after a law at the noise (one of "
-                              f"its complexity, `PEERS`)")
-            if src == "memory":  # its start already chosen by forward runs (`law.memory`)
-                r_start = math.nan
-            elif src == "pruned":
-                # from the constants the lead fitted (the term kept), else the screen's
-                law, r_start = start_of(model, fit, [law] + variants(screened, law))
-            else:
-                started = from_fitted(law, fitted, linear)
-                law, r_start = start_of(model, fit, [started] if started is not law
-                                        else variants(screened, law))
-            found, f, lm = fit_law(model, fit, law, noise_um, nu,
-                                   max_evaluations=max_evaluations, verbose=verbose)
-            if f.status == "unusable" or f.values is None:
-                _log(verbose, f"    {law.label}: {f.status} ({f.message})")
-                continue
-            if not lb_map:
-                # the base model's left-out error by the same rule, through this compiled
-                # law model with the law off (its strength 0 is the base model exactly)
-                lb_map, k = loo_refined(model, fit, noise_um,
-                                        predict=law_off(lm, model, found))
+                if peer:
+                    peers["fits"] += 1
+                    c_peer, e_peer = time.process_time(), Model.own_evaluations()
+                    e_ahead = ahead.used["model_evaluations"]
+                    _log(verbose, f"    {law.label}: fitted after a law at the noise (one "
+                                  f"of its complexity, `PEERS`)")
+                done = None
+                if src == "memory":  # its start already chosen by forward runs
+                    r_start = math.nan
+                    if id(law) in memo:
+                        done, lines = memo.pop(id(law))
+                        _replay(verbose, lines)
+                elif src == "pruned":
+                    # from the constants the lead fitted (the term kept), else the screen's
+                    law, r_start = start_of(model, fit, [law] + variants(screened, law))
+                else:
+                    started = from_fitted(law, fitted, linear)
+                    got = (ahead.take(key) if started is law and src == "screen"
+                           else ahead.drop(key))
+                    if got is not None:
+                        (law, r_start, done), lines = got
+                        _replay(verbose, lines)
+                    else:
+                        law, r_start = start_of(model, fit, [started] if started is not law
+                                                else variants(screened, law))
+                if done is None:
+                    done = fit_checked(law, src)
+                found, f, lm, checked = done
+                if checked is None:
+                    _log(verbose, f"    {law.label}: {f.status} ({f.message})")
+                    continue
+                if not lb_map:
+                    # the base model's left-out error by the same rule, through this
+                    # compiled law model with the law off (its strength 0 is the base
+                    # model exactly)
+                    lb_map, k = loo_refined(model, fit, noise_um,
+                                            predict=law_off(lm, model, found))
+                    runs += k
+                se = {nm: float(s) for nm, s in zip(lm.names, f.stderr)}
+                found, why, caps, per, k = checked
                 runs += k
-            se = {nm: float(s) for nm, s in zip(lm.names, f.stderr)}
-            # a law with memory is bounded by its form (a film's state within [0, 1], a
-            # damage's factor a saturating step)
-            why = ("" if src == "memory" else refuse(found) if BOUND_EXPONENTIALS
-                   else refuse_steep(found))
-            caps = ()
-            if not why and src != "memory":
-                # an exponential held flat above the states met where it would grow too
-                # much beyond them (`bounded`): the cap is above every state of the fit,
-                # so its rows, RMSE and left-out errors are the uncapped fit's
-                found, caps = bound(found, f)
-            per, k = ({}, 0) if why else loo_refined(lm, f, noise_um)  # refused: not ranked
-            runs += k
-            lo = _rms(per) if per else None
-            ev = evidence(model, f, fit, noise_um)
-            tests = _tests_for(lm, f, noise_um, nu, pairs)
-            lf = LawFit(found, f.rmse, lo, ev, f.status, f.evaluations, constants(found, se),
-                        drop, not tests.systematic and not why, tests.p_min,
-                        undetermined(found, se), src, residual_um=np.asarray(f.ev.r),
-                        loo_per_experiment=per, refused=why,
-                        loo_linear_um=_rms(loo(lm, f, noise_um)), fit=f, model=lm,
-                        bounded=caps)
-            (refused if lf.refused else fitted).append(lf)
-            if peer:
-                peers["model_evaluations"] += Model.own_evaluations() - e_peer
-                peers["cpu_s"] += time.process_time() - c_peer
-            _log(verbose, f"    {found.label}: RMSE {f.rmse:.4f} µm (start {r_start:.4f}), "
-                          f"left-out {_fmt(lo)} µm, evidence {ev:.1f} ({f.status}, "
-                          f"{f.evaluations} evaluations)"
-                          + (f"; refused: {lf.refused}" if lf.refused else "")
-                          + "".join(f"; bounded: {c['reason']}" for c in caps))
+                lo = _rms(per) if per else None
+                ev = evidence(model, f, fit, noise_um)
+                tests = _tests_for(lm, f, noise_um, nu, pairs)
+                lf = LawFit(found, f.rmse, lo, ev, f.status, f.evaluations,
+                            constants(found, se), drop, not tests.systematic and not why,
+                            tests.p_min, undetermined(found, se), src,
+                            residual_um=np.asarray(f.ev.r), loo_per_experiment=per,
+                            refused=why, loo_linear_um=_rms(loo(lm, f, noise_um)), fit=f,
+                            model=lm, bounded=caps)
+                (refused if lf.refused else fitted).append(lf)
+                if lf.at_noise:
+                    ahead.drop("memory")  # no law with memory is tried once one is
+                if peer:
+                    peers["model_evaluations"] += (Model.own_evaluations() - e_peer
+                                                   + ahead.used["model_evaluations"]
+                                                   - e_ahead)
+                    peers["cpu_s"] += time.process_time() - c_peer
+                _log(verbose, f"    {found.label}: RMSE {f.rmse:.4f} µm (start "
+                              f"{r_start:.4f}), left-out {_fmt(lo)} µm, evidence {ev:.1f} "
+                              f"({f.status}, {f.evaluations} evaluations)"
+                              + (f"; refused: {lf.refused}" if lf.refused else "")
+                              + "".join(f"; bounded: {c['reason']}" for c in caps))
+        finally:
+            ahead.close()
     ranked = rank(fitted)
     if ranked and numerical:
         # the answer's constants checked against, and corrected to, a finer resolution
@@ -464,7 +550,13 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     res = LawResult(best, tuple(ranked), len(screened), float(noise_um), fit.rmse, lb,
                     time.perf_counter() - t0,
                     extra={"cpu_s": time.process_time() - c0,
-                           "model_evaluations": Model.own_evaluations() - e0,
+                           "model_evaluations": (Model.own_evaluations() - e0
+                                                 + ahead.used["model_evaluations"]),
+                           "ahead_jobs": ahead.used["jobs"],
+                           "ahead_model_evaluations": ahead.used["model_evaluations"],
+                           "ahead_discarded_jobs": ahead.discarded["jobs"],
+                           "ahead_discarded_model_evaluations": (
+                               ahead.discarded["model_evaluations"]),
                            "loo_forward_runs": runs, "peer_fits": peers["fits"],
                            "peer_model_evaluations": peers["model_evaluations"],
                            "peer_cpu_s": peers["cpu_s"],
@@ -475,6 +567,12 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                     shape_rmse_um=shape_rmse_um, refused=tuple(refused), ranges=rng,
                     equivalents=equal, separations=seps, shape_why=shape_why)
     return dataclasses.replace(res, sentence=law_sentence(res))
+
+
+def _replay(verbose: bool, lines) -> None:
+    """Progress lines a job ahead held (`law.ahead`), printed where the search takes it."""
+    for line in lines:
+        _log(verbose, line)
 
 
 SCREEN_TOP = 12  # the screen's best structures reported (`screen_top`)
@@ -517,23 +615,31 @@ def law_off(lm: Model, model: Model, law: LawSpec):
     return predict
 
 
-def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
+def warm(model: Model, fit: Fit, linear: dict | None = None, prefer=None) -> None:
     """The law model's programs traced and compiled (one each for every law of the
-    search) by one evaluation and one forward run of the first candidate's start, ahead
-    of `search`: diagnose runs it in the background while the shape's correction is
-    refitted through the loop (tracing and compiling the law model took 10-17 s of the
-    search's 21-73 s on the impact study). The forward program is the starts' and the
-    left-out checks' (`start_of`, `loo_refined`): compiled at the search's first start, it
-    was 11.8 s of wall there on the fatigue study (load ~9), while the search and the
-    second shape refit held both cores; here the core beside the first refit is mostly
-    free. Failures are left to the search, which meets them again and reports them."""
+    search) by one evaluation and one forward run of a law's start, ahead of `search`:
+    diagnose runs it in the background from the start of the shape's analysis (tracing
+    and compiling the law model took 10-17 s of the search's 21-73 s on the impact study).
+    Every law gives the same programs (`law_model`), so any law does: the pre-screen's
+    first on `linear` where given, else a power of the pressure. Why not wait for the
+    shape's linear analysis: measured on the generator's fatigue study (2 cores,
+    2026-11-29), that analysis is ~8 s of host work with the other core idle, and this
+    compilation, started after it, competed with the shape refit's own (its model's
+    Jacobian, traced and compiled 6-13 s after the refit began). The forward program is
+    the starts' and the left-out checks' (`start_of`, `loo_refined`). Failures are left
+    to the search, which meets them again and reports them."""
     try:
-        todo = prescreen(linear)
-        if todo:
-            with searching():
-                lm = law_model(model, fit, todo[0][1])
-                lm.evaluate(np.zeros(len(lm.names)))
-                lm.predict(np.zeros(len(lm.names)))
+        if linear is None:
+            law = LawSpec("factor", (Term("power", "pressure_MPa", 1.0, a=1.0),), 0.1)
+        else:
+            todo = prescreen(linear)
+            if not todo:
+                return
+            law = todo[0][1]
+        with searching():
+            lm = law_model(model, fit, law)
+            lm.evaluate(np.zeros(len(lm.names)))
+            lm.predict(np.zeros(len(lm.names)))
     except Exception:  # noqa: BLE001 (the search reports it where it matters)
         return
 
