@@ -169,6 +169,9 @@ def test_the_search_answers_the_same_with_its_candidates_fitted_ahead(analysed):
     assert two.extra["model_evaluations"] == one.extra["model_evaluations"]
     assert one.extra["ahead_jobs"] == 0 and one.extra["ahead_discarded_jobs"] == 0
     assert two.extra["ahead_jobs"] + two.extra["ahead_discarded_jobs"] >= 1
+    doc = two.to_json()
+    assert doc["ahead_jobs"] == two.extra["ahead_jobs"]
+    assert doc["ahead_discarded_model_evaluations"] >= 0
 
 
 def test_a_refit_of_the_same_model_starts_at_the_answer_before(analysed):

@@ -264,6 +264,14 @@ class LawResult:
                 # the evaluations the check of the answer's errors and its profiles added
                 # (`law.profile`; forward runs counted in them)
                 "profile_model_evaluations": self.extra.get("profile_model_evaluations"),
+                # jobs run ahead on a second core (`law.ahead`: a pick, or the laws with
+                # memory): those the search took (their evaluations in
+                # `model_evaluations`) and those it discarded (skipped: CPU spent beside
+                # it, in no answer)
+                "ahead_jobs": self.extra.get("ahead_jobs"),
+                "ahead_discarded_jobs": self.extra.get("ahead_discarded_jobs"),
+                "ahead_discarded_model_evaluations": self.extra.get(
+                    "ahead_discarded_model_evaluations"),
                 # the screen's best structures (`law.search.screen_top`), fitted or not
                 "screen_top": self.extra.get("screen_top", []), "summary": self.sentence}
 
