@@ -33,7 +33,9 @@ core, guarded, and ranked by their error on left-out experiments.
    its determined neighbours (`pruned`), then the screen's best laws keeping its
    determined terms and changing the others (`swaps`). Then, where
    the history shows or no law of the present states reaches the noise, laws with memory:
-   a per-node damage or film the cycle drives (`law.memory`).
+   a per-node damage or film the cycle drives (`law.memory`). The candidates whose fit
+   reads no earlier fit are fitted ahead on a second core (`law.ahead`): the order, the
+   decisions and the answer are the sequential search's.
 3. **Ranking** (`rank`): the simplest law within one standard error (`loo_se`) of the best
    left-out RMSE; `LawResult.front` is complexity against left-out RMSE; the laws of
    another structure within one standard error of the answer's left-out RMSE are its
