@@ -173,18 +173,3 @@ def test_the_search_answers_the_same_with_its_candidates_fitted_ahead(analysed):
     assert doc["ahead_jobs"] == two.extra["ahead_jobs"]
     assert doc["ahead_discarded_model_evaluations"] >= 0
 
-
-def test_a_refit_of_the_same_model_starts_at_the_answer_before(analysed):
-    """diagnose's refit on top of the effect found starts at the first refit's answer
-    where the two refit one model (`ShapeResult.finished`'s `start_from`): refitted again
-    from there, the correction is at its minimum already, so the refit stops sooner than
-    from the linearised start (here 1 evaluation against 3), at an RMSE no worse."""
-    model, base, linear = analysed
-    first = linear.finished()
-    second = linear.finished(start_from=first)
-    names, u = first.refit_answer
-    assert second.refit_answer[0] == names and len(u) == len(names)
-    own = first.evaluations - linear.evaluations
-    again = second.evaluations - linear.evaluations
-    assert again <= 2 and again < own, (again, own)
-    assert second.rmse_after_um <= first.rmse_after_um * (1 + 1e-3)

@@ -46,6 +46,7 @@ deviations): Δχ² = 1 is one linearised standard error where the misfit is qua
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -221,6 +222,9 @@ class Profile:
     scale_um: float = math.nan
     forward_runs: int = 0
     model_evaluations: int = 0
+    # of them, those of the profiles' second thread (`SIDES_APART`), which the caller's
+    # own count (`Model.own_evaluations`) does not hold
+    evaluations_beside: int = 0
     cpu_s: float = 0.0
     why: str = ""
     # the lowest Δχ² a profile's refit met below the answer (< 0: the answer was not the
@@ -293,7 +297,7 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
     def out(prof, **kw):
         prof = dataclasses.replace(prof, cpu_s=time.process_time() - c0,
                                    model_evaluations=Model.own_evaluations() - e0
-                                   + apart[0])
+                                   + apart[0], evaluations_beside=apart[0])
         return dataclasses.replace(lf, profile=prof, **kw)
 
     keys = constant_keys(lf.law)
@@ -443,8 +447,12 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
 
         def side(sgn, nm=nm, j=j, reg=reg, se_u=se_u, mask=mask):
             """(its points (t, value, Δχ²), its progress lines, its model evaluations):
-            one side of the profile, from the centre out (`side_end`)."""
+            one side of the profile, from the centre out (`side_end`), on its own copy of
+            the model: the attempt counts its runs raise (`Model.evaluate`) reach neither
+            the other side's nor depend on which ran first, so that the sides at once and
+            one after the other give the same points."""
             e0, mine, last = Model.own_evaluations(), [], {"t": 0.0, "u": uc.copy()}
+            sm = copy.copy(lm)
 
             def delta(t):
                 u = last["u"].copy()
@@ -452,7 +460,7 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
                 u[j] = uc[j] + t
                 u = np.clip(u, lo, hi)
                 try:
-                    g = fit_masked(lm, mask, u, noise_um=noise_um, noise_dof=nu,
+                    g = fit_masked(sm, mask, u, noise_um=noise_um, noise_dof=nu,
                                    label=f"profile {nm}", groups=(LAW_EFFECT,),
                                    max_evaluations=PROFILE_EVALUATIONS - 1)
                 except lsq.FitError:

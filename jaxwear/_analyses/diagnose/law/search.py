@@ -50,6 +50,7 @@ core, guarded, and ranked by their error on left-out experiments.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -383,14 +384,21 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
 
     def memory_ahead():
         # the starts as the search makes them once it tries laws with memory (whether it
-        # does depends on the laws fitted before: decided where it reaches them)
+        # does depends on the laws fitted before: decided where it reaches them); each
+        # law's fit with its own lines, evaluations and error, so that the search takes
+        # (or skips: `after_noise`) each as it would have run it
         with held() as start_lines:
             cands = memory_candidates(model, fit, prefer, correction, law_model, [],
                                       noise_um, verbose=verbose)
         out = []
         for _, law, _ in cands:
+            e0 = Model.own_evaluations()
             with held() as lines:
-                out.append((law, fit_checked(law, "memory"), lines))
+                try:
+                    done = fit_checked(law, "memory")
+                except Exception as err:  # noqa: BLE001 (raised where the search fits it)
+                    done = err
+            out.append((law, done, lines, Model.own_evaluations() - e0))
         return start_lines, out
 
     def memory_now():
@@ -404,9 +412,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                                      noise_um, verbose=verbose, skip=skip, as_shape=shp)
         (start_lines, out), _ = got
         _replay(verbose, start_lines)
-        for law, done, lines in out:
-            memo[id(law)] = (done, lines)
-        return [(math.nan, law, "memory") for law, _, _ in out]
+        for law, done, lines, evals in out:
+            # counted as used once the search fits it (`memo`), else discarded at the end
+            ahead.used["model_evaluations"] -= evals
+            memo[id(law)] = (done, lines, evals)
+        return [(math.nan, law, "memory") for law, _, _, _ in out]
 
     independent = [law for i, (_, law) in enumerate(todo) if i > 0 and from_fitted(
         law, [SimpleNamespace(law=lw) for _, lw in todo[:i]], linear) is law]
@@ -463,8 +473,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 if src == "memory":  # its start already chosen by forward runs
                     r_start = math.nan
                     if id(law) in memo:
-                        done, lines = memo.pop(id(law))
+                        done, lines, evals = memo.pop(id(law))
+                        ahead.used["model_evaluations"] += evals
                         _replay(verbose, lines)
+                        if isinstance(done, Exception):
+                            raise done
                 elif src == "pruned":
                     # from the constants the lead fitted (the term kept), else the screen's
                     law, r_start = start_of(model, fit, [law] + variants(screened, law))
@@ -487,9 +500,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 if not lb_map:
                     # the base model's left-out error by the same rule, through this
                     # compiled law model with the law off (its strength 0 is the base
-                    # model exactly)
+                    # model exactly); a copy, so that the attempt counts its forward runs
+                    # raise (`Model.predict`) do not depend on whether the candidate's own
+                    # left-out checks ran before it (ahead, in another thread) or after
                     lb_map, k = loo_refined(model, fit, noise_um,
-                                            predict=law_off(lm, model, found))
+                                            predict=law_off(copy.copy(lm), model, found))
                     runs += k
                 se = {nm: float(s) for nm, s in zip(lm.names, f.stderr)}
                 found, why, caps, per, k = checked
@@ -518,6 +533,8 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                               + "".join(f"; bounded: {c['reason']}" for c in caps))
         finally:
             ahead.close()
+            for _, _, evals in memo.values():  # laws with memory fitted ahead, not tried
+                ahead.discarded["model_evaluations"] += evals
     ranked = rank(fitted)
     if ranked and numerical:
         # the answer's constants checked against, and corrected to, a finer resolution
@@ -552,8 +569,10 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
     res = LawResult(best, tuple(ranked), len(screened), float(noise_um), fit.rmse, lb,
                     time.perf_counter() - t0,
                     extra={"cpu_s": time.process_time() - c0,
-                           "model_evaluations": (Model.own_evaluations() - e0
-                                                 + ahead.used["model_evaluations"]),
+                           "model_evaluations": (
+                               Model.own_evaluations() - e0 + ahead.used["model_evaluations"]
+                               + (0 if best is None or best.profile is None
+                                  else best.profile.evaluations_beside)),
                            "ahead_jobs": ahead.used["jobs"],
                            "ahead_model_evaluations": ahead.used["model_evaluations"],
                            "ahead_discarded_jobs": ahead.discarded["jobs"],

@@ -295,15 +295,14 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                                    "peaks": {v.label: v.peak_at for v in results}},
                            interaction=inter, confounded=tuple(confounded))
 
-    def finish(warm=None) -> ShapeResult:
-        """The refit through the loop and the when/where map (the costly part); `warm`:
-        an earlier refit's `refit_answer`, its first start where its model is this one's."""
+    def finish() -> ShapeResult:
+        """The refit through the loop and the when/where map (the costly part)."""
         # this thread's (the refit runs in it): another analysis may run beside it
         e0 = Model.own_evaluations()
         surf = inter.block if inter is not None and inter.significant else None
         rmse_after, status, corr_model, u_fit, cov, snaps, resid, message = _refit(
             smodel, refit_with, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
-            Jw, rho_full, verbose, deepest, surface=surf, warm=warm)
+            Jw, rho_full, verbose, deepest, surface=surf)
         if not math.isfinite(rmse_after):
             # no start of the refit could be evaluated: no RMSE, no correction, and why
             # (the law search then says its check against the shape was not made)
@@ -317,8 +316,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL, snaps=snaps)
         return replace(result(done, rmse_after, status, correction, ww,
                               linear.evaluations + Model.own_evaluations() - e0),
-                       residual_um=resid, refit_message=message,
-                       refit_answer=(tuple(corr_model.names), np.array(u_fit, np.float64)))
+                       residual_um=resid, refit_message=message)
 
     linear = result(results, None, "none", {}, None, Model.evaluations - evals0 + spent)
     if not sig:

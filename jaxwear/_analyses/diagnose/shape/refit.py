@@ -63,7 +63,7 @@ def _carriers(results, top) -> tuple:
 
 def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
            sigma, Jw, rho_full, verbose, deepest: int, surface=None, maps: bool = True,
-           linear_start: bool = True, warm=None):
+           linear_start: bool = True):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
@@ -81,14 +81,7 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     the when/where map's functions meanwhile (False for a caller that draws no map:
     `design`'s shape rivals). `linear_start`: start the correction at the joint linearised
     fit (False: at zero, the fit's own answer; a caller's retry where the linearised start
-    led the loop astray). `warm`: (names, u) of an earlier refit's answer
-    (`ShapeResult.refit_answer`): where its names are this model's (diagnose's refit on
-    top of the effect found, after the base's: one model, the effect held at off in the
-    first), the first start is that answer, a point of this model with the correction
-    already fitted, the linearised start its fallback. Why (measured on the generator's
-    fatigue study, 48 x 72, 2026-11-29): from the linearised start (4.28 µm RMS) the
-    second refit took 10 evaluations and ~50 s of a core to 0.3343 µm, where the first
-    had reached 0.3339 µm with the effect off."""
+    led the loop astray)."""
 
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
@@ -177,22 +170,17 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     # the linearised start, then fractions of it where the model cannot be evaluated there
     # (`START_FRACTIONS`: the last is the fit's own answer)
     fractions = ((1.0,) + START_FRACTIONS) if linear_start else (0.0,)
-    starts = [("the fit's own answer" if frac == 0 else "the linearised start"
-               if frac == 1 else f"{frac:g} of the linearised start",
-               own + frac * (u0 - own)) for frac in fractions]
-    if warm is not None and tuple(warm[0]) == tuple(cm.names):
-        _log(verbose, "    started at the refit before's answer (the same model; the "
-                      "parameters it held, free here, at their values there)")
-        starts.insert(0, ("the refit before's answer", np.asarray(warm[1], np.float64)))
     failed = []
-    for what, u_start in starts:
-        start = np.clip(u_start, lo, hi)
+    for frac in fractions:
+        start = np.clip(own + frac * (u0 - own), lo, hi)
         out = lsq.solve(evaluate, start, free=free, lower=lo, upper=hi,
                         noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
                         project=cm.packing.project, label=f"    shape {form}", log=log,
                         settled=SETTLED_CHI2, settled_rmse=SETTLED_RMSE)
         if out.status != "unusable":
             break
+        what = ("the fit's own answer" if frac == 0 else "the linearised start"
+                if frac == 1 else f"{frac:g} of the linearised start")
         # the cause, without the start's values (lsq's message lists every coefficient)
         failed.append(f"{what} was not usable: "
                       f"{lsq.failure(out.point, jacobian=False) or out.message}")

@@ -113,19 +113,13 @@ class ShapeResult:
     # starts that could not be evaluated before it); where `rmse_after_um` is None after a
     # refit, why it has none
     refit_message: str = ""
-    # the refit's answer: (the names of its model's parameters, u at the answer), for a
-    # later refit of the same model to start from (`finished`'s `start_from`)
-    refit_answer: tuple | None = field(default=None, repr=False, compare=False)
 
 
-    def finished(self, start_from: ShapeResult | None = None) -> ShapeResult:
-        """This result with its refit run (itself if none is pending). `start_from`: an
-        earlier analysis whose refit had the same model (its `refit_answer`'s names): the
-        refit starts at that answer first (`shape.refit._refit`'s `warm`)."""
+    def finished(self) -> ShapeResult:
+        """This result with its refit run (itself if none is pending)."""
         if self.pending is None:
             return self
-        warm = None if start_from is None else start_from.refit_answer
-        return replace(self.pending(warm), pngs=self.pngs)
+        return replace(self.pending(), pngs=self.pngs)
 
     def settled_labels(self) -> tuple:
         """Labels of the variable figures the pending refit will not change (all but its
