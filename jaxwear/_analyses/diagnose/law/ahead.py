@@ -63,9 +63,6 @@ class Ahead:
 
         self._jobs[key] = self._pool.submit(run)
 
-    def has(self, key) -> bool:
-        return key in self._jobs
-
     def take(self, key):
         """(the job's result, its progress lines) where it ran or runs (waiting for it),
         else None: none was submitted, or it had not started (it is cancelled, and the

@@ -483,8 +483,11 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                     law, r_start = start_of(model, fit, [law] + variants(screened, law))
                 else:
                     started = from_fitted(law, fitted, linear)
-                    got = (ahead.take(key) if started is law and src == "screen"
-                           else ahead.drop(key))
+                    got = None
+                    if started is law and src == "screen":
+                        got = ahead.take(key)
+                    else:  # its start reads a law fitted before it: run here
+                        ahead.drop(key)
                     if got is not None:
                         (law, r_start, done), lines = got
                         _replay(verbose, lines)
