@@ -271,7 +271,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
             inter = _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers,
                                  form, rho, n_res, nu, rng, draws, excess, rss0, alpha_each,
                                  verbose)
-            if inter.significant:
+            if inter.carried:
                 carriers = tuple(carriers) + tuple(x for x in inter.variables
                                                    if x not in carriers)
     design_out = replace(design, evaluations=0,
@@ -299,7 +299,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         """The refit through the loop and the when/where map (the costly part)."""
         # this thread's (the refit runs in it): another analysis may run beside it
         e0 = Model.own_evaluations()
-        surf = inter.block if inter is not None and inter.significant else None
+        surf = inter.block if inter is not None and inter.carried else None
         rmse_after, status, corr_model, u_fit, cov, snaps, resid, message = _refit(
             smodel, refit_with, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
             Jw, rho_full, verbose, deepest, surface=surf)
@@ -349,11 +349,14 @@ def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers, form
     names = list(dict.fromkeys(list(carriers) + [tensor.a.name, tensor.b.name]))
     additive = [blocks[nm if form == "factor" else f"deposit:{nm}"][0] for nm in names]
     inter = interaction_test(tensor, A, S, Z, X, additive, rho, n_res, nu, rng, draws, excess,
-                             rss0, alpha)
+                             rss0, alpha, phi)
     _log(verbose, f"    {form}, the surface over {tensor.a.name} x {tensor.b.name} on top of "
                   f"the additive fit: explains {inter.explained_fraction:.0%} more, dof "
                   f"{inter.dof:.1f}, p {inter.p_value:.1e}"
-                  + (" (significant: the refit carries it)" if inter.significant else ""))
+                  + (" (significant: the refit carries it)" if inter.carried else
+                     f" (significant, but it could lower the refit's RMSE by "
+                     f"{inter.rmse_gain_bound:.1%} at most: the refit does not carry it)"
+                     if inter.significant else ""))
     return inter
 
 

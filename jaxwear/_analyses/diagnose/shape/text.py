@@ -121,7 +121,11 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
         a, b = interaction.variables
         s += (f", and as a product of {a} and {b} (their surface adds "
               f"{interaction.explained_fraction:.0%} to the sum of one-variable corrections, "
-              f"{p_text(interaction.p_value)})")
+              f"{p_text(interaction.p_value)}"
+              + ("" if interaction.carried else
+                 f"; too small to refit: it could lower the refitted RMSE by "
+                 f"{interaction.rmse_gain_bound:.1%} at most")
+              + ")")
     s += "."
     if ww is not None and ww.made:
         s += (f" It is made at cycle phases {_arcs(ww.made)} and lands on the bore at "
