@@ -21,7 +21,7 @@ from jaxwear._analyses.diagnose.shape.choice import left_out_errors, rank_altern
 from jaxwear._analyses.diagnose.shape.interaction import (
     SURFACE_MATERIAL,
     interaction_test,
-    rmse_gain_bound,
+    rmse_gain_linearised,
     tensor_system,
 )
 from jaxwear._analyses.diagnose.shape.text import describe, next_test, next_test_sentence
@@ -141,27 +141,27 @@ def test_a_product_of_two_variables_needs_the_surface():
 
 def test_a_significant_surface_too_small_to_move_the_refit_is_not_carried():
     """A product g1 g2 of amplitude 0.14 σ on 20 000 rows: ΔRSS ≈ 0.14² n / 4 ≈ 100 σ²,
-    far beyond the noise (significant), but net of its ~10 dof it could lower a refit's
-    RMSE by at most (ΔRSS − dof)/(2 n) ≈ 0.2 % (hand calculation), under the 1 % any
+    far beyond the noise (significant), but net of its ~10 dof it would lower a refit's
+    RMSE by (ΔRSS − dof)/(2 n) ≈ 0.2 % (hand calculation; linearised), under the 1 % any
     comparison of the refit resolves: not carried. The large product above is carried."""
     inter, _ = _test(lambda a, b: 0.14 * np.cos(np.pi * a) * np.sin(2 * np.pi * b), 5,
                      n=20000)
     assert inter.significant, inter
     expected = max(inter.statistic - inter.dof, 0.0) / (2 * 20000)
-    assert inter.rmse_gain_bound == pytest.approx(expected, rel=1e-3)
-    assert 0.0005 < inter.rmse_gain_bound < SURFACE_MATERIAL, inter
+    assert inter.rmse_gain_linearised == pytest.approx(expected, rel=1e-3)
+    assert 0.0005 < inter.rmse_gain_linearised < SURFACE_MATERIAL, inter
     assert not inter.carried and inter.to_json()["carried"] is False
     big, _ = _test(lambda a, b: 3.0 * np.cos(np.pi * a) * np.sin(2 * np.pi * b), 1)
-    assert big.carried and big.rmse_gain_bound > 0.1, big
+    assert big.carried and big.rmse_gain_linearised > 0.1, big
 
 
-def test_the_gain_bound_by_hand_and_its_correlated_noise_allowance():
+def test_the_linearised_gain_by_hand_and_its_correlated_noise_allowance():
     """(ΔRSS − dof)⁺/(2 n), and with AR(1) noise of φ = 0.5 prewhitened rows hold as
     little as (1 − φ)/(1 + φ) = 1/3 of a smooth correction's sum of squares: 3 x."""
-    assert rmse_gain_bound(130.0, 10.0, 1000) == pytest.approx(0.06)
-    assert rmse_gain_bound(130.0, 10.0, 1000, phi=0.5) == pytest.approx(0.18)
-    assert rmse_gain_bound(130.0, 10.0, 1000, phi=-0.5) == pytest.approx(0.18)
-    assert rmse_gain_bound(5.0, 10.0, 1000) == 0.0
+    assert rmse_gain_linearised(130.0, 10.0, 1000) == pytest.approx(0.06)
+    assert rmse_gain_linearised(130.0, 10.0, 1000, phi=0.5) == pytest.approx(0.18)
+    assert rmse_gain_linearised(130.0, 10.0, 1000, phi=-0.5) == pytest.approx(0.18)
+    assert rmse_gain_linearised(5.0, 10.0, 1000) == 0.0
 
 
 @pytest.mark.parametrize("seed", [2, 3, 4])

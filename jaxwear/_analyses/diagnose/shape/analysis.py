@@ -354,8 +354,9 @@ def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers, form
                   f"the additive fit: explains {inter.explained_fraction:.0%} more, dof "
                   f"{inter.dof:.1f}, p {inter.p_value:.1e}"
                   + (" (significant: the refit carries it)" if inter.carried else
-                     f" (significant, but it could lower the refit's RMSE by "
-                     f"{inter.rmse_gain_bound:.1%} at most: the refit does not carry it)"
+                     f" (significant, but it would lower the refit's RMSE by "
+                     f"{inter.rmse_gain_linearised:.1%}, linearised: the refit does not "
+                     f"carry it)"
                      if inter.significant else ""))
     return inter
 

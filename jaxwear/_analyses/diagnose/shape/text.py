@@ -123,8 +123,9 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
               f"{interaction.explained_fraction:.0%} to the sum of one-variable corrections, "
               f"{p_text(interaction.p_value)}"
               + ("" if interaction.carried else
-                 f"; too small to refit: it could lower the refitted RMSE by "
-                 f"{interaction.rmse_gain_bound:.1%} at most")
+                 f"; not refitted: linearised, it would lower the refitted RMSE by "
+                 f"{interaction.rmse_gain_linearised:.1%}, under the 1 % a comparison "
+                 f"resolves")
               + ")")
     s += "."
     if ww is not None and ww.made:
