@@ -56,7 +56,8 @@ from jaxwear._core.jsonfmt import json_float as _num
 # - `g_step_p_power_v` (rich design, seeds 1-3; its law a product of a step in p and v):
 #   the surface over pressure x the load's turn rate, significant (T = 44-60), linearised
 #   gain 0.20-0.29 %; the first refit ends at 0.3125, 0.3131, 0.3163 µm against 0.3091,
-#   0.3097, 0.3129 (+1.1 % each): the loop gave more than the linearisation there. The
+#   0.3097, 0.3129 (+1.1 % each; the turn rate, a carrier only through the surface, goes
+#   with it): the loop gave more than the linearisation there. The
 #   law found (the true structure), its RMSE, left-out error, constants and evaluations
 #   are the same in all three.
 # The figure is a linearisation, loose by a factor of 3 either way on these studies; the
