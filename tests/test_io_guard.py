@@ -334,6 +334,33 @@ def test_ctrl_c_while_shutting_down_is_one_line(tmp_path):
         0, "jaxwear: interrupted while shutting down (the outputs were written)\n")
 
 
+def test_the_command_line_ends_with_its_exit_hooks_run_and_its_streams_flushed(tmp_path):
+    """The command line's process ends without the interpreter's teardown
+    (`interrupt.end_process`) but not without what a program relies on at exit: an exit
+    hook registered before the run still runs after it, everything printed reaches the
+    pipe (a line left in a buffer, unflushed, and the hook's own line after it), and
+    the exit status is the run's (2 for bad input, 0 for argparse's own `--help`, which
+    exits on its way and is left to Python)."""
+    code = ("import atexit, sys\n"
+            "atexit.register(lambda: print('hook ran', flush=False))\n"
+            "sys.stdout.write('before the run')\n"
+            "sys.argv = ['jaxwear'] + sys.argv[1:]\n"
+            "from jaxwear.cli import main\n"
+            "main()\n"
+            "print('not reached')\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).parent.parent))
+    p = subprocess.run([sys.executable, "-c", code, "calibrate",
+                        str(tmp_path / "missing.toml")], capture_output=True, text=True,
+                       timeout=120, env=env)
+    assert p.returncode == 2, p.stderr
+    assert p.stdout == "before the runhook ran\n"
+    assert "missing.toml" in p.stderr
+    h = subprocess.run([sys.executable, "-c", code, "calibrate", "--help"],
+                       capture_output=True, text=True, timeout=120, env=env)
+    assert h.returncode == 0, h.stderr
+    assert "usage:" in h.stdout and h.stdout.endswith("hook ran\n")
+
+
 def test_a_full_device_met_elsewhere_is_named_too(tmp_path, monkeypatch, capsys):
     """A full device outside the outputs' own writes (a library writing its own file)."""
     import errno

@@ -27,6 +27,7 @@ from jaxwear._core.errors import (
 from jaxwear._core.interrupt import (
     EXIT_CODE,
     MESSAGE,
+    end_process,
     interrupted,
     launched_as_cli,
     release,
@@ -92,9 +93,10 @@ def main(argv=None) -> int:
     # a core (`_core.blas`; a user's OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is kept)
     limit_blas()
     release()  # Ctrl-C from here on is caught below (and remembered: `_interrupt`)
-    rc = EXIT_CODE
+    rc, returned = EXIT_CODE, False
     try:
         rc = _run(argv)
+        returned = True
         return rc
     finally:
         stopped = interrupted()
@@ -109,6 +111,8 @@ def main(argv=None) -> int:
                 sys.stderr.flush()
                 os._exit(rc)
             shutting_down(rc)
+            if returned:  # not an exit on its way (argparse's --help: SystemExit(0))
+                end_process(rc)
 
 
 def _run(argv) -> int:
