@@ -155,6 +155,30 @@ def test_a_significant_surface_too_small_to_move_the_refit_is_not_carried():
     assert big.carried and big.rmse_gain_linearised > 0.1, big
 
 
+def test_the_sentence_names_a_surface_left_out_of_the_refit_with_its_figure():
+    """A significant surface under `SURFACE_MATERIAL` is still named as a product, with why
+    the refit leaves it out; a carried one is named without that clause."""
+    from jaxwear._analyses.diagnose.shape.interaction import Interaction
+
+    g = np.linspace(0, 1, 50)
+    res = [V(name=n, form="factor", explained_fraction=0.8, p_value=1e-6, z=g,
+             g=np.sin(6 * g), g_lower=np.sin(6 * g) - 0.1, g_upper=np.sin(6 * g) + 0.1,
+             unit="MPa", stand_in_for=None)
+           for n in ("pressure_MPa", "sliding_speed_m_per_s")]
+
+    def sentence(gain):
+        inter = Interaction(("pressure_MPa", "sliding_speed_m_per_s"), "factor", 0.01, 5e-5,
+                            10.0, 52.0, True, gain)
+        return describe("pressure_MPa", "factor", res, {}, "base", [],
+                        ("pressure_MPa", "sliding_speed_m_per_s"), None, interaction=inter)
+
+    left = sentence(0.0073)
+    assert "as a product of pressure_MPa and sliding_speed_m_per_s" in left
+    assert "not refitted" in left and "0.7%" in left and "under the 1%" in left
+    carried = sentence(0.02)
+    assert "as a product of" in carried and "not refitted" not in carried
+
+
 def test_the_linearised_gain_by_hand_and_its_correlated_noise_allowance():
     """(ΔRSS − dof)⁺/(2 n), and with AR(1) noise of φ = 0.5 prewhitened rows hold as
     little as (1 − φ)/(1 + φ) = 1/3 of a smooth correction's sum of squares: 3 x."""

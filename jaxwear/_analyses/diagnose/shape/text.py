@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from jaxwear._analyses.diagnose._stats import ALPHA
+from jaxwear._analyses.diagnose.shape.interaction import SURFACE_MATERIAL
 from jaxwear._analyses.diagnose.shape.linear import DRAWS, trend
 
 # cycle phase: the crank angle, the swing's phase, or the phase within a load file's period
@@ -124,8 +125,8 @@ def describe(best, form, results, load, after, alternatives=(), carriers=(), ww=
               f"{p_text(interaction.p_value)}"
               + ("" if interaction.carried else
                  f"; not refitted: linearised, it would lower the refitted RMSE by "
-                 f"{interaction.rmse_gain_linearised:.1%}, under the 1 % a comparison "
-                 f"resolves")
+                 f"{interaction.rmse_gain_linearised:.1%}, under the "
+                 f"{SURFACE_MATERIAL:.0%} a comparison resolves")
               + ")")
     s += "."
     if ww is not None and ww.made:
