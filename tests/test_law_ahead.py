@@ -6,9 +6,11 @@ started, discarded where it skips. (The search's answer with and without them:
 import os
 import sys
 import threading
+import time
 
 import pytest
 
+from jaxwear._analyses.diagnose._model import stop_if_asked
 from jaxwear._analyses.diagnose.law.ahead import NICE, Ahead
 from jaxwear._core.log import log
 
@@ -65,3 +67,30 @@ def test_a_job_runs_ahead_at_the_lowest_priority_and_the_caller_keeps_its_own():
         ahead.close()
     assert worker == max(mine, NICE) == 19
     assert priority() == mine and os.getpriority(os.PRIO_PROCESS, 0) == mine
+
+
+@pytest.mark.parametrize("how", ["close", "drop"])
+def test_a_running_job_the_search_will_not_take_stops_at_its_next_evaluation(how):
+    """A job running when the search skips it (`drop`) or ends (`close`) stops at its next
+    model evaluation (here a chain of 500 of them, each `stop_if_asked` as
+    `Model.evaluate` calls it), counted as discarded with the evaluations it made, where
+    it ran to its end before: a fit of a candidate the search had already passed over."""
+    started, ended, made = threading.Event(), [], []
+
+    def job():
+        started.set()
+        for i in range(500):
+            stop_if_asked()
+            made.append(i)
+            time.sleep(0.01)
+        ended.append(True)
+        return "fitted"
+
+    ahead = Ahead()
+    ahead.submit("j", job)
+    assert started.wait(30)
+    if how == "drop":
+        ahead.drop("j")
+    ahead.close()
+    assert ended == [] and 0 < len(made) < 500
+    assert ahead.discarded["jobs"] == 1 and ahead.used["jobs"] == 0

@@ -10,6 +10,7 @@ every pair.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import threading
 import time
@@ -166,6 +167,7 @@ class Model:
 
     def evaluate(self, u) -> Evaluation:
         """The model at u: rows, prior rows, Jacobian (one compiled call)."""
+        stop_if_asked()
         Model.evaluations += 1
         _own.n = getattr(_own, "n", 0) + 1
         t0 = time.perf_counter()
@@ -198,6 +200,7 @@ class Model:
         return self._forward(u)[1]
 
     def _forward(self, u, doublings: int = 3):
+        stop_if_asked()
         Model.evaluations += 1
         _own.n = getattr(_own, "n", 0) + 1
         t0 = time.perf_counter()
@@ -225,6 +228,31 @@ class Model:
 
 
 _own = threading.local()  # this thread's evaluations (`Model.own_evaluations`)
+
+
+class Stopped(BaseException):
+    """A job asked to stop (`stopping`), raised at its next model evaluation. Not an
+    `Exception`: no fit's handler of a failed evaluation takes it for one."""
+
+
+@contextlib.contextmanager
+def stopping(event: threading.Event):
+    """Within it, this thread's model evaluations raise `Stopped` once `event` is set
+    (`law.ahead`: a job the search will not take stops at its next evaluation, not at its
+    end)."""
+    before = getattr(_own, "stop", None)
+    _own.stop = event
+    try:
+        yield
+    finally:
+        _own.stop = before
+
+
+def stop_if_asked() -> None:
+    """`Stopped` where this thread's job has been asked to stop (`stopping`)."""
+    ev = getattr(_own, "stop", None)
+    if ev is not None and ev.is_set():
+        raise Stopped
 
 
 def _compiled_count() -> int:

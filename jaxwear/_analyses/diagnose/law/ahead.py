@@ -16,7 +16,8 @@ started, it cancels it and runs it itself, and what it does not reach or skips i
 discarded (`close`), its model evaluations counted apart (`discarded`). So the answer,
 the candidates fitted and their order are those of the sequential search; the cost in
 CPU is higher where a candidate run ahead is then skipped (a law at the noise: the rest
-are not fitted).
+are not fitted); a job the search will not take is stopped at its next model evaluation
+(`_model.stopping`), not run to its end.
 
 The worker runs at the lowest scheduling priority (`NICE`): a job run ahead takes only the
 CPU the search and the refit beside it leave idle, so that work the search then discards
@@ -33,7 +34,7 @@ import sys
 import threading
 from concurrent.futures import CancelledError, ThreadPoolExecutor
 
-from jaxwear._analyses.diagnose._model import Model
+from jaxwear._analyses.diagnose._model import Model, Stopped, stopping
 from jaxwear._core.log import held
 
 # one thread beside the search's own: the machine of the 2-minute bar has two cores, and
@@ -58,6 +59,7 @@ class Ahead:
                                          initializer=_lowest_priority)
                       if enabled else None)
         self._jobs: dict = {}
+        self._stops: dict = {}  # key -> the event that stops its job at its next evaluation
         # the jobs whose result the search took, and the model evaluations they ran
         self.used = {"jobs": 0, "model_evaluations": 0}
         # those it did not take (skipped, or run by itself once it reached them)
@@ -68,16 +70,21 @@ class Ahead:
         if self._pool is None:
             return
 
+        stop = threading.Event()
+
         def run():
             e0 = Model.own_evaluations()
-            with held() as lines:
+            with held() as lines, stopping(stop):
                 try:
                     out = fn(*args, **kw)
+                except Stopped:  # the search will not take it (`drop`, `close`)
+                    return None, lines, Model.own_evaluations() - e0
                 except Exception as err:  # noqa: BLE001 (re-raised where it is taken)
                     return err, lines, Model.own_evaluations() - e0
             return out, lines, Model.own_evaluations() - e0
 
         self._jobs[key] = self._pool.submit(run)
+        self._stops[key] = stop
 
     def take(self, key):
         """(the job's result, its progress lines) where it ran or runs (waiting for it),
@@ -95,10 +102,13 @@ class Ahead:
         return out, lines
 
     def drop(self, key) -> None:
-        """The job will not be taken: cancelled where it has not started (one that runs
-        is left to finish and counted at `close`)."""
+        """The job will not be taken: cancelled where it has not started, stopped at its
+        next model evaluation where it runs (and counted at `close`)."""
         fut = self._jobs.get(key)
-        if fut is not None and fut.cancel():
+        if fut is None:
+            return
+        self._stops[key].set()
+        if fut.cancel():
             del self._jobs[key]
 
     def close(self) -> None:
@@ -106,6 +116,8 @@ class Ahead:
         `effects.law.searching()`, which must outlast them), and counted as discarded."""
         if self._pool is None:
             return
+        for key in self._jobs:  # what runs stops at its next evaluation
+            self._stops[key].set()
         for fut in self._jobs.values():
             if fut.cancel():
                 continue
