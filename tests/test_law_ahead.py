@@ -3,15 +3,13 @@ semantics: taken in the search's order, cancelled where the search reaches one t
 started, discarded where it skips. (The search's answer with and without them:
 `test_shape_refit.py`.)"""
 
-import os
-import sys
 import threading
 import time
 
 import pytest
 
 from jaxwear._analyses.diagnose._model import stop_if_asked
-from jaxwear._analyses.diagnose.law.ahead import NICE, Ahead
+from jaxwear._analyses.diagnose.law.ahead import Ahead
 from jaxwear._core.log import log
 
 
@@ -49,24 +47,6 @@ def test_an_error_is_raised_where_the_job_is_taken_and_what_is_skipped_is_discar
     off.submit("x", lambda: 1)
     assert off.take("x") is None
     off.close()
-
-
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice: Linux")
-def test_a_job_runs_ahead_at_the_lowest_priority_and_the_caller_keeps_its_own():
-    """The worker runs at `NICE` (it takes only CPU the search leaves idle), the caller's
-    thread and the process keep theirs."""
-    def priority():
-        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-
-    mine = priority()
-    ahead = Ahead()
-    try:
-        ahead.submit("p", priority)
-        worker, _ = ahead.take("p")
-    finally:
-        ahead.close()
-    assert worker == max(mine, NICE) == 19
-    assert priority() == mine and os.getpriority(os.PRIO_PROCESS, 0) == mine
 
 
 @pytest.mark.parametrize("how", ["close", "drop"])

@@ -19,18 +19,12 @@ CPU is higher where a candidate run ahead is then skipped (a law at the noise: t
 are not fitted); a job the search will not take is stopped at its next model evaluation
 (`_model.stopping`), not run to its end.
 
-The worker runs at the lowest scheduling priority (`NICE`): a job run ahead takes only the
-CPU the search and the refit beside it leave idle, so that work the search then discards
-does not slow what it needs.
-
 Each job's progress lines are held (`_core.log.held`) and printed by the search when it
 takes the result, so that they read in the search's order.
 """
 
 from __future__ import annotations
 
-import os
-import sys
 import threading
 from concurrent.futures import CancelledError, ThreadPoolExecutor
 
@@ -40,14 +34,6 @@ from jaxwear._core.log import held
 # one thread beside the search's own: the machine of the 2-minute bar has two cores, and
 # diagnose runs the shape's refit on top of the effect found beside the search too
 WORKERS = 1
-# The worker's scheduling priority (Linux's nice, which is per thread; XLA:CPU runs a
-# program on the thread that calls it): the lowest, so that a job run ahead takes only the
-# CPU that the search and the refit beside it leave idle. Why: on the speed study of
-# benchmarks/time_to_answer.py (effect_found; the law search against the library's name)
-# the search stopped at its second pick (a law at the noise) and discarded both jobs run
-# ahead, 89 model evaluations that had competed for the two cores with the search and the
-# refit beside it: `diagnose --shape` 91.0-97.4 s against 84.8 s before `law.ahead`.
-NICE = 19
 
 
 class Ahead:
@@ -55,8 +41,7 @@ class Ahead:
     answers None and the caller runs the job itself)."""
 
     def __init__(self, enabled: bool = True):
-        self._pool = (ThreadPoolExecutor(max_workers=WORKERS, thread_name_prefix="jaxwear-law",
-                                         initializer=_lowest_priority)
+        self._pool = (ThreadPoolExecutor(max_workers=WORKERS, thread_name_prefix="jaxwear-law")
                       if enabled else None)
         self._jobs: dict = {}
         self._stops: dict = {}  # key -> the event that stops its job at its next evaluation
@@ -130,13 +115,3 @@ class Ahead:
         self._jobs.clear()
         self._pool.shutdown(wait=True)
 
-
-def _lowest_priority() -> None:
-    """The calling thread at `NICE` (Linux only: elsewhere the priority applies to the
-    whole process, which is left as it is; a refusal changes nothing)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), NICE)
-    except OSError:
-        pass
