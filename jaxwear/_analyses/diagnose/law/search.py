@@ -639,31 +639,23 @@ def law_off(lm: Model, model: Model, law: LawSpec):
     return predict
 
 
-def warm(model: Model, fit: Fit, linear: dict | None = None, prefer=None) -> None:
+def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
     """The law model's programs traced and compiled (one each for every law of the
-    search) by one evaluation and one forward run of a law's start, ahead of `search`:
-    diagnose runs it in the background from the start of the shape's analysis (tracing
-    and compiling the law model took 10-17 s of the search's 21-73 s on the impact study).
-    Every law gives the same programs (`law_model`), so any law does: the pre-screen's
-    first on `linear` where given, else a power of the pressure. Why not wait for the
-    shape's linear analysis: measured on the generator's fatigue study (2 cores,
-    2026-11-29), that analysis is ~8 s of host work with the other core idle, and this
-    compilation, started after it, competed with the shape refit's own (its model's
-    Jacobian, traced and compiled 6-13 s after the refit began). The forward program is
-    the starts' and the left-out checks' (`start_of`, `loo_refined`). Failures are left
-    to the search, which meets them again and reports them."""
+    search) by one evaluation and one forward run of the first candidate's start, ahead
+    of `search`: diagnose runs it in the background while the shape's correction is
+    refitted through the loop (tracing and compiling the law model took 10-17 s of the
+    search's 21-73 s on the impact study). The forward program is the starts' and the
+    left-out checks' (`start_of`, `loo_refined`): compiled at the search's first start, it
+    was 11.8 s of wall there on the fatigue study (load ~9), while the search and the
+    second shape refit held both cores; here the core beside the first refit is mostly
+    free. Failures are left to the search, which meets them again and reports them."""
     try:
-        if linear is None:
-            law = LawSpec("factor", (Term("power", "pressure_MPa", 1.0, a=1.0),), 0.1)
-        else:
-            todo = prescreen(linear)
-            if not todo:
-                return
-            law = todo[0][1]
-        with searching():
-            lm = law_model(model, fit, law)
-            lm.evaluate(np.zeros(len(lm.names)))
-            lm.predict(np.zeros(len(lm.names)))
+        todo = prescreen(linear)
+        if todo:
+            with searching():
+                lm = law_model(model, fit, todo[0][1])
+                lm.evaluate(np.zeros(len(lm.names)))
+                lm.predict(np.zeros(len(lm.names)))
     except Exception:  # noqa: BLE001 (the search reports it where it matters)
         return
 
