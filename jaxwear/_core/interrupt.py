@@ -137,9 +137,14 @@ def end_process(rc: int) -> None:
     interleaved, cold: `calibrate` 8.01, 8.33 -> 7.74, 8.15 s, `simulate` of the README
     4.52-5.09 -> 4.40-4.56 s). Every output is written and closed by then (atomically,
     `_core.io`). Only where `main` returned: an exit on its way (argparse's `--help`)
-    is Python's."""
+    is Python's. A background compilation nobody waits for any more (a finer level's
+    forward program the check did not need, `_core.background`) is left to the end, not
+    joined."""
     import atexit
 
+    from jaxwear._core import background
+
+    background.abandon()
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

@@ -230,6 +230,14 @@ class Jit:
                     return self.variant(None)(*args, **kwargs)
         return self.variant(opts)(*args, **kwargs)
 
+    def lower(self, *args, **kwargs):
+        """The top-level program for these arguments traced and lowered with this
+        program's options (`eqx.filter_jit`'s `lower`): its `compile()` is the compilation
+        the calls with such arguments use after (for compiling ahead in a thread, where
+        the tracing and the compilation are wanted at different moments). Where the
+        compilation fails (an option this jaxlib does not know) a call compiles instead."""
+        return self.variant(self.options()).lower(*args, **kwargs)
+
     def __get__(self, obj, objtype=None):
         # as a method decorator: bind like a function
         return self if obj is None else functools.partial(self, obj)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from dataclasses import replace
 
@@ -26,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import background
 from jaxwear._core.errors import FitError, InputError
 from jaxwear._core.host import to_device
 from jaxwear._core.log import log as _log
@@ -105,7 +107,7 @@ def check_noise_determined(problem: ResidualModel, noise_um: float | None, *, hi
 def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
         max_evaluations: int = 30, verbose: bool = False, robust: bool = True,
         label: str = "fit", se_tol: float = lsq.SE_TOL, ev0: Evaluation | None = None,
-        on_start=None) -> FitResult:
+        on_start=None, on_first=None) -> FitResult:
     """Least-squares fit through the one core (`_inference.lsq.solve`), then standard errors,
     correlations and flags.
 
@@ -120,8 +122,9 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
     - `se_tol`: the stop, as a fraction of a standard error (`lsq.solve`).
     - `ev0`: the problem's evaluation at `u0` when known (no start evaluation, no robust
       start: a refit from an answer).
-    - `on_start`: called with no arguments once the checks made before any evaluation
-      have passed (`fit_study` starts compiling the resolution check's program there).
+    - `on_start`: called with the problem once the checks made before any evaluation
+      have passed (`fit_study` starts compiling the resolution check's program there);
+      `on_first`: called once the first model evaluation has returned.
 
     Raises `InputError` before any evaluation when σ is not given and the data rows do not
     outnumber the fitted parameters; `FitError` when no start can be evaluated.
@@ -130,7 +133,7 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
     check_noise_determined(problem, given, hint="[fit] noise_um")
     noise = stated_noise(problem.data, given)
     if on_start is not None:
-        on_start()
+        on_start(problem)
     P = problem.packing.size
     u = np.zeros(P) if u0 is None else np.asarray(u0, np.float64)
     log = (lambda m: _log(True, m)) if verbose else None
@@ -138,6 +141,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
 
     def run(v, doublings):
         ev, used = evaluate(held[0], v, doublings=doublings)
+        if on_first is not None:
+            on_first()
         if used.schedule.attempts > held[0].schedule.attempts:
             _log(verbose, f"    {label}: integration attempts raised {held[0].schedule.attempts}"
                           f" -> {used.schedule.attempts} for these values")
@@ -209,7 +214,8 @@ def calibrate(study: Study, fit_spec=None, *, start=None, verbose=False,
 
 def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | None = None,
               max_evaluations: int = 30, verbose: bool = False,
-              se_tol: float = lsq.SE_TOL, layout: Layout | None = None) -> FitResult:
+              se_tol: float = lsq.SE_TOL, layout: Layout | None = None,
+              meanwhile=None) -> FitResult:
     """The whole fit of a study: build the problem, refuse what is known before any
     evaluation, fit, re-check the integration error at the answer and, where the study
     leaves the resolution to the error (design.md §6), fit at the coarsest level of
@@ -217,7 +223,11 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
     (`correct_to_finer`): one Jacobian compilation per answer. `result.resolution` reports
     it, `result.iterations` counts every model evaluation (forward runs and checks
     included, `result.forward_runs` of them without a Jacobian) and `result.compiles` the
-    compilations by kind. `layout`: shared schedule capacities (a forecast's)."""
+    compilations by kind. `layout`: shared schedule capacities (a forecast's).
+    `meanwhile(result, level)`: called with the answer as it stands at `level` (nodes,
+    steps per revolution) while the program of a finer level's check compiles, for work
+    on that answer that the check may leave as it is (the command line draws its
+    figures then: `correct_to_finer`)."""
 
     before = traces()
     noise_um = study.noise_um if noise_um is None else noise_um
@@ -227,21 +237,38 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
         result = _fit_at(study, keys, start, layout, **kw)
         result.resolution = res.given(study)
     else:
-        # the check's forward program at the next level compiles while the coarse fit runs,
-        # from when the fit has passed what it refuses before any evaluation (no program
-        # compiled for an answer that is an input error)
+        # the check's forward program at the next level compiles while the coarse fit
+        # runs (from when the fit has passed what it refuses before any evaluation: no
+        # program compiled for an answer that is an input error), traced while the fit's
+        # own Jacobian program compiles and compiled once that is done, with the
+        # least-squares core's programs for this fit (`evaluation.Compiling` says why)
         compiling: dict = {}
+        lowered = background.lowered("_evaluate_jit")
+        compiled = threading.Event()  # the fit's first evaluation has returned
 
-        def start_compiling():
-            compiling[1] = _compile_level(study, keys, start, layout, 1)
+        def first():
+            lowered.set()  # a program already compiled is not lowered again
+            compiled.set()
+
+        def start_compiling(problem):
+            P = problem.packing.size
+            rows = problem.n_data + len(problem.prior_rows(np.zeros(P))[0])
+            ahead = (_level_builder(study, keys, start, layout, 2) if len(res.LEVELS) > 2
+                     else None)
+            compiling[1] = compile_forward(_level_builder(study, keys, start, layout, 1),
+                                           trace_after=(lowered,), compile_after=(compiled,),
+                                           core=(rows, P), ahead=ahead)
 
         try:
             result = _fit_at(res.at_level(study, res.LEVELS[0]), keys, start, layout,
-                             on_start=start_compiling, **kw)
-            result = correct_to_finer(study, keys, result, layout, compiling=compiling, **kw)
+                             on_start=start_compiling, on_first=first, **kw)
+            result = correct_to_finer(study, keys, result, layout, compiling=compiling,
+                                      meanwhile=meanwhile, **kw)
         finally:
-            for c in compiling.values():  # no compilation left running past the answer
-                c.wait()
+            background.forget(lowered)
+            first()
+            for c in compiling.values():  # one the answer did not use is not started
+                c.cancel()
     result.compiles = traces_since(before)
     result.outside = parameter_flags(result.names, result.values, study.preset)
     result.flags[:0] = [f for f in result.outside if f not in result.flags]  # first
@@ -251,15 +278,14 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
 MAX_CORRECTIONS = 4  # defect corrections towards one level before it is called unsettled
 
 
-def _compile_level(study: Study, keys, start, layout, i: int):
-    """The forward program of `study`'s problem at `res.LEVELS[i]`, compiling in the
-    background (`evaluation.compile_forward`)."""
-    return compile_forward(lambda: build_problem(res.at_level(study, res.LEVELS[i]), keys,
-                                                 start, layout=layout))
+def _level_builder(study: Study, keys, start, layout, i: int):
+    """The builder of `study`'s problem at `res.LEVELS[i]` (for `evaluation.compile_forward`)."""
+    return lambda: build_problem(res.at_level(study, res.LEVELS[i]), keys, start,
+                                 layout=layout)
 
 
 def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | None = None,
-                     compiling: dict | None = None, **fit_kw) -> FitResult:
+                     compiling: dict | None = None, meanwhile=None, **fit_kw) -> FitResult:
     """`result` (a fit at the coarsest level) checked against the finer levels, and
     corrected to them where needed, by forward runs there only (design.md §6).
 
@@ -280,7 +306,9 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
 
     `compiling`: level index -> its forward program compiling in the background
     (`evaluation.Compiling`), waited for before that level's first run; the next level's
-    starts compiling here when a defect correction begins (the check will follow)."""
+    starts compiling here when a defect correction begins (the check will follow).
+    `meanwhile(result, level)`: called whenever that wait is for a program still
+    compiling, with the answer as it stands (`fit_study`)."""
 
     verbose = fit_kw.get("verbose")
     levels = res.LEVELS
@@ -299,6 +327,10 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
     for i in range(1, len(levels)):
         fine = build_problem(res.at_level(base, levels[i]), keys, start, layout=layout)
         if i in compiling:
+            if meanwhile is not None and not compiling[i].ready.is_set():
+                # XLA's compilation holds no lock of the interpreter's: the caller's work
+                # on the answer runs beside it
+                meanwhile(result, tuple(levels[at]))
             compiling[i].wait()
         ratio, tries, still = math.inf, 0, False
         while True:
@@ -329,7 +361,10 @@ def correct_to_finer(study: Study, keys, result: FitResult, layout: Layout | Non
             if ok or tries >= MAX_CORRECTIONS or not result.converged:
                 break
             if i + 1 < len(levels) and i + 1 not in compiling:
-                compiling[i + 1] = _compile_level(base, keys, start, layout, i + 1)
+                # traced ahead (`fit_study`) where it could be: compiled here
+                build = _level_builder(base, keys, start, layout, i + 1)
+                compiling[i + 1] = (compiling[i].compile_next(build) if i in compiling
+                                    else compile_forward(build))
             tries += 1
             corrections += 1
             refit = fit(coarse.with_defect(coarse.defect + shift), result.u,
@@ -415,10 +450,10 @@ def at_corrected(result: FitResult, problem: ResidualModel, shift, f: Forward,
 
 
 def _fit_at(study: Study, keys, start, layout=None, *, noise_um, max_evaluations, verbose,
-            se_tol, on_start=None) -> FitResult:
+            se_tol, on_start=None, on_first=None) -> FitResult:
     problem = build_problem(study, keys, start, layout)
     result = fit(problem, noise_um=noise_um, max_evaluations=max_evaluations, verbose=verbose,
-                 se_tol=se_tol, on_start=on_start)
+                 se_tol=se_tol, on_start=on_start, on_first=on_first)
     return recheck_integration(study, result, noise_um=noise_um,
                                max_evaluations=max_evaluations, verbose=verbose,
                                se_tol=se_tol)

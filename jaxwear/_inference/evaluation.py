@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core.background import Background
 from jaxwear._core.host import to_device
 from jaxwear._core.jit import jit
 from jaxwear._inference import lsq
@@ -146,11 +147,17 @@ def _jacobian_run(model: ResidualModel, u, cols):
     return _evaluate_columns_jit(model, u, cols)
 
 
+# a thread lowering the next level's program ahead (`Compiling`): a compilation is counted
+# when that program is compiled, not when it is traced and perhaps never needed
+_ahead = threading.local()
+
+
 @jit
 def _forward_jit(model: ResidualModel, u):
     """Rows [µm], snapshots [µm], worn-through cycle, error estimate [µm], steps: no
     Jacobian (a check of a linearised answer costs one plain run)."""
-    TRACES["forward"] += 1  # runs when traced only
+    if not getattr(_ahead, "lowering", False):
+        TRACES["forward"] += 1  # runs when traced only (lowered ahead: when compiled)
     snaps, res = model.snapshots(u)
     return (model.predict_from(snaps, u), snaps, jnp.max(res.worn_through_cycle),
             jnp.max(res.error_estimate) * 1e6, jnp.max(res.steps))
@@ -286,35 +293,108 @@ class Compiling:
     answer on 2 cores, most of it XLA's compile, which releases the interpreter): compiled
     while the coarse fit compiles and runs, it is ready when the check comes. The same CPU
     time, less wall time where a core is free. A failure here is left to the real call to
-    meet and report."""
+    meet and report.
 
-    def __init__(self, build):
+    When (measured on the rig study's and the boom's calibrations, 2 cores):
+    - `trace_after`: the tracing and lowering wait for these events. They hold the
+      interpreter: beside the fit's own tracing of its Jacobian program they only slow it
+      down (0.66 s alone, 1.16 s beside the check's); during its XLA compilation they
+      cost it nothing.
+    - `compile_after`: XLA's compilation waits for these. XLA:CPU's compilations in two
+      threads partly wait for each other: a program of the fit's least-squares core
+      (compiled in ~0.05 s) took 0.6 s beside a forward program's compilation, and the
+      boom's first step 1.5 s instead of 0.9 s. Compiled while the fit only runs its
+      model, the program costs the fit nothing.
+    `cancel()`: a program not needed any more is not started (one whose compilation is
+    under way finishes in the background)."""
+
+    def __init__(self, build, trace_after=(), compile_after=(), core=None, ahead=None,
+                 prev: Compiling | None = None):
+        self._cancelled = False
+        self.used = False
+        self.next = None  # `ahead`'s program, lowered: (lowered, model, u)
+        self.ready = threading.Event()  # this program compiled (or given up)
+
+        def lower(make):
+            model = _dynamic(make())
+            if not model.schedule.adaptive:
+                return None  # eq 23's loop has no bound to set to 0: it would run in full
+            # a loop bound of 0 attempts: the program as the check runs it (the bound is
+            # traced), run for nothing where it is not compiled ahead
+            limit = to_device(np.zeros(np.shape(model.schedule.attempt_limit), np.int32))
+            model = model.with_schedule(dataclasses.replace(model.schedule,
+                                                            attempt_limit=limit))
+            u = to_device(np.zeros(model.packing.size), np.float64)
+            return _forward_jit.lower(model, u), model, u
+
         def run():
+            for ev in trace_after:
+                ev.wait()
+            if self._cancelled:
+                return
             try:
-                model = _dynamic(build())
-                if not model.schedule.adaptive:
-                    return  # eq 23's loop has no bound to set to 0: it would run in full
-                # a loop bound of 0 attempts: the program as the check runs it (the bound
-                # is traced), run for nothing but its compilation
-                limit = to_device(np.zeros(np.shape(model.schedule.attempt_limit), np.int32))
-                model = model.with_schedule(dataclasses.replace(model.schedule,
-                                                                attempt_limit=limit))
-                jax.block_until_ready(_forward_jit(model, to_device(
-                    np.zeros(model.packing.size), np.float64)))
+                if prev is not None:
+                    prev.join()
+                program = prev.next if prev is not None and prev.next else lower(build)
+                if program is None:
+                    return
+                # the core's programs: their tracing runs small programs, which wait for
+                # the fit's compilation to end
+                first = [] if core is None else lsq.lower_core(*core)
+                for ev in compile_after:
+                    ev.wait()
+                if self._cancelled:
+                    return
+                for low in first:
+                    low.compile()
+                lowered, model, u = program
+                try:
+                    lowered.compile()
+                except Exception:  # noqa: BLE001 (an option this jaxlib lacks: the call
+                    jax.block_until_ready(_forward_jit(model, u))  # finds out and drops it)
+                if prev is not None and program is prev.next:
+                    TRACES["forward"] += 1  # lowered ahead, compiled now
+                self.ready.set()
+                if ahead is not None and not self._cancelled:
+                    _ahead.lowering = True
+                    try:
+                        self.next = lower(ahead)
+                    finally:
+                        _ahead.lowering = False
             except Exception:  # noqa: BLE001 (the check's own call reports it)
                 pass
+            finally:
+                self.ready.set()
 
-        self._thread = threading.Thread(target=run, daemon=True, name="jaxwear-forward")
-        self._thread.start()
+        self._job = Background(run)
 
     def wait(self) -> None:
-        self._thread.join()
+        """Until this program is compiled (not what it lowers ahead)."""
+        self.used = True
+        self.ready.wait()
+
+    def join(self) -> None:
+        """Until the thread has ended (what it lowers ahead included)."""
+        self._job.join()
+
+    def cancel(self) -> None:
+        self._cancelled = True
+
+    def compile_next(self, build) -> Compiling:
+        """The program `ahead` lowered, compiling in a daemon thread once this one is done
+        (`build`'s, traced then, where it was not lowered)."""
+        return Compiling(build, prev=self)
 
 
-def compile_forward(build) -> Compiling:
+def compile_forward(build, trace_after=(), compile_after=(), core=None, ahead=None
+                    ) -> Compiling:
     """Start compiling the forward run of the model `build()` returns (a `ResidualModel`
-    with an adaptive schedule) in a daemon thread (`Compiling`)."""
-    return Compiling(build)
+    with an adaptive schedule) in a daemon thread (`Compiling`): traced once every event
+    of `trace_after` is set, compiled once every one of `compile_after` is; `core`: (rows,
+    free) of a fit whose least-squares core's programs are compiled first
+    (`lsq.lower_core`); `ahead`: a builder whose forward program is then traced and
+    lowered, not compiled (`Compiling.compile_next` compiles it)."""
+    return Compiling(build, tuple(trace_after), tuple(compile_after), core, ahead)
 
 
 def forward(model: ResidualModel, u, *, doublings: int = 3):

@@ -6,18 +6,38 @@ atomically (`_io`).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from jaxwear._core.io import save_figure
 
+_importing = threading.Lock()  # one thread imports the plotting library (`warm_plots`)
+
 
 def plt():
-    import matplotlib
+    """matplotlib's pyplot on the Agg backend (imported here, ~0.3 s: not at start-up)."""
+    with _importing:
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as pyplot
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as pyplot
 
     return pyplot
+
+
+def warm_plots(after: threading.Event) -> None:
+    """Import the plotting library in a daemon thread once `after` is set (a fit's
+    Jacobian program lowered: its XLA compilation leaves the interpreter free for seconds),
+    so that the figures at the answer's end do not wait for it (~0.3 s of a cold
+    `calibrate`). Importing beside the fit's tracing would only slow that down."""
+    from jaxwear._core.background import Background
+
+    def run():
+        after.wait()
+        plt()
+
+    Background(run)
 
 
 PLOT_POINTS = 4000  # markers of one series in a figure; beyond, rows are binned

@@ -19,7 +19,9 @@ from __future__ import annotations
 
 from argparse import Namespace
 
+from jaxwear._core import background
 from jaxwear._inference.packing import study_columns
+from jaxwear._report.figures import warm_plots
 from jaxwear._study.budget import check_work
 from jaxwear._study.data_checks import check_wear_measured
 from jaxwear._study.outputs import open_outputs
@@ -99,7 +101,15 @@ class Verb:
         opts["estimate"] = check_work(self.work_study(study, opts),
                                       tangents=self.tangents(study, opts),
                                       length_from=self.length_from(study, opts))
-        return self.run(study, out, opts)
+        if not self.fits_data:
+            return self.run(study, out, opts)
+        # the figures' library imported while the fit's Jacobian program compiles
+        lowered = background.lowered("_evaluate_jit")
+        warm_plots(lowered)
+        try:
+            return self.run(study, out, opts)
+        finally:
+            background.forget(lowered)
 
 
 def fit_columns(study, keys) -> int:

@@ -13,6 +13,7 @@ cannot run at all (e.g. the model wears through the layer whatever K_d).
 
 from __future__ import annotations
 
+import io
 import sys
 import time
 
@@ -20,6 +21,7 @@ import numpy as np
 
 from jaxwear._analyses.state_range import range_flags
 from jaxwear._core.errors import InputError
+from jaxwear._core.io import FIGURE_DPI
 from jaxwear._inference.calibrate import build_problem, fit_study, study_fit_keys, unit_of
 from jaxwear._inference.result import FitResult
 from jaxwear._physics.config import timed
@@ -124,8 +126,16 @@ def write_tables(out, study, result: FitResult):
                   prof_rows)
 
 
-def plot_fits(out, study, result: FitResult):
-    """fit_<experiment>.png: measured vs fitted, with the residual below."""
+def plot_fits(out, study, result: FitResult, drawn: list | None = None):
+    """fit_<experiment>.png: measured vs fitted, with the residual below; `drawn`: the
+    figures of this answer already rendered (`render_fits`)."""
+
+    drawn = render_fits(study, result) if drawn is None else drawn
+    return [out.write_bytes(name, data) for name, data in drawn]
+
+
+def render_fits(study, result: FitResult) -> list[tuple[str, bytes]]:
+    """(file name, PNG bytes) of each fit_<experiment>.png of `result` (`plot_fits`)."""
 
     pl = plt()
     prob = result.problem
@@ -134,7 +144,7 @@ def plot_fits(out, study, result: FitResult):
     x = np.asarray(d.x)
     n = study.config.nodes
     angles = np.arange(n + 1) * 360.0 / n
-    paths = []
+    drawn = []
     for ei, e in enumerate(study.experiments):
         rows = exp_idx == ei
         if not rows.any():
@@ -180,10 +190,11 @@ def plot_fits(out, study, result: FitResult):
         bot.set_ylabel("residual [µm]")
         bot.grid(alpha=0.3)
         fig.tight_layout()
-        p = out.savefig(fig, f"fit_{e.name}.png")
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=FIGURE_DPI)
         pl.close(fig)
-        paths.append(p)
-    return paths
+        drawn.append((f"fit_{e.name}.png", buf.getvalue()))
+    return drawn
 
 
 def calibrate_outputs(study) -> list[str]:
@@ -230,8 +241,18 @@ class Calibrate(Verb):
               file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         # the one fit path: refusals before any evaluation, the core, the integration
-        # error and the resolution checked at the answer
-        result = fit_study(study, keys, verbose=True)
+        # error and the resolution checked at the answer; the figures of the answer as
+        # it stands are rendered while a finer check's program compiles (0.5 s of the rig
+        # study's calibration) and written if the check leaves the answer as it was (the
+        # last one drawn)
+        early = {}
+
+        def meanwhile(r, level):
+            early.update(level=level, predicted=np.array(r.predicted_um),
+                         snapshots=np.array(r.snapshots_um),
+                         drawn=render_fits(at_level(study, level), r))
+
+        result = fit_study(study, keys, verbose=True, meanwhile=meanwhile)
         # a loaded law (law.py) used beyond the states it was fitted on
         result.flags += [f for f in range_flags(study, result.problem, result.evaluation)
                          if f not in result.flags]
@@ -248,7 +269,10 @@ class Calibrate(Verb):
         if out.json_file is not None:
             written.append(out.write_json_file(doc))
         write_tables(out, study, result)
-        written += plot_fits(out, study, result)
+        same = (early and early["level"] == (study.config.nodes, study.config.steps_per_rev)
+                and np.array_equal(early["predicted"], np.asarray(result.predicted_um))
+                and np.array_equal(early["snapshots"], np.asarray(result.snapshots_um)))
+        written += plot_fits(out, study, result, early["drawn"] if same else None)
         print(summary_text(result, str(study.path)))
         print(f"wrote {written[0]}" + (f" and {written[1]}" if out.json_file is not None
                                        else "")

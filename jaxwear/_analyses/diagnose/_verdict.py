@@ -34,7 +34,8 @@ from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs
 from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._analyses.diagnose.law.search import search, warm
 from jaxwear._analyses.diagnose.shape.analysis import shape_analysis
-from jaxwear._analyses.diagnose.shape.design import Background, at_answer, prepare_design
+from jaxwear._analyses.diagnose.shape.design import at_answer, prepare_design
+from jaxwear._core.background import Background
 from jaxwear._core.errors import InputError
 from jaxwear._core.jsonfmt import json_float
 from jaxwear._core.log import held
@@ -144,7 +145,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     if shape and start is not None:
         # the shape's design needs the base model's answer only: calibrate's path has it
         # (u = 0 here), so its Jacobian compiles and runs while the verdict's base fit,
-        # screens and refits run (`shape.analysis.Background`)
+        # screens and refits run (`_core.background.Background`)
 
         job = Background(prepare_design, model, at_answer(model, r.evaluation),
                          verbose=verbose)

@@ -22,6 +22,7 @@ from jaxwear._inference.lsq._solve import (
     defect_step,
     error_scale,
     failure,
+    lower_core,
     solve,
     step_in_standard_errors,
     step_ratio,
@@ -48,5 +49,6 @@ __all__ = [
     "robust_start",
     "solve",
     "step_in_standard_errors",
+    "lower_core",
     "whitened",
 ]

@@ -105,6 +105,18 @@ def _judge(y, y_eval, r, J, r_eval, J_eval, step_size):
     return new_size, accept
 
 
+def lower_core(rows: int, free: int) -> list:
+    """The core's two programs (`_propose`, `_judge`) traced and lowered for a fit of
+    `rows` whitened rows (data and prior) and `free` fitted parameters, with the arguments
+    `solve` passes (host float64 arrays); their `compile()` is what its calls then use.
+    Why: their first tracing (~0.3 s, most of it optimistix's damped step) and compilation
+    otherwise hold up the fit's first trial; done in a thread while the model's program
+    compiles (`_inference.evaluation.Compiling`)."""
+    y, r = np.zeros(free), np.zeros(rows)
+    J, step = np.zeros((rows, free)), np.asarray(1e2)
+    return [_propose.lower(y, r, J, step), _judge.lower(y, y, r, J, r, J, step)]
+
+
 @dataclass(frozen=True)
 class Outcome:
     """The end of a fit.
@@ -380,9 +392,11 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
         # its lower 99 % bound is used, or a large early misfit reads as "within a
         # standard error" (the boom: 5 rows, 4 parameters).
         dof = max(n - cov.k_eff, 1.0)
-        from scipy.stats import chi2  # here: scipy.stats costs ~0.4 s of `import jaxwear`
+        # chi2.ppf(0.995, dof) as scipy.special's inverse upper tail (the same to ~1e-16):
+        # scipy.stats costs ~0.45 s of a command's start-up, scipy.special ~0.03 s
+        from scipy.special import chdtri
 
-        low = math.sqrt(dof / chi2.ppf(0.995, dof))
+        low = math.sqrt(dof / chdtri(dof, 0.005))
         rss_next = max(float(pt.r @ pt.r) - 2.0 * sigma ** 2 * max(pred, 0.0),
                        1e-6 * float(pt.r @ pt.r))
         s_next = math.sqrt(rss_next / dof) * low

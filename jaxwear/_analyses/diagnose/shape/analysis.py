@@ -52,7 +52,6 @@ from jaxwear._analyses.diagnose.shape.design import (
     JOINT_DRAWS,
     LEVEL,
     SIZE,
-    Background,
     Design,
     numerical_error_rows,
     pair_tensor,
@@ -69,6 +68,7 @@ from jaxwear._analyses.diagnose.shape.map import when_where
 from jaxwear._analyses.diagnose.shape.refit import _carriers, _correction, _map_u, _refit
 from jaxwear._analyses.diagnose.shape.result import ShapeResult, VariableShape
 from jaxwear._analyses.diagnose.shape.text import describe, next_test, next_test_sentence
+from jaxwear._core.background import Background
 from jaxwear._physics.effects.shape import FORMS
 
 # -- the range of each variable met in the data ---------------------------------------------

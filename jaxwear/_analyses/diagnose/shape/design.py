@@ -4,7 +4,6 @@ background while the verdict runs), and the model's own numerical error rows."""
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass, field
 from dataclasses import replace as dreplace
@@ -163,33 +162,6 @@ def at_answer(model: Model, evaluation, label: str = "base"):
     ev = SimpleNamespace(u=np.zeros(len(model.names)), snaps=np.asarray(evaluation.snaps),
                          sliding_m=np.asarray(evaluation.sliding_m))
     return SimpleNamespace(label=label, ev=ev)
-
-
-class Background:
-    """`fn(*args, **kw)` in a daemon thread (`result()` joins it and re-raises what it
-    raised). Why: the shape's design Jacobian (~25 s, most of it compilation) needs only
-    the base fit, so `diagnose --shape` computes it while the verdict's screens and refits
-    run; XLA's compilation and runs release the interpreter."""
-
-    def __init__(self, fn, *args, **kw):
-
-        self._out = None
-        self._err = None
-
-        def run():
-            try:
-                self._out = fn(*args, **kw)
-            except BaseException as e:  # re-raised in the caller's thread
-                self._err = e
-
-        self._thread = threading.Thread(target=run, daemon=True, name="jaxwear-shape")
-        self._thread.start()
-
-    def result(self):
-        self._thread.join()
-        if self._err is not None:
-            raise self._err
-        return self._out
 
 
 @jit

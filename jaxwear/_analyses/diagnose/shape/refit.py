@@ -15,10 +15,10 @@ from jaxwear._analyses.diagnose.shape.design import (
     FACTOR_SD,
     MAX_CARRIERS,
     REFIT_EVALUATIONS,
-    Background,
     _map_u,
 )
 from jaxwear._analyses.diagnose.shape.map import compile_maps
+from jaxwear._core.background import Background
 from jaxwear._inference import lsq
 from jaxwear._physics.effects.shape import ShapeBasis
 
