@@ -265,10 +265,10 @@ def fit_study(study: Study, keys: list[str], *, start=None, noise_um: float | No
             result = correct_to_finer(study, keys, result, layout, compiling=compiling,
                                       meanwhile=meanwhile, **kw)
         finally:
-            background.forget(lowered)
-            first()
             for c in compiling.values():  # one the answer did not use is not started
                 c.cancel()
+            background.forget(lowered)
+            first()
     result.compiles = traces_since(before)
     result.outside = parameter_flags(result.names, result.values, study.preset)
     result.flags[:0] = [f for f in result.outside if f not in result.flags]  # first

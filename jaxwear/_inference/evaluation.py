@@ -311,7 +311,6 @@ class Compiling:
     def __init__(self, build, trace_after=(), compile_after=(), core=None, ahead=None,
                  prev: Compiling | None = None):
         self._cancelled = False
-        self.used = False
         self.next = None  # `ahead`'s program, lowered: (lowered, model, u)
         self.ready = threading.Event()  # this program compiled (or given up)
 
@@ -370,7 +369,6 @@ class Compiling:
 
     def wait(self) -> None:
         """Until this program is compiled (not what it lowers ahead)."""
-        self.used = True
         self.ready.wait()
 
     def join(self) -> None:
