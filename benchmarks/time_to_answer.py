@@ -32,7 +32,10 @@ top-level call timed to its result, the compilation in its own thread taken out;
 several threads at once are each counted) and `host` (the rest: NumPy, the fits'
 bookkeeping, the outputs, waiting; negative where compilations or runs overlapped).
 Recorded in the command's own process by `jax.monitoring` listeners and a timer around
-`jaxwear._core.jit.Jit` (`_RUNNER`).
+`jaxwear._core.jit.Jit` (`_RUNNER`), which then ends the process as the command line does
+(`_core.interrupt.end_process`: the exit hooks, no interpreter teardown; until 2026-11-29
+midday the runner left the teardown to Python, 0.2-0.5 s a command that `jaxwear` does not
+spend).
 
 A fixed reference runs before every command: `benchmarks/numpy_reference.py`'s rig, 10 000
 rev at 360 x 360, M = 500 (plain NumPy, no compilation; 1.46 s on the quiet machine of
@@ -121,7 +124,10 @@ finally:
         json.dump({"wall": wall, "import": t_import, "compile": acc["trace"] + acc["lower"]
                    + acc["xla"], "cache": acc["cache"], "runs": runs["seconds"],
                    "calls": runs["calls"], **acc}, f)
-sys.exit(rc)
+# as `python -m jaxwear` ends (`cli.main` ends its own process only when it is the command
+# line: here it is called from this runner)
+from jaxwear._core.interrupt import end_process
+end_process(rc)
 """
 
 
