@@ -480,3 +480,26 @@ def test_adaptive_study_reports_the_forecast_integration(study_path, forecast, t
     short = dataclasses.replace(problem, schedule=dataclasses.replace(problem.schedule,
                                                                       attempts=2))
     assert float(jax.jit(log_density(short, noise_um=0.3))(z)) == -math.inf
+
+
+def test_a_band_beyond_exps_range_is_no_bound_not_an_error():
+    """A log-fitted parameter whose standard error is finite but huge (a running-in
+    distance along its valley: seen as `OverflowError: math range error` from a forecast)
+    gets the band (0, none) of a parameter the data do not bound; a small one the
+    multiplicative band by hand."""
+    from types import SimpleNamespace
+
+    from jaxwear._analyses.predict.bands import _param_table
+
+    P = 2
+    packing = SimpleNamespace(value_jacobian=lambda u: np.diag([2.0, 3.0]))
+    problem = SimpleNamespace(packing=packing,
+                              columns=[SimpleNamespace(log=True), SimpleNamespace(log=True)])
+    result = SimpleNamespace(problem=problem, values=np.array([2.0, 3.0]), names=["a", "b"],
+                             u=np.zeros(P))
+    cov = np.diag([0.1 ** 2, 800.0 ** 2])
+    table = _param_table(result, cov, 1.645, np.zeros((P, 0)))
+    assert table["a"]["lower"] == pytest.approx(2.0 * np.exp(-0.1645))
+    assert table["a"]["upper"] == pytest.approx(2.0 * np.exp(0.1645))
+    assert table["b"]["lower"] == 0.0 and table["b"]["upper"] is None
+    assert table["b"]["stderr"] == pytest.approx(3.0 * 800.0)

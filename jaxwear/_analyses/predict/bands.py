@@ -101,7 +101,12 @@ def _param_table(result: FitResult, cov, q, null_dirs):
         touches = np.any((np.abs(G[i]) > 0) & unknown)
         se_u = math.inf if unknown[i] else math.sqrt(max(cov[i, i], 0.0))
         if f.log:
-            se, lo, hi = vals[i] * se_u, vals[i] * math.exp(-q * se_u), vals[i] * math.exp(q * se_u)
+            # a band wider than exp's range (a factor beyond e^700: a finite standard error
+            # of a barely determined parameter) is no bound: 0 and inf, not an overflow
+            z = q * se_u
+            se = vals[i] * se_u
+            lo, hi = ((vals[i] * math.exp(-z), vals[i] * math.exp(z)) if z < 700.0
+                      else (0.0, math.inf))
         else:
             se = math.inf if touches else math.sqrt(max(float(G[i] @ cov @ G[i]), 0.0))
             lo, hi = vals[i] - q * se, vals[i] + q * se
