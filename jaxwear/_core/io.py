@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import errno
+import io
 import json
 import os
 import re
@@ -307,6 +308,13 @@ def atomic_write(path, data: str | bytes) -> None:
     """Write `data` (text as UTF-8) to `path` through a temporary file and a rename."""
     with atomic_open(path, "wb" if isinstance(data, bytes) else "w") as f:
         f.write(data)
+
+
+def png_bytes(fig, dpi: int = FIGURE_DPI) -> bytes:
+    """`fig` rendered as PNG in memory (drawn in one place, written or embedded later)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()
 
 
 def save_figure(fig, path, dpi: int = FIGURE_DPI) -> None:

@@ -124,7 +124,8 @@ def fit(problem: ResidualModel, u0=None, *, noise_um: float | None = None,
       start: a refit from an answer).
     - `on_start`: called with the problem once the checks made before any evaluation
       have passed (`fit_study` starts compiling the resolution check's program there);
-      `on_first`: called once the first model evaluation has returned.
+      `on_first`: called after every model evaluation (`fit_study` opens its gates at the
+      first).
 
     Raises `InputError` before any evaluation when σ is not given and the data rows do not
     outnumber the fitted parameters; `FitError` when no start can be evaluated.

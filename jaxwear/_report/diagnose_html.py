@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import math
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from jaxwear._analyses.diagnose._headline import (
     shape_adds,
 )
 from jaxwear._analyses.diagnose.shape.text import p_text
+from jaxwear._core.io import png_bytes
 from jaxwear._report.answer_plot import law_figure, profile_caption, profile_figure
 from jaxwear._report.figures import plt, thinned, thinned_label
 from jaxwear._report.law_html import law_section
@@ -26,10 +26,9 @@ from jaxwear._report.shape_plot import shape_figure, when_where_figure
 
 
 def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
+    data = png_bytes(fig, dpi=100)
     plt().close(fig)
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+    return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
 
 
 def _img(src: str, alt: str) -> str:

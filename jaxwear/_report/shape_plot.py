@@ -4,13 +4,11 @@ the bore the missing wear is made (`shape_when_where.png`)."""
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 
 from jaxwear._analyses.diagnose.shape.design import LEVEL
 from jaxwear._analyses.diagnose.shape.text import p_text
-from jaxwear._core.io import FIGURE_DPI
+from jaxwear._core.io import png_bytes
 from jaxwear._report.figures import plt
 
 
@@ -75,10 +73,7 @@ def shape_pngs(results) -> list[dict]:
     for res in results:
         pngs = {}
         for label in (() if res is None else res.settled_labels()):
-            fig = shape_figure(res, label)
-            buf = io.BytesIO()
-            fig.savefig(buf, format="png", dpi=FIGURE_DPI)
-            pngs[label] = buf.getvalue()
+            pngs[label] = png_bytes(shape_figure(res, label))
         out.append(pngs)
     return out
 

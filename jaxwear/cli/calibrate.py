@@ -13,7 +13,6 @@ cannot run at all (e.g. the model wears through the layer whatever K_d).
 
 from __future__ import annotations
 
-import io
 import sys
 import time
 
@@ -21,7 +20,7 @@ import numpy as np
 
 from jaxwear._analyses.state_range import range_flags
 from jaxwear._core.errors import InputError
-from jaxwear._core.io import FIGURE_DPI
+from jaxwear._core.io import png_bytes
 from jaxwear._inference.calibrate import build_problem, fit_study, study_fit_keys, unit_of
 from jaxwear._inference.result import FitResult
 from jaxwear._physics.config import timed
@@ -190,10 +189,8 @@ def render_fits(study, result: FitResult) -> list[tuple[str, bytes]]:
         bot.set_ylabel("residual [µm]")
         bot.grid(alpha=0.3)
         fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=FIGURE_DPI)
+        drawn.append((f"fit_{e.name}.png", png_bytes(fig)))
         pl.close(fig)
-        drawn.append((f"fit_{e.name}.png", buf.getvalue()))
     return drawn
 
 
