@@ -487,3 +487,66 @@ def least_squares_rmse(y) -> float:
 
     best = least_squares(lambda u: (math.exp(u[0]) * np.exp(-u[1] * T) - y), [0.0, 0.2])
     return math.sqrt(float(best.fun @ best.fun) / T.size)
+
+
+def test_robust_start_rescales_a_power_law_in_one_evaluation():
+    """Depth ∝ K^β (β = 0.8: wear widens the contact) from a start 20x low: the factor a of
+    the depths, taken to the power 1/β from the Jacobian, lands on K exactly (power-law
+    identity), where K·a alone falls short (a = 20^0.8 = 11.0, then 1.6, ...)."""
+    beta, k_true = 0.8, 2.5e-13
+    shape = 1.0 + 0.3 * T
+    y = (k_true / 1e-13) ** beta * shape
+
+    def evaluate(u):
+        m = math.exp(beta * u[0]) * shape  # u[0] = ln(K / 1e-13)
+        return lsq.Point(u=np.array(u, float), r=m - y, predicted=m, J=beta * m[:, None],
+                         r_prior=np.zeros(0), J_prior=np.zeros((0, 1)), usable=True)
+
+    u0 = np.array([math.log(k_true / 1e-13 / 20.0)])
+    u, pt, evals, why = lsq.robust_start(evaluate, u0, 0, measured=y)
+    assert why is None
+    assert evals == 2  # the start and one rescale
+    assert math.exp(u[0]) * 1e-13 == pytest.approx(k_true, rel=1e-9)
+
+
+def test_a_column_zero_at_the_start_gets_its_own_scale():
+    """A shape parameter whose strength starts off has a zero column: the damping's scale
+    stands in the largest norm for it only until its own first nonzero norm, which then
+    replaces the stand-in even where it is smaller (the scale otherwise only grows)."""
+    from jaxwear._inference.lsq._solve import _column_scale, _scaling
+
+    J0 = np.array([[3.0, 0.0], [4.0, 0.0]])  # norms 5 and 0
+    D = _column_scale(J0, None)
+    assert D.tolist() == [5.0, 0.0]
+    assert _scaling(D).tolist() == [5.0, 5.0]  # the stand-in
+    J1 = np.array([[3.0, 0.6], [4.0, 0.8]])  # the second column's own norm: 1
+    D = _column_scale(J1, D)
+    assert _scaling(D).tolist() == [5.0, 1.0]
+    J2 = np.array([[0.3, 0.06], [0.4, 0.08]])  # both smaller: the scale only grows
+    assert _scaling(_column_scale(J2, D)).tolist() == [5.0, 1.0]
+
+
+def test_a_gauss_newton_step_the_projection_alters_is_not_taken_whole():
+    """Near the answer the core takes the full Gauss-Newton step, the step its quadratic
+    model judged. Where `project` (a constraint the box cannot state) moves that step, the
+    trial would be another point: the damped step is proposed instead. Linear model, answer
+    u* = (2, 0), `project` caps u[0] at 1.5: the full step from anywhere is u*, projected
+    (1.5, 0); it is never a trial."""
+    X = np.stack([np.ones_like(T), T], 1)
+    y = X @ np.array([2.0, 0.0])
+    calls = []
+
+    def evaluate(u):
+        calls.append(np.array(u))
+        m = X @ u
+        return lsq.Point(u=np.array(u, float), r=m - y, predicted=m, J=X,
+                         r_prior=np.zeros(0), J_prior=np.zeros((0, 2)), usable=True)
+
+    def project(u):
+        return np.array([min(u[0], 1.5), u[1]])
+
+    # a large σ: the start is within a standard error, where the full step would be taken
+    lsq.solve(evaluate, np.array([1.0, 0.5]), noise_um=50.0, max_evaluations=6,
+              project=project)
+    assert len(calls) > 1
+    assert not any(np.allclose(c, [1.5, 0.0], atol=1e-9) for c in calls[1:]), calls
