@@ -6,6 +6,7 @@ started, discarded where it skips. (The search's answer with and without them:
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from jaxwear._analyses.diagnose._model import stop_if_asked
@@ -74,3 +75,30 @@ def test_a_running_job_the_search_will_not_take_stops_at_its_next_evaluation(how
     ahead.close()
     assert ended == [] and 0 < len(made) < 500
     assert ahead.discarded["jobs"] == 1 and ahead.used["jobs"] == 0
+
+
+def test_nothing_runs_ahead_where_the_shape_leaves_the_data_at_the_noise():
+    """`law.ahead`'s jobs are discarded once a law reaches the noise; where the shape's
+    correction refitted through the loop already leaves residuals at the noise (white, of
+    the noise's size), the law that matches it is expected there and nothing is run ahead.
+    Residuals of the noise pass; the same noise plus a smooth misfit of half its size along
+    the series (the autocorrelation test's signature) and noise 20 % too large (the
+    chi-square test's) do not; no residuals (the refit gave none) do not either."""
+    from types import SimpleNamespace
+
+    from jaxwear._analyses.diagnose._verdict import shape_at_noise
+
+    rng = np.random.default_rng(7)
+    n, sigma = 2000, 0.3
+    pairs = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+    base = SimpleNamespace(k=6)
+
+    def at_noise(r):
+        return shape_at_noise(None, base, SimpleNamespace(residual_um=r), sigma, 1500.0,
+                              pairs)
+
+    white = sigma * rng.standard_normal(n)
+    assert at_noise(white)
+    assert not at_noise(white + 0.5 * sigma * np.sin(np.linspace(0, 6 * np.pi, n)))
+    assert not at_noise(1.2 * white)
+    assert not at_noise(None)
