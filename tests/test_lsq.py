@@ -550,3 +550,20 @@ def test_a_gauss_newton_step_the_projection_alters_is_not_taken_whole():
               project=project)
     assert len(calls) > 1
     assert not any(np.allclose(c, [1.5, 0.0], atol=1e-9) for c in calls[1:]), calls
+
+
+def test_robust_start_without_the_scale_column_rescales_by_the_factor_alone():
+    """A Jacobian whose K_d column was not computed (zero: a fit computing only some
+    columns) says nothing about depth's elasticity: the rescale is K·a, not K·a^(1/0.25)."""
+    shape = 1.0 + 0.3 * T
+    y = 2.0 * shape
+
+    def evaluate(u):
+        m = math.exp(u[0]) * shape
+        return lsq.Point(u=np.array(u, float), r=m - y, predicted=m,
+                         J=np.zeros((T.size, 1)), r_prior=np.zeros(0),
+                         J_prior=np.zeros((0, 1)), usable=True)
+
+    u, pt, evals, why = lsq.robust_start(evaluate, np.array([0.0]), 0, measured=y)
+    assert why is None and evals == 2
+    assert math.exp(u[0]) == pytest.approx(2.0, rel=1e-12)

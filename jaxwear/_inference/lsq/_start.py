@@ -13,17 +13,20 @@ from jaxwear._inference.lsq._point import Point
 
 def _elasticity(pt: Point, k: int) -> float:
     """β = d ln(depth) / d ln K_d from the point's Jacobian (least squares over the rows),
-    within [0.25, 2]; 1 where the Jacobian does not say. Why: wear widens the contact, so
-    depth grows more slowly than K_d, and a rescale by the factor a alone falls short (the
-    boom from the study's K_d: x14.9, then x1.64, x1.04, three evaluations; with β, 0.74
-    there: x37.8, then x0.676, two)."""
+    within [0.25, 2]; 1 where the Jacobian does not say (a column not computed, or β not
+    positive). Why: wear widens the contact, so depth grows more slowly than K_d, and a
+    rescale by the factor a alone falls short (the boom from the study's K_d: x14.9, then
+    x1.64, x1.04, three evaluations; with β, 0.74 there: x37.8, then x0.676, two)."""
     d = np.asarray(pt.predicted, np.float64)
     Jk = np.asarray(pt.J, np.float64)[:, k] if np.ndim(pt.J) == 2 else np.zeros(0)
     dd = float(d @ d)
     if Jk.shape != d.shape or not dd > 0:
         return 1.0
     beta = float(d @ Jk) / dd
-    return min(max(beta, 0.25), 2.0) if math.isfinite(beta) else 1.0
+    # a column not computed (zero) or not positive says nothing about the scale
+    if not (math.isfinite(beta) and beta > 0.05):
+        return 1.0
+    return min(max(beta, 0.25), 2.0)
 
 
 def robust_start(evaluate: Callable[[np.ndarray], Point], u, scale_index: int | None, *,
