@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from jaxwear._analyses.diagnose._model import stop_if_asked
-from jaxwear._analyses.diagnose.law.ahead import Ahead
+from jaxwear._analyses.diagnose.law.ahead import Ahead, Shared
 from jaxwear._core.log import log
 
 
@@ -75,6 +75,61 @@ def test_a_running_job_the_search_will_not_take_stops_at_its_next_evaluation(how
     ahead.close()
     assert ended == [] and 0 < len(made) < 500
     assert ahead.discarded["jobs"] == 1 and ahead.used["jobs"] == 0
+
+
+def _shared_job(shared, tasks, ran, gate):
+    """A job as the search's laws with memory: its tasks known after a first part, then
+    each claimed and run in order (the first held at `gate`)."""
+    def job():
+        shared.publish("starts", tasks)
+        for i, t in enumerate(shared.items):
+            if shared.claim(i):
+                if i == 0:
+                    gate.wait(10)
+                ran[i] = threading.current_thread().name
+                shared.put(i, t * 10)
+        return "done"
+    return job
+
+
+def test_the_search_runs_the_shared_tasks_the_job_has_not_begun_meanwhile():
+    """Reached while the job runs its first task, the search takes the others and runs
+    them itself (on its own thread, while the job's runs), then the job's result: every
+    task once, results in the tasks' order, whoever ran them. Why: on the fatigue study
+    the search waited 11-12 s for the job's laws with memory with its core idle."""
+    gate, ran = threading.Event(), {}
+    ahead, shared = Ahead(), Shared()
+    ahead.submit("m", _shared_job(shared, [1, 2, 3], ran, gate))
+    assert ahead.started("m") and shared.wait_ready(lambda: ahead.finished("m"))
+    while 0 not in shared._owner:  # the job has claimed its first task
+        time.sleep(0.01)
+    mine = shared.claim_rest()
+    assert mine == [1, 2]  # the job is busy: every task it has not claimed
+    for i in mine:
+        ran[i] = threading.current_thread().name
+    assert not ahead.finished("m")  # still on its first task while the search ran these
+    gate.set()
+    assert ahead.take("m")[0] == "done"
+    assert shared.result(0) == 10 and set(ran) == {0, 1, 2}
+    assert ran[0].startswith("jaxwear-law") and ran[1] == ran[2] == threading.current_thread().name
+    ahead.close()
+
+
+def test_a_job_between_tasks_keeps_its_next_and_one_not_started_is_the_callers():
+    """Where the job has claimed nothing yet, the search leaves it the first task (it
+    claims it next) and takes the rest; a job that has not started is the caller's whole
+    (`started` cancels it, as `take`)."""
+    shared = Shared()
+    shared.publish("starts", ["a", "b", "c"])
+    assert shared.claim_rest() == [1, 2]
+    assert shared.claim(0) and not shared.claim(1)
+    gate = threading.Event()
+    ahead = Ahead()
+    ahead.submit("busy", lambda: gate.wait(10))
+    ahead.submit("queued", lambda: "never")
+    assert not ahead.started("queued") and ahead.take("queued") is None
+    gate.set()
+    ahead.close()
 
 
 def test_nothing_runs_ahead_where_the_shape_leaves_the_data_at_the_noise():

@@ -311,8 +311,16 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         # both refits on one model (the effect's groups held at off in the first): one
         # compilation where they refit the same carriers (`shape_analysis`'s refit_groups)
         shared = list(final.groups) if twice and by_contact(final.contact) is model else []
+        design = None if job is None else job.result()
+        if design is None and shared:
+            # the design with every candidate held at off, as `--shape` prepares it: the
+            # analysis on top of the effect found then reuses its columns (no Jacobian
+            # of its own: on the fatigue study a compilation and a run of 7 s, one
+            # forward run at the finer level 1.5 s), where one with the base's groups
+            # only would not carry the effect's
+            design = prepare_design(model, base, verbose=verbose)
         shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
-                             verbose=verbose, design=None if job is None else job.result(),
+                             verbose=verbose, design=design,
                              numerical_um=(finer_minus_rows if _at_start(base, 0.1)
                                            else None), defer=figures is not None,
                              refit_groups=shared)

@@ -21,6 +21,11 @@ are not fitted); a job the search will not take is stopped at its next model eva
 
 Each job's progress lines are held (`_core.log.held`) and printed by the search when it
 takes the result, so that they read in the search's order.
+
+A job of several independent tasks (the laws with memory: one fit per form, after their
+starts) shares them with the search (`Shared`): once the search reaches the job, it fits
+the tasks the job has not begun while the job fits its own, rather than wait for the
+whole job with its own core idle.
 """
 
 from __future__ import annotations
@@ -86,6 +91,22 @@ class Ahead:
             raise out
         return out, lines
 
+    def started(self, key) -> bool:
+        """Whether the job `key` runs or ran; one that has not started is cancelled (the
+        caller runs it itself), as `take` would."""
+        fut = self._jobs.get(key)
+        if fut is None:
+            return False
+        if fut.cancel():
+            del self._jobs[key]
+            return False
+        return True
+
+    def finished(self, key) -> bool:
+        """Whether the job `key` has ended (or none is held under it)."""
+        fut = self._jobs.get(key)
+        return fut is None or fut.done()
+
     def drop(self, key) -> None:
         """The job will not be taken: cancelled where it has not started, stopped at its
         next model evaluation where it runs (and counted at `close`)."""
@@ -115,3 +136,67 @@ class Ahead:
         self._jobs.clear()
         self._pool.shutdown(wait=True)
 
+
+
+class Shared:
+    """A job's tasks (independent of each other, each decided before the job starts them),
+    claimed one at a time: by the job in their order, and by the search once it reaches
+    the job, from the end, so that the search runs what the job has not begun while the
+    job runs its own, instead of waiting for the whole job. Why: on the generator's
+    fatigue study the laws with memory (their starts' forward runs, then a damage's fit
+    and a film's, each with its left-out checks) ran as one job on the second core, and
+    the search, done with the memoryless laws, waited 11-12 s for it with its own core
+    idle. The tasks' results are those of the same calls wherever they run."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._ready = threading.Event()
+        self.head = None  # what the job computed before its tasks
+        self.items: list = []
+        self._owner: dict = {}
+        self._done: dict = {}
+        self._out: dict = {}
+
+    def publish(self, head, items) -> None:
+        """The job's tasks are known (`head`: what it computed to know them)."""
+        self.head, self.items = head, list(items)
+        self._done = {i: threading.Event() for i in range(len(self.items))}
+        self._ready.set()
+
+    def wait_ready(self, ended) -> bool:
+        """Wait until the tasks are published (True) or `ended()` says that the job ended
+        without publishing them (False: it raised, or was stopped)."""
+        while not self._ready.wait(0.05):
+            if ended():
+                return self._ready.is_set()
+        return True
+
+    def claim(self, i: int) -> bool:
+        """The job's claim of task `i` (False: the search runs it)."""
+        with self._lock:
+            if i in self._owner:
+                return False
+            self._owner[i] = "job"
+            return True
+
+    def put(self, i: int, out) -> None:
+        """The job's result of task `i`."""
+        self._out[i] = out
+        self._done[i].set()
+
+    def claim_rest(self) -> list[int]:
+        """The tasks the search takes: every one the job has not claimed, but the first
+        of them where the job is between tasks (it claims that one next)."""
+        with self._lock:
+            rest = [i for i in range(len(self.items)) if i not in self._owner]
+            busy = any(who == "job" and not self._done[i].is_set()
+                       for i, who in self._owner.items())
+            mine = rest if busy else rest[1:]
+            for i in mine:
+                self._owner[i] = "search"
+            return mine
+
+    def result(self, i: int):
+        """The job's result of task `i` (waiting for it)."""
+        self._done[i].wait()
+        return self._out[i]

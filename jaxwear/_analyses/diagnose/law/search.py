@@ -69,7 +69,7 @@ from jaxwear._analyses.diagnose._fit import Fit, _log, fit_masked
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._analyses.diagnose._refit import _tests_for
 from jaxwear._analyses.diagnose._stats import neighbour_pairs
-from jaxwear._analyses.diagnose.law.ahead import Ahead
+from jaxwear._analyses.diagnose.law.ahead import Ahead, Shared
 from jaxwear._analyses.diagnose.law.equivalent import equivalents, separation
 from jaxwear._analyses.diagnose.law.memory import after, memory_candidates, wanted
 from jaxwear._analyses.diagnose.law.numerical import correct_law
@@ -382,41 +382,62 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
         started, r_start = start_of(model, fit, variants(screened, law))
         return started, r_start, fit_checked(started, "screen")
 
+    shared = Shared()  # the laws with memory: fitted by the job and by the search
+
+    def memory_fit(law):
+        """(its fit checked, or the error it raised (raised where the search takes it),
+        its progress lines, this thread's model evaluations)."""
+        e0 = Model.own_evaluations()
+        with held() as lines:
+            try:
+                done = fit_checked(law, "memory")
+            except Exception as err:  # noqa: BLE001 (raised where the search fits it)
+                done = err
+        return done, lines, Model.own_evaluations() - e0
+
     def memory_ahead():
         # the starts as the search makes them once it tries laws with memory (whether it
         # does depends on the laws fitted before: decided where it reaches them); each
         # law's fit with its own lines, evaluations and error, so that the search takes
-        # (or skips: `after_noise`) each as it would have run it
+        # (or skips: `after_noise`) each as it would have run it. The fits are shared
+        # (`law.ahead.Shared`): the search, once it reaches them, fits those not begun
         with held() as start_lines:
             cands = memory_candidates(model, fit, prefer, correction, law_model, [],
                                       noise_um, verbose=verbose)
-        out = []
-        for _, law, _ in cands:
-            e0 = Model.own_evaluations()
-            with held() as lines:
-                try:
-                    done = fit_checked(law, "memory")
-                except Exception as err:  # noqa: BLE001 (raised where the search fits it)
-                    done = err
-            out.append((law, done, lines, Model.own_evaluations() - e0))
-        return start_lines, out
+        shared.publish(start_lines, [law for _, law, _ in cands])
+        for i, law in enumerate(shared.items):
+            if not shared.claim(i):
+                continue
+            out = None
+            try:
+                out = memory_fit(law)
+            finally:  # stopped (`Stopped`): the slot filled, so that nothing waits on it
+                shared.put(i, out)
+        return start_lines
 
     def memory_now():
         skip, shp = any(f.at_noise for f in fitted), as_shape(fitted, shape_rmse_um)
         if skip or not wanted(prefer, correction, fitted, noise_um, shp):
             ahead.drop("memory")
             return []
-        got = ahead.take("memory")
-        if got is None:
+        if not ahead.started("memory") or not shared.wait_ready(
+                lambda: ahead.finished("memory")):
+            ahead.take("memory")  # an error the job raised before its fits, raised here
             return memory_candidates(model, fit, prefer, correction, law_model, fitted,
                                      noise_um, verbose=verbose, skip=skip, as_shape=shp)
-        (start_lines, out), _ = got
-        _replay(verbose, start_lines)
-        for law, done, lines, evals in out:
+        _replay(verbose, shared.head)
+        # the fits the job has not begun, run here meanwhile (counted as this thread's)
+        mine = {i: memory_fit(shared.items[i])[:2] + (0,) for i in shared.claim_rest()}
+        ahead.take("memory")  # the job's own fits
+        for i, law in enumerate(shared.items):
+            got = mine[i] if i in mine else shared.result(i)
+            if got is None:  # the job was stopped in it: fitted here
+                got = memory_fit(law)[:2] + (0,)
+            done, lines, evals = got
             # counted as used once the search fits it (`memo`), else discarded at the end
             ahead.used["model_evaluations"] -= evals
             memo[id(law)] = (done, lines, evals)
-        return [(math.nan, law, "memory") for law, _, _, _ in out]
+        return [(math.nan, law, "memory") for law in shared.items]
 
     independent = [law for i, (_, law) in enumerate(todo) if i > 0 and from_fitted(
         law, [SimpleNamespace(law=lw) for _, lw in todo[:i]], linear) is law]
