@@ -481,6 +481,26 @@ def test_settled_rmse_is_not_fooled_by_rejected_trials():
     assert 0.0 <= out.point.rms_um / best - 1.0 < 5e-3
 
 
+def test_settled_rmse_stops_where_the_quadratic_model_leaves_less_than_it():
+    """At a numerical floor (the model's rows jump by 0.005 with u, as an adaptive
+    integrator's error does) trials near the minimum are rejected one after another:
+    without a misfit stop the fit stalls after 10 evaluations. `settled_rmse` also stops
+    where the next Gauss-Newton step predicts the RMSE lower by less than its fraction
+    (what the quadratic model says is left), says so, and is then within 0.5 % of the
+    true least-squares RMSE (scipy's, without the floor). Why: the fatigue study's shape
+    refit, whose last three trials (1.1-1.7 s each) were rejected at the floor with
+    0.31 % predicted left."""
+    y = data(2)
+    plain = lsq.solve(exp_model(y, jitter=0.005), np.array([0.0, 0.2]), noise_um=SIGMA,
+                      max_evaluations=40)
+    out = lsq.solve(exp_model(y, jitter=0.005), np.array([0.0, 0.2]), noise_um=SIGMA,
+                    max_evaluations=40, settled_rmse=4e-3)
+    assert plain.status == "stalled"
+    assert out.status == "converged" and "step predicts the data's RMSE lower" in out.message
+    assert out.evaluations < plain.evaluations
+    assert 0.0 <= out.point.rms_um / least_squares_rmse(y) - 1.0 < 5e-3
+
+
 def least_squares_rmse(y) -> float:
     """The RMSE of the least-squares minimum of a·exp(-k t) against y (scipy's)."""
     from scipy.optimize import least_squares
