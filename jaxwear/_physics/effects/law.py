@@ -41,7 +41,6 @@ every other model's parameters (19: the two caps held too).
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 from dataclasses import dataclass
 
@@ -155,9 +154,8 @@ def law_phi(e: dict, z: dict, shape) -> jax.Array:
                        len(LAW_VARIABLES) - 1)
         # the term's variable alone (a held index: one branch runs), not every variable
         # broadcast and stacked
-        x = jax.lax.switch(idx, [functools.partial(
-            lambda n: jnp.broadcast_to(z[n], shape).astype(phi.dtype), n)
-            for n in LAW_VARIABLES]) / e[f"law_ref_{k}"]
+        x = jax.lax.switch(idx, [lambda n=n: jnp.broadcast_to(z[n], shape).astype(phi.dtype)
+                                 for n in LAW_VARIABLES]) / e[f"law_ref_{k}"]
         phi = phi * law_term(e[f"law_kind_{k}"], x, e[f"law_a_{k}"], e[f"law_x0_{k}"],
                              e[f"law_w_{k}"], e[f"law_b_{k}"], e[f"law_cap_{k}"])
     return phi

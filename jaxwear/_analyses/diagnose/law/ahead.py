@@ -137,7 +137,6 @@ class Ahead:
         self._pool.shutdown(wait=True)
 
 
-
 class Shared:
     """A job's tasks (independent of each other, each decided before the job starts them),
     claimed one at a time: by the job in their order, and by the search once it reaches
