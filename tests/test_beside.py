@@ -61,3 +61,62 @@ def test_each_thread_counts_its_own_evaluations(monkeypatch):
     for t in ts:
         t.join()
     assert out == {3: 6, 5: 10} and _model.Model.evaluations == 16
+
+
+def _counting_model(monkeypatch):
+    """A model whose compiled calls are stubbed: the counters only."""
+    from types import SimpleNamespace
+
+    ext = SimpleNamespace(schedule=SimpleNamespace(attempts=1))
+    monkeypatch.setattr(_model, "forward", lambda e, u, doublings=3: (None, None, 0.0, e))
+    m = object.__new__(_model.Model)
+    m.ext, m.jacobian_columns = ext, None
+    return m
+
+
+def test_two_threads_give_the_items_results_in_order_and_count_as_the_callers(monkeypatch):
+    """`in_two_threads` (the left-out checks' two halves): the results in the items'
+    order whichever thread made each, both threads used, and the helper's forward runs
+    counted as the caller's own."""
+    monkeypatch.setattr(_model.os, "cpu_count", lambda: 2)
+    m = _counting_model(monkeypatch)
+    met = set()
+    both = threading.Barrier(2, timeout=10)  # each thread waits once for the other
+
+    def fn(x):
+        if threading.current_thread().name not in met:
+            met.add(threading.current_thread().name)
+            both.wait()
+        for _ in range(x):
+            m.predict(None)
+        return x * x
+
+    start = _model.Model.own_evaluations()
+    assert _model.in_two_threads(fn, range(1, 8)) == [x * x for x in range(1, 8)]
+    assert len(met) == 2
+    assert _model.Model.own_evaluations() - start == sum(range(1, 8))
+
+
+def test_two_threads_stop_with_the_caller(monkeypatch):
+    """A stop asked of the caller (`stopping`) stops the helper at its next evaluation,
+    and the caller's error ends the call: no item is taken after it."""
+    monkeypatch.setattr(_model.os, "cpu_count", lambda: 2)
+    m = _counting_model(monkeypatch)
+    ev = threading.Event()
+    taken = []
+
+    def fn(x):
+        taken.append(x)
+        if x == 2:
+            ev.set()
+        m.predict(None)  # raises `Stopped` once the event is set, in either thread
+        return x
+
+    with _model.stopping(ev):
+        try:
+            _model.in_two_threads(fn, range(50))
+        except _model.Stopped:
+            pass
+        else:
+            raise AssertionError("not stopped")
+    assert len(taken) < 50 and 2 in taken

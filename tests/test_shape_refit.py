@@ -173,3 +173,23 @@ def test_the_search_answers_the_same_with_its_candidates_fitted_ahead(analysed):
     assert doc["ahead_jobs"] == two.extra["ahead_jobs"]
     assert doc["ahead_discarded_model_evaluations"] >= 0
 
+
+
+def test_the_refits_first_evaluation_made_ahead_gives_the_same_refit(analysed):
+    """`shape.refit.Ahead` (the refit's model built and its linearised start evaluated in
+    the background once the carriers are known): the same refit, bitwise, with one
+    evaluation fewer in the caller's thread and the same count reported."""
+    model, base, linear = analysed
+    ahead = shape_analysis(model, base, NOISE, math.inf, numerical=False, defer=True,
+                           refit_ahead=True)
+    e0 = Model.own_evaluations()
+    a = linear.finished()
+    e1 = Model.own_evaluations()
+    b = ahead.finished()
+    e2 = Model.own_evaluations()
+    assert a.best is not None and a.rmse_after_um is not None
+    assert (b.rmse_after_um, b.status, b.refit_message) == (a.rmse_after_um, a.status,
+                                                            a.refit_message)
+    assert b.correction == a.correction
+    assert e2 - e1 == e1 - e0 - 1  # its start was evaluated in the other thread
+    assert b.evaluations == a.evaluations

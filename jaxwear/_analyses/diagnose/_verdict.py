@@ -323,7 +323,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                              verbose=verbose, design=design,
                              numerical_um=(finer_minus_rows if _at_start(base, 0.1)
                                            else None), defer=figures is not None,
-                             refit_groups=shared)
+                             refit_groups=shared, refit_ahead=True)
         after = None
         if twice:
             # with the effect's own contact model, on the first analysis's columns (its

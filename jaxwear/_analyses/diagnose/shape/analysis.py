@@ -65,7 +65,7 @@ from jaxwear._analyses.diagnose.shape.interaction import (
 )
 from jaxwear._analyses.diagnose.shape.linear import DRAWS
 from jaxwear._analyses.diagnose.shape.map import when_where
-from jaxwear._analyses.diagnose.shape.refit import _carriers, _correction, _map_u, _refit
+from jaxwear._analyses.diagnose.shape.refit import Ahead, _carriers, _correction, _map_u, _refit
 from jaxwear._analyses.diagnose.shape.result import ShapeResult, VariableShape
 from jaxwear._analyses.diagnose.shape.text import describe, next_test, next_test_sentence
 from jaxwear._core.background import Background
@@ -96,7 +96,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                    verbose: bool = False, numerical: bool = True,
                    numerical_um: np.ndarray | None = None,
                    design: Design | None = None, defer: bool = False,
-                   refit_groups=None) -> ShapeResult:
+                   refit_groups=None, refit_ahead: bool = False) -> ShapeResult:
     """The shape of the misfit left by `fit` (of `model`) along every state variable, in
     both forms (module docstring). `noise_um` σ [µm] with `nu` degrees of freedom
     (diagnose's noise level). `numerical`: count the model's numerical error: the rows of
@@ -123,9 +123,19 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     (nesting). Why: diagnose's two analyses (after the base fit and after the effect
     found) then refit through one compiled program where they refit the same carriers:
     the model with the correction and its when/where map compiled once, not twice (on the
-    fatigue study 2 x (15-21 s + 18-34 s) of compilation for the same answer)."""
+    fatigue study 2 x (15-21 s + 18-34 s) of compilation for the same answer).
 
-    evals0 = Model.evaluations
+    `refit_ahead`: once the carriers are known, build the refit's model and make its first
+    evaluation in the background (`shape.refit.Ahead`: used where the surface is not
+    carried), while this call waits on the surface's columns and the caller goes on. Off
+    for an analysis whose refit shares another's program (two compilations of one
+    program at once would not be one)."""
+
+    # this thread's evaluations, and those of the jobs it waits on (`_counted`): the
+    # process-wide count would take in whatever runs beside it (the refit's first
+    # evaluation made ahead, `shape.refit.Ahead`)
+    evals0 = Model.own_evaluations()
+    waited = []  # evaluations of the background jobs this analysis waited on
     own_groups = [g for g in model.candidates if g in fit.groups]
     held = set(refit_groups or ()) | set(own_groups)
     refit_with = [g for g in model.candidates if g in held]
@@ -248,12 +258,13 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
             # on top of an effect found, only the base analysis's pair (its columns
             # reused): a pair of its own would compile another Jacobian
             if not reused or tensor.label in design.tensors:
-                surface = (tensor, Background(tensor_columns, design, tensor, own_groups,
-                                              verbose))
+                surface = (tensor, Background(_counted, tensor_columns, design, tensor,
+                                              own_groups, verbose))
     rmse_before = float(np.sqrt(np.mean(ev.r ** 2)))
     sig = [v for v in results if v.significant]
     best = form = inter = None
     alternatives, carriers, confounded = [], (), []
+    ahead = None  # the refit's model and first evaluation, made in the background
     if sig:
         top, alternatives = choose_best(results)
         # among variables the data explain alike: unique shares, then left-out experiments
@@ -267,10 +278,13 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                 + (f"; confounded: {', '.join(confounded)}" if confounded else ""))
         best, form = top.name, top.form
         carriers = _carriers(results, top)
+        if refit_ahead:
+            ahead = Ahead(smodel, refit_with, u, free_base, blocks, carriers, form, rho,
+                          n_res, Jw, rho_full)
         if surface is not None and surface[0].form == form:
             inter = _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers,
                                  form, rho, n_res, nu, rng, draws, excess, rss0, alpha_each,
-                                 verbose)
+                                 verbose, waited)
             if inter.carried:
                 carriers = tuple(carriers) + tuple(x for x in inter.variables
                                                    if x not in carriers)
@@ -302,7 +316,9 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         surf = inter.block if inter is not None and inter.carried else None
         rmse_after, status, corr_model, u_fit, cov, snaps, resid, message = _refit(
             smodel, refit_with, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
-            Jw, rho_full, verbose, deepest, surface=surf)
+            Jw, rho_full, verbose, deepest, surface=surf, ahead=ahead)
+        # the first evaluation made ahead, in another thread, where the refit took it
+        e0 -= ahead.evaluations if ahead is not None and ahead.used else 0
         if not math.isfinite(rmse_after):
             # no start of the refit could be evaluated: no RMSE, no correction, and why
             # (the law search then says its check against the shape was not made)
@@ -318,7 +334,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                               linear.evaluations + Model.own_evaluations() - e0),
                        residual_um=resid, refit_message=message)
 
-    linear = result(results, None, "none", {}, None, Model.evaluations - evals0 + spent)
+    linear = result(results, None, "none", {}, None,
+                    Model.own_evaluations() - evals0 + sum(waited) + spent)
     if not sig:
         return linear
     linear = replace(linear, status="pending", pending=finish)
@@ -339,11 +356,12 @@ def choose_best(results):
 
 
 def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers, form, rho, n_res,
-                 nu, rng, draws, excess, rss0, alpha, verbose):
+                 nu, rng, draws, excess, rss0, alpha, verbose, waited):
     """The leading pair's surface tested on top of the additive fit of the pair and the
-    form's carriers (`shape.interaction`)."""
+    form's carriers (`shape.interaction`); its columns' evaluations added to `waited`."""
     tensor, job = surface
-    cols = job.result()
+    cols, evals = job.result()
+    waited.append(evals)
     A, S, Z, X = tensor_system(tensor, cols, sigma, len(ev.r_prior), model.series, phi, n,
                                proj)
     names = list(dict.fromkeys(list(carriers) + [tensor.a.name, tensor.b.name]))
@@ -359,6 +377,14 @@ def _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers, form
                      f"carry it)"
                      if inter.significant else ""))
     return inter
+
+
+def _counted(fn, *args):
+    """(fn(*args), the model evaluations it made in this thread): a background job's
+    count, taken where the analysis waits on it."""
+    e0 = Model.own_evaluations()
+    out = fn(*args)
+    return out, Model.own_evaluations() - e0
 
 
 def _variable_result(var, pf, c, Z, excess, rss0, rng, ev, deepest, cols) -> VariableShape:

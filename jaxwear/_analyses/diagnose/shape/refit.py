@@ -61,28 +61,22 @@ def _carriers(results, top) -> tuple:
     return tuple([top.name] + [v.name for v in others][:MAX_CARRIERS - 1])
 
 
-def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
-           sigma, Jw, rho_full, verbose, deepest: int, surface=None, maps: bool = True,
-           linear_start: bool = True):
-    """The correction of `form` along the `carriers`, refitted with the fit's own
-    parameters through the wear loop by the one least-squares core, with its true Jacobian
-    (a model with those columns only), the roughness penalty (at the linearised λ) and, for
-    a factor, the zero sum of each variable's coefficients and N(0, FACTOR_SD²) on each as
-    prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
-    answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
-    None, the rows' residuals at the answer [µm] (rows,), the refit's message: how it
-    ended, with the starts that were not usable before it). The RMSE is NaN only where
-    no start was usable; the message then says why.
+class _Setup:
+    """The refit's model (`cm`: the fit's candidate groups and the correction along the
+    carriers), its linearised start and what its objective needs (`_setup`)."""
 
-    `surface`: the leading pair's surface where it is significant
-    (`shape.interaction.Interaction.block`: (A, S, Z, X, tensor)), refitted with the
-    carriers: its roughness along both directions and, for a factor, zero row and column
-    sums of its coefficients and N(0, FACTOR_SD²) on each as prior rows. `maps`: compile
-    the when/where map's functions meanwhile (False for a caller that draws no map:
-    `design`'s shape rivals). `linear_start`: start the correction at the joint linearised
-    fit (False: at zero, the fit's own answer; a caller's retry where the linearised start
-    led the loop astray)."""
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
 
+    def start(self, frac: float) -> np.ndarray:
+        """u at `frac` of the linearised start (0: the fit's own answer), in the box."""
+        return np.clip(self.own + frac * (self.u0 - self.own), self.lo, self.hi)
+
+
+def _setup(smodel: Model, groups, u, free_base, blocks, carriers, form, rho, n_res, Jw,
+           rho_full, surface=None, linear_start: bool = True) -> _Setup:
+    """The refit's model, its joint linearised start over the carriers and its prior rows'
+    ingredients (host work; the model's programs compile at its first evaluation)."""
     labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
     tensors = ()
@@ -96,9 +90,6 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
         labels = labels + [tensor.label]
     # the fit's own candidate groups only (the design may carry more, held at off)
     cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_), tensors))
-    # the when/where map of this model compiles in the background while the refit runs
-
-    maps = Background(compile_maps, cm, deepest) if maps else None
     u0 = _map_u(smodel, u, cm)
     own = u0.copy()  # the fit's own answer: the correction off
     # the joint linearised start over the carriers (their GCV penalty)
@@ -134,16 +125,22 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     free[cols] = True
     lo, hi = cm.bounds_u()
     D = [np.linalg.cholesky(v.roughness() + 1e-12 * np.eye(v.size)).T for v in terms]
+    return _Setup(cm=cm, u0=u0, own=own, lam=lam, terms=terms, D=D, free=free, lo=lo, hi=hi)
+
+
+def _objective(s: _Setup):
+    """u -> the refit's `lsq.Point`: the model's rows and priors, the roughness penalty
+    (at the linearised λ) and, for a factor, the zero sums and N(0, FACTOR_SD²) prior."""
+    cm = s.cm
 
     def evaluate(v):
         e = cm.evaluate(v)
         pt = e.point()
         rows, J = [], []
-        k = 0
-        for var, Dv in zip(terms, D):
+        for var, Dv in zip(s.terms, s.D):
             idx = [cm.index[key] for key in var.keys()]
             c = v[idx]
-            w = math.sqrt(lam)
+            w = math.sqrt(s.lam)
             r = w * (Dv @ c)
             Jr = np.zeros((len(r), len(v)))
             Jr[:, idx] = w * Dv
@@ -160,9 +157,88 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
                 J2 = np.zeros((len(c), len(v)))
                 J2[np.arange(len(c)), idx] = 1.0 / FACTOR_SD
                 J.append(J2)
-            k += 1
         return replace(pt, r_prior=np.concatenate([pt.r_prior, *rows]),
                        J_prior=np.vstack([pt.J_prior, *J]))
+
+    return evaluate
+
+
+class Ahead:
+    """The refit's model built and its first evaluation (at the linearised start, without
+    a surface) made in a background thread, started as soon as the carriers are known
+    (`shape.analysis`), while the caller waits on the surface's columns or does host
+    work; `_refit` takes it where it refits the same carriers without a surface. Why:
+    on the generator's `fatigue` study (48 x 72) the refit's model compiled in 5.6 s and
+    its first evaluation ran 2.5 s on the critical path, after ~6 s in which the second
+    core was idle (the numerical check's run, the surface's one Jacobian in its own
+    thread, the analysis after the effect: host work)."""
+
+    def __init__(self, smodel: Model, groups, u, free_base, blocks, carriers, form, rho,
+                 n_res, Jw, rho_full):
+        self.key = (tuple(groups), tuple(carriers), form)
+        self.used = False
+        self.evaluations = 0  # the thread's model evaluations (counted where used)
+
+        def first():
+            e0 = Model.own_evaluations()
+            try:
+                s = _setup(smodel, groups, u, free_base, blocks, carriers, form, rho, n_res,
+                           Jw, rho_full)
+                start = s.start(1.0)
+                return s, start, _objective(s)(start)
+            finally:
+                self.evaluations = Model.own_evaluations() - e0
+
+        self._job = Background(first)
+
+    def take(self, groups, carriers, form, surface):
+        """(setup, start, its point) where they are the refit's, else None (a failure
+        there is met again, and reported, by the refit's own evaluation)."""
+        if surface is not None or self.key != (tuple(groups), tuple(carriers), form):
+            return None
+        try:
+            got = self._job.result()
+        except Exception:  # noqa: BLE001 (the refit evaluates the start itself)
+            return None
+        self.used = True
+        return got
+
+
+def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
+           sigma, Jw, rho_full, verbose, deepest: int, surface=None, maps: bool = True,
+           linear_start: bool = True, ahead: Ahead | None = None):
+    """The correction of `form` along the `carriers`, refitted with the fit's own
+    parameters through the wear loop by the one least-squares core, with its true Jacobian
+    (a model with those columns only), the roughness penalty (at the linearised λ) and, for
+    a factor, the zero sum of each variable's coefficients and N(0, FACTOR_SD²) on each as
+    prior rows; a deposit ≥ 0 by bounds. Returns (RMSE [µm], status, the model, u at the
+    answer, covariance of u, its snapshots (E, S, N) [µm] from the last evaluation, or
+    None, the rows' residuals at the answer [µm] (rows,), the refit's message: how it
+    ended, with the starts that were not usable before it). The RMSE is NaN only where
+    no start was usable; the message then says why.
+
+    `surface`: the leading pair's surface where it is significant
+    (`shape.interaction.Interaction.block`: (A, S, Z, X, tensor)), refitted with the
+    carriers: its roughness along both directions and, for a factor, zero row and column
+    sums of its coefficients and N(0, FACTOR_SD²) on each as prior rows. `maps`: compile
+    the when/where map's functions meanwhile (False for a caller that draws no map:
+    `design`'s shape rivals). `linear_start`: start the correction at the joint linearised
+    fit (False: at zero, the fit's own answer; a caller's retry where the linearised start
+    led the loop astray). `ahead`: its model and first evaluation made in the
+    background (`Ahead`), used where they are this refit's."""
+
+    got = (ahead.take(groups, carriers, form, surface)
+           if ahead is not None and linear_start else None)
+    if got is not None:
+        s, start_ahead, point_ahead = got
+    else:
+        s, start_ahead, point_ahead = _setup(
+            smodel, groups, u, free_base, blocks, carriers, form, rho, n_res, Jw, rho_full,
+            surface=surface, linear_start=linear_start), None, None
+    cm, free, lo, hi = s.cm, s.free, s.lo, s.hi
+    # the when/where map of this model compiles in the background while the refit runs
+    maps = Background(compile_maps, cm, deepest) if maps else None
+    evaluate = _objective(s)
 
     log = (lambda m: _log(True, m)) if verbose else None
     _log(verbose, f"    refit of the {form} correction along {', '.join(carriers)} through the "
@@ -172,8 +248,10 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     fractions = ((1.0,) + START_FRACTIONS) if linear_start else (0.0,)
     failed = []
     for frac in fractions:
-        start = np.clip(own + frac * (u0 - own), lo, hi)
-        out = lsq.solve(evaluate, start, free=free, lower=lo, upper=hi,
+        start = s.start(frac)
+        point0 = (point_ahead if start_ahead is not None
+                  and np.array_equal(start, start_ahead) else None)
+        out = lsq.solve(evaluate, start, point0=point0, free=free, lower=lo, upper=hi,
                         noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
                         project=cm.packing.project, label=f"    shape {form}", log=log,
                         settled=SETTLED_CHI2, settled_rmse=SETTLED_RMSE)
