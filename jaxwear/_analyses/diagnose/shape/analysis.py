@@ -149,8 +149,10 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     # linearised at this fit's answer, or at another one (an earlier fit's)
     reused = not np.array_equal(design.u, _map_u(model, fit.ev.u, design.smodel))
     if spent and not reused:
-        _log(verbose, f"  shape of the missing wear after {after}: its columns were computed "
-                      f"while the verdict ran")
+        # (in the background while the verdict ran under `--shape`; without it, by
+        # `diagnose` once the verdict asked for the shape: "before" is true of both)
+        _log(verbose, f"  shape of the missing wear after {after}: its columns computed "
+                      f"before it (the design's one Jacobian)")
     load, exp_name, deepest = design.load, design.exp_name, design.deepest
     smodel, jmodel, ev_j = design.smodel, design.jmodel, design.ev_j
     basis = smodel.ext.cfg.shape
