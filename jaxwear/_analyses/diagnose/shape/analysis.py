@@ -125,11 +125,10 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     the model with the correction and its when/where map compiled once, not twice (on the
     fatigue study 2 x (15-21 s + 18-34 s) of compilation for the same answer).
 
-    `refit_ahead`: once the carriers are known, build the refit's model and make its first
-    evaluation in the background (`shape.refit.Ahead`: used where the surface is not
-    carried), while this call waits on the surface's columns and the caller goes on. Off
-    for an analysis whose refit shares another's program (two compilations of one
-    program at once would not be one)."""
+    `refit_ahead`: once the carriers and the surface are decided, build the refit's model
+    and make its first evaluation in the background (`shape.refit.Ahead`), while the
+    caller goes on. Off for an analysis whose refit shares another's program (two
+    compilations of one program at once would not be one)."""
 
     # this thread's evaluations, and those of the jobs it waits on (`_counted`): the
     # process-wide count would take in whatever runs beside it (the refit's first
@@ -280,9 +279,6 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                 + (f"; confounded: {', '.join(confounded)}" if confounded else ""))
         best, form = top.name, top.form
         carriers = _carriers(results, top)
-        if refit_ahead:
-            ahead = Ahead(smodel, refit_with, u, free_base, blocks, carriers, form, rho,
-                          n_res, Jw, rho_full)
         if surface is not None and surface[0].form == form:
             inter = _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers,
                                  form, rho, n_res, nu, rng, draws, excess, rss0, alpha_each,
@@ -336,6 +332,10 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                               linear.evaluations + Model.own_evaluations() - e0),
                        residual_um=resid, refit_message=message)
 
+    if sig and refit_ahead:
+        ahead = Ahead(smodel, refit_with, u, free_base, blocks, carriers, form, rho, n_res,
+                      Jw, rho_full, surface=inter.block if inter is not None
+                      and inter.carried else None)
     linear = result(results, None, "none", {}, None,
                     Model.own_evaluations() - evals0 + sum(waited) + spent)
     if not sig:

@@ -164,18 +164,20 @@ def _objective(s: _Setup):
 
 
 class Ahead:
-    """The refit's model built and its first evaluation (at the linearised start, without
-    a surface) made in a background thread, started as soon as the carriers are known
-    (`shape.analysis`), while the caller waits on the surface's columns or does host
-    work; `_refit` takes it where it refits the same carriers without a surface. Why:
-    on the generator's `fatigue` study (48 x 72) the refit's model compiled in 5.6 s and
-    its first evaluation ran 2.5 s on the critical path, after ~6 s in which the second
-    core was idle (the numerical check's run, the surface's one Jacobian in its own
-    thread, the analysis after the effect: host work)."""
+    """The refit's model built and its first evaluation (at the linearised start) made in
+    a background thread, started once the analysis has chosen the carriers and decided on
+    the surface (`shape.analysis`), while the caller goes on with host work (the analysis
+    on top of the effect found, the figures); `_refit` takes it where it refits the same
+    correction. Why: on the generator's `fatigue` study (48 x 72) the refit's model
+    compiled in 5.6 s and its first evaluation ran 2.5 s after that host work, on the
+    critical path. (Started before the surface's decision, it saved ~4 s there and cost
+    ~3 s on the `thermal` study, whose surface the refit carries: a compilation of the
+    model without it, discarded.)"""
 
     def __init__(self, smodel: Model, groups, u, free_base, blocks, carriers, form, rho,
-                 n_res, Jw, rho_full):
+                 n_res, Jw, rho_full, surface=None):
         self.key = (tuple(groups), tuple(carriers), form)
+        self.surface = surface
         self.used = False
         self.evaluations = 0  # the thread's model evaluations (counted where used)
 
@@ -183,7 +185,7 @@ class Ahead:
             e0 = Model.own_evaluations()
             try:
                 s = _setup(smodel, groups, u, free_base, blocks, carriers, form, rho, n_res,
-                           Jw, rho_full)
+                           Jw, rho_full, surface=surface)
                 start = s.start(1.0)
                 return s, start, _objective(s)(start)
             finally:
@@ -194,7 +196,8 @@ class Ahead:
     def take(self, groups, carriers, form, surface):
         """(setup, start, its point) where they are the refit's, else None (a failure
         there is met again, and reported, by the refit's own evaluation)."""
-        if surface is not None or self.key != (tuple(groups), tuple(carriers), form):
+        if (surface is not self.surface
+                or self.key != (tuple(groups), tuple(carriers), form)):
             return None
         try:
             got = self._job.result()
