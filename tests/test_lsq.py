@@ -587,3 +587,22 @@ def test_robust_start_without_the_scale_column_rescales_by_the_factor_alone():
     u, pt, evals, why = lsq.robust_start(evaluate, np.array([0.0]), 0, measured=y)
     assert why is None and evals == 2
     assert math.exp(u[0]) == pytest.approx(2.0, rel=1e-12)
+
+
+def test_a_start_evaluated_elsewhere_counts_to_the_budget_where_asked():
+    """`point0_counts` (the shape refit's start evaluated in a thread ahead of it): the
+    same fit, evaluation for evaluation, as the one that evaluates its start itself, and
+    the same budget; without it a given start is free (a fit continued from another)."""
+    y = data(6)
+    u0 = np.array([1.5, 0.1])
+    own_calls, given_calls = [], []
+    own = lsq.solve(exp_model(y, calls=own_calls), u0, max_evaluations=4)
+    pt0 = exp_model(y)(u0)
+    given = lsq.solve(exp_model(y, calls=given_calls), u0, point0=pt0, point0_counts=True,
+                      max_evaluations=4)
+    assert own.status == given.status == "budget"
+    assert given.evaluations == own.evaluations == 4
+    assert np.array_equal(given.u, own.u)
+    assert len(given_calls) == len(own_calls) - 1  # its start was not evaluated again
+    free = lsq.solve(exp_model(y), u0, point0=pt0, max_evaluations=4)
+    assert free.evaluations == 4 and not np.array_equal(free.u, own.u)

@@ -271,7 +271,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
           free=None, lower=None, upper=None, noise_um: float | None = None,
           noise_dof: float = math.inf, max_evaluations: int = 30, se_tol: float = SE_TOL,
           max_rejections: int = 6, label: str = "fit", settled: float | None = None,
-          settled_rmse: float | None = None,
+          settled_rmse: float | None = None, point0_counts: bool = False,
           log: Callable[[str], None] | None = None,
           project: Callable[[np.ndarray], np.ndarray] | None = None,
           describe: Callable[[np.ndarray], str] | None = None) -> Outcome:
@@ -279,7 +279,9 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
 
     **Arguments:**
     - `evaluate`: u (P,) ↦ `Point` (one compiled model evaluation).
-    - `u0` (P,), `point0`: the start and, when already known, its evaluation.
+    - `u0` (P,), `point0`: the start and, when already known, its evaluation;
+      `point0_counts`: that evaluation was made for this fit (elsewhere, e.g. in a thread
+      ahead of it) and counts to its budget and its `evaluations`.
     - `free` (P,) bool: the columns fitted (others held at u0); default all.
     - `lower`, `upper` (P,): bounds on u (projection: a nested strength may sit at its
       "off" bound, where a transform would put the nested model at infinity).
@@ -343,7 +345,7 @@ def solve(evaluate: Callable[[np.ndarray], Point], u0, *, point0: Point | None =
                            ) from e
     else:
         pt = point0
-    evals = 0 if point0 is not None else 1
+    evals = 0 if point0 is not None and not point0_counts else 1
     n = pt.r.size
     if noise_um is None and n <= k:
         raise NoiseUndetermined(f"{n} data rows do not determine the noise level with {k} "

@@ -254,7 +254,8 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
         start = s.start(frac)
         point0 = (point_ahead if start_ahead is not None
                   and np.array_equal(start, start_ahead) else None)
-        out = lsq.solve(evaluate, start, point0=point0, free=free, lower=lo, upper=hi,
+        out = lsq.solve(evaluate, start, point0=point0, point0_counts=True, free=free,
+                        lower=lo, upper=hi,
                         noise_um=sigma, max_evaluations=REFIT_EVALUATIONS, se_tol=0.1,
                         project=cm.packing.project, label=f"    shape {form}", log=log,
                         settled=SETTLED_CHI2, settled_rmse=SETTLED_RMSE)
