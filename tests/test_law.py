@@ -243,17 +243,6 @@ def test_law_fit_through_the_loop_recovers_a_threshold(threshold_study):
         per, runs = loo_refined(lm, f, 0.3)
     assert len(per) == len(study.experiments) and len(per) <= runs <= 4 * len(per)
     assert _rms(per) < 1.2 * 0.3 < base.rmse, per
-    # the experiments are checked in two threads, each on its own copy of the model: the
-    # same errors and runs as one thread checking them in turn, each run on a fresh copy
-    import copy
-
-    from jaxwear._analyses.diagnose._evidence import LOO_DOUBLINGS, LOO_STIFF
-
-    def in_turn(u):
-        return copy.copy(lm).predict(u, doublings=LOO_DOUBLINGS, stiff=LOO_STIFF)
-
-    with searching():
-        assert loo_refined(lm, f, 0.3, predict=in_turn) == (per, runs)
 
 
 def test_shape_law_json_is_the_design_contract():

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import copy
 import math
 
 import numpy as np
 
 from jaxwear._analyses.diagnose._fit import Fit, whitened_system
-from jaxwear._analyses.diagnose._model import Model, in_two_threads, objective
+from jaxwear._analyses.diagnose._model import Model, objective
 from jaxwear._inference import lsq
 from jaxwear._physics.config import timed
 
@@ -81,33 +80,22 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
     no fraction makes lower the left-in misfit is given the worse of the last forward run
     and the linearised prediction: a step cut to an eighth predicts nearly as the fit to
     every experiment does, whose error on the rows it has seen understates theirs."""
-    copies = []  # the model's copies, one per experiment (`predict` not given)
-
-    def own_predict():
+    if predict is None:
         # a left-out step whose integration needs more than twice the attempts the fit's
         # own runs took is stiff there: halved like a step that raises the misfit, not
         # integrated at up to 8x the attempts. Measured (issue 48, the generator's speed
         # bump, 2026-11-28): the checks of a law power(W)·exp(ω) ran one forward run for
-        # over 6 minutes of wall; the law search took 1795 s of CPU in 188 model runs.
-        # Each experiment's runs on a copy of the model: the attempt counts they raise
-        # (`Model.predict`) are its own, so that no check depends on which ran before it
-        # (the experiments are checked in two threads)
-        m = copy.copy(model)
-        copies.append(m)
-        return lambda u: m.predict(u, doublings=LOO_DOUBLINGS, stiff=LOO_STIFF)
-
+        # over 6 minutes of wall; the law search took 1795 s of CPU in 188 model runs
+        def predict(u):
+            return model.predict(u, doublings=LOO_DOUBLINGS, stiff=LOO_STIFF)
     rw, Jw = whitened_system(fit.ev, fit.mask, noise_um)
     n = len(model.measured)
     free = np.flatnonzero(fit.mask)
     lo, hi = model.bounds_u()
     u0 = np.asarray(fit.ev.u, np.float64)
     measured = np.asarray(model.measured, np.float64)
-
-    def check(task):
-        """(experiment, its left-out RMSE [µm] or None, forward runs)."""
-        name, rows, keep, step = task
-        run = predict if predict is not None else own_predict()
-        runs = 0
+    out, runs = {}, 0
+    for name, rows, keep, step in _left_out_steps(model, rw, Jw):
         data_in = np.flatnonzero(keep[:n])
         q0 = float(rw[keep] @ rw[keep])
         # the undamped step's linearised prediction of the rows left out (`loo`'s)
@@ -116,7 +104,7 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
         for _ in range(LOO_HALVINGS + 1):
             u = u0.copy()
             u[free] = np.clip(u0[free] + step, lo[free], hi[free])
-            d = np.asarray(run(u), np.float64)
+            d = np.asarray(predict(u), np.float64)
             runs += 1
             if np.all(np.isfinite(d)):
                 r = (d - measured) / noise_um
@@ -137,18 +125,8 @@ def loo_refined(model: Model, fit: Fit, noise_um: float, predict=None) -> tuple[
             # 0.3214) and outranked the hidden power(p) alone (0.3213, every constant
             # determined, the same in-sample RMSE)
             best = max(best, linear)
-        return name, best, runs
-
-    tasks = list(_left_out_steps(model, rw, Jw))
-    # a caller's `predict` may hold state of its own (an attempt count): one thread
-    done = (in_two_threads(check, tasks) if predict is None
-            else [check(t) for t in tasks])
-    # the attempt counts the checks raised, kept for the model's later runs
-    raised = max(copies, key=lambda m: m.ext.schedule.attempts, default=None)
-    if raised is not None and raised.ext.schedule.attempts > model.ext.schedule.attempts:
-        object.__setattr__(model, "ext", raised.ext)
-    out = {name: best for name, best, _ in done if best is not None}
-    runs = sum(k for _, _, k in done)
+        if best is not None:
+            out[name] = best
     return (out if len(out) > 1 else {}), runs
 
 

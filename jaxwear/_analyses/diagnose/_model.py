@@ -12,14 +12,12 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import os
 import threading
 import time
 
 import numpy as np
 
 from jaxwear._analyses.diagnose._extended import candidate_names
-from jaxwear._core.background import Background
 from jaxwear._core.noise import series
 from jaxwear._inference.attempts import needs_more_attempts
 from jaxwear._inference.evaluation import (
@@ -257,52 +255,6 @@ def stop_if_asked() -> None:
         raise Stopped
 
 
-def in_two_threads(fn, items) -> list:
-    """[fn(item) for item in items], the items taken in turn by this thread and one beside
-    it where the machine has a second core (XLA's runs release the interpreter): the
-    results in the items' order, whichever thread made each. The helper's model
-    evaluations are counted as this thread's (`Model.own_evaluations`), and a stop asked
-    of this thread (`stopping`) stops it too. `fn` must not depend on which thread runs
-    it, nor on the order the items are taken in."""
-    items = list(items)
-    if len(items) < 2 or (os.cpu_count() or 1) < 2:
-        return [fn(x) for x in items]
-    out = [None] * len(items)
-    lock = threading.Lock()
-    order = iter(range(len(items)))
-    quit_ = threading.Event()  # this thread raised: the helper takes no more
-    stop = getattr(_own, "stop", None)
-
-    def take():
-        with lock:
-            return None if quit_.is_set() else next(order, None)
-
-    def work():
-        while (i := take()) is not None:
-            out[i] = fn(items[i])
-
-    def helper():
-        e0 = Model.own_evaluations()
-        try:
-            with stopping(stop) if stop is not None else contextlib.nullcontext():
-                work()
-        finally:
-            helper.evaluations = Model.own_evaluations() - e0
-
-    helper.evaluations = 0
-    job = Background(helper)
-    try:
-        work()
-    except BaseException:
-        quit_.set()
-        raise
-    finally:
-        job.join()
-        _own.n = getattr(_own, "n", 0) + helper.evaluations
-    job.result()  # what the helper raised
-    return out
-
-
 def _compiled_count() -> int:
     """How many versions of the evaluation are compiled (for the timing counters; -1 where
     this jax/equinox does not say)."""
@@ -319,4 +271,4 @@ def objective(ev: Evaluation, noise_um: float) -> float:
     return float(ev.r @ ev.r + noise_um ** 2 * (ev.r_prior @ ev.r_prior))
 
 
-__all__ = ["Model", "in_two_threads", "objective"]
+__all__ = ["Model", "objective"]
