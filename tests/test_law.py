@@ -3,6 +3,7 @@ pre-screen on a linear problem made by hand, law.py round-tripping (written, loa
 effect file, the same rates), and the grammar's fit through the loop recovering a known
 law's constants from data of the independent generator at finer numerics."""
 
+import math
 import sys
 from pathlib import Path
 
@@ -168,6 +169,22 @@ def test_rank_by_left_out_error_then_bic():
     a, b, c = f(0.330, 10.0), f(0.331, 20.0), f(0.340, 99.0)
     # a and b tie within 1 % on the left-out error: the evidence decides; c is worse
     assert rank([c, a, b]) == [b, a, c]
+
+
+def test_a_law_no_better_than_the_base_model_ranks_last_unchecked():
+    """The fatigue study's figures (the generator's, 48 x 72): a film law that ended at the
+    base model's RMSE (0.5107 µm, evidence -11.9) has no left-out check; it ranks after
+    a law whose checked left-out error (0.5578 µm) is worse than its in-sample RMSE, where
+    a missing left-out error would read as the in-sample RMSE and put it first."""
+    from jaxwear._analyses.diagnose.law.search import LawFit
+
+    film = LawFit(PRODUCT, 0.5107, None, -11.9, "converged", 6, {}, math.nan)
+    product = LawFit(PRODUCT, 0.3859, 0.5578, 785.3, "budget", 12, {}, 0.0)
+    assert rank([film, product]) == [product, film]
+    # a law whose left-out check gave nothing (one experiment) but whose evidence is
+    # positive still reads as its in-sample RMSE
+    unchecked = LawFit(PRODUCT, 0.40, None, 50.0, "converged", 6, {}, 0.0)
+    assert rank([product, unchecked]) == [unchecked, product]
 
 
 def test_an_undetermined_law_ranks_after_a_determined_one_the_evidence_prefers():
