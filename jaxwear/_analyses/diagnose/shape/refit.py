@@ -4,7 +4,7 @@ one least-squares core), and the correction as data for the effect file."""
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -61,12 +61,23 @@ def _carriers(results, top) -> tuple:
     return tuple([top.name] + [v.name for v in others][:MAX_CARRIERS - 1])
 
 
+@dataclass(frozen=True)
 class _Setup:
     """The refit's model (`cm`: the fit's candidate groups and the correction along the
-    carriers), its linearised start and what its objective needs (`_setup`)."""
+    carriers), its linearised start and what its objective needs (`_setup`): u of `cm`
+    at the linearised start (`u0`) and at the fit's own answer (`own`), (P,); the
+    roughness penalty's λ; the correction's terms and each one's roughness factor `D`
+    (Cholesky, (size, size)); the free columns (P,) bool and the bounds (P,)."""
 
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
+    cm: Model
+    u0: np.ndarray
+    own: np.ndarray
+    lam: float
+    terms: list
+    D: list
+    free: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
 
     def start(self, frac: float) -> np.ndarray:
         """u at `frac` of the linearised start (0: the fit's own answer), in the box."""
