@@ -571,6 +571,15 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             for _, _, evals in memo.values():  # laws with memory fitted ahead, not tried
                 ahead.discarded["model_evaluations"] += evals
     ranked = rank(fitted)
+    if (ranked and ranked[0].loo_rmse_um is None and ranked[0].evidence <= 0
+            and ranked[0].model is not None and ranked[0].fit is not None):
+        # no law fitted beats the base model, so none was checked left out (`fit_checked`):
+        # the answer, a lead, still says what it predicts there (`loo_rmse_um`, DESIGN §7)
+        with searching():
+            per, k = loo_refined(ranked[0].model, ranked[0].fit, noise_um)
+        runs += k
+        ranked[0] = dataclasses.replace(ranked[0], loo_rmse_um=_rms(per),
+                                        loo_per_experiment=per)
     if ranked and numerical:
         # the answer's constants checked against, and corrected to, a finer resolution
         # (`law.numerical`): the study's numerics' error is in no standard error
