@@ -22,14 +22,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from jaxwear import effects  # the public effect interface (a façade module)
-from jaxwear._analyses.predict.forecast import PredictResult, predict
-from jaxwear._analyses.sensitivity import Sensitivities, sensitivities, study_sensitivities
-from jaxwear._analyses.sweep import SweepResult, sweep
-from jaxwear._analyses.synth import SynthResult, synthesize
 from jaxwear._core.errors import InputError, WornThroughError
 from jaxwear._core.parallel import points_mesh, sharded_fn, sharded_vmap
 from jaxwear._core.xla_flags import apply as configure_xla
-from jaxwear._inference.calibrate import FitError, FitResult, calibrate
 from jaxwear._physics.config import DutyBlock, ModelConfig
 from jaxwear._physics.contact import ContactSolution, solve_contact, stiffness_per_area
 from jaxwear._physics.effects import Effect, EffectParameter, register_effect, unregister_effect
@@ -49,11 +44,32 @@ __version__ = "0.1.0"
 if TYPE_CHECKING:  # for type checkers and the API docs (griffe); at run time: `_LAZY`
     from jaxwear._analyses.diagnose import Candidate, Diagnosis, ShapeResult, VariableShape
     from jaxwear._analyses.diagnose import diagnose as diagnose
+    from jaxwear._analyses.predict.forecast import PredictResult, predict
+    from jaxwear._analyses.sensitivity import Sensitivities, sensitivities, study_sensitivities
+    from jaxwear._analyses.sweep import SweepResult, sweep
+    from jaxwear._analyses.synth import SynthResult, synthesize
+    from jaxwear._inference.calibrate import FitError, FitResult, calibrate
     from jaxwear._report.diagnosis import write_outputs as write_diagnosis
 
 # Imported on first use (PEP 562): the diagnose package (and scipy.stats with it) is ~0.7 s
-# of `import jaxwear`, which every verb and library user would otherwise pay.
-_LAZY = {"Candidate": ("jaxwear._analyses.diagnose", "Candidate"),
+# of `import jaxwear`, which every verb and library user would otherwise pay; the fits and
+# the analyses on them (optimistix, lineax and the least-squares core with them) another
+# 0.3-0.6 s (measured 2026-11-29 on a 2-core AMD EPYC where `import jax` alone takes
+# 0.7-0.8 s: `import jaxwear` 1.5-1.8 s with them, 0.9-1.2 s without), which a user who
+# only simulates does not need.
+_LAZY = {"PredictResult": ("jaxwear._analyses.predict.forecast", "PredictResult"),
+         "predict": ("jaxwear._analyses.predict.forecast", "predict"),
+         "Sensitivities": ("jaxwear._analyses.sensitivity", "Sensitivities"),
+         "sensitivities": ("jaxwear._analyses.sensitivity", "sensitivities"),
+         "study_sensitivities": ("jaxwear._analyses.sensitivity", "study_sensitivities"),
+         "SweepResult": ("jaxwear._analyses.sweep", "SweepResult"),
+         "sweep": ("jaxwear._analyses.sweep", "sweep"),
+         "SynthResult": ("jaxwear._analyses.synth", "SynthResult"),
+         "synthesize": ("jaxwear._analyses.synth", "synthesize"),
+         "FitError": ("jaxwear._inference.calibrate", "FitError"),
+         "FitResult": ("jaxwear._inference.calibrate", "FitResult"),
+         "calibrate": ("jaxwear._inference.calibrate", "calibrate"),
+         "Candidate": ("jaxwear._analyses.diagnose", "Candidate"),
          "Diagnosis": ("jaxwear._analyses.diagnose", "Diagnosis"),
          "ShapeResult": ("jaxwear._analyses.diagnose", "ShapeResult"),
          "VariableShape": ("jaxwear._analyses.diagnose", "VariableShape"),

@@ -26,8 +26,9 @@ _PLAIN = """
 import json, sys
 import jaxwear as jw
 import jaxwear.cli  # the command line imports a verb's module when that verb runs
-heavy = sorted(m for m in sys.modules if m == "scipy.stats"
-               or m.startswith(("jaxwear._analyses.diagnose", "jaxwear._report.diagnosis")))
+heavy = sorted(m for m in sys.modules if m in ("scipy.stats", "optimistix", "lineax")
+               or m.startswith(("jaxwear._analyses.diagnose", "jaxwear._report.diagnosis",
+                                "jaxwear._inference", "jaxwear._analyses.predict")))
 from jaxwear._core import jit as J
 from jaxwear._core import xla_flags
 from jaxwear._physics import adaptive, wear
@@ -40,8 +41,8 @@ if "run" in sys.argv[1:]:
 print(json.dumps({"heavy": heavy, "options": J.current_options(),
                   "variants": [dict(k) for k in wear._wear_loop_jit._variants],
                   "once": [dict(k) for k in adaptive._regime_rates_jit._variants],
-                  "diagnose": jw.diagnose.__module__, "xla_flags": __import__("os").environ.get(
-                      "XLA_FLAGS", "")}))
+                  "diagnose": jw.diagnose.__module__, "calibrate": jw.calibrate.__module__,
+                  "xla_flags": __import__("os").environ.get("XLA_FLAGS", "")}))
 """
 
 
@@ -96,10 +97,12 @@ def test_the_expected_options_on_this_jaxlib():
 
 def test_plain_import_is_light_and_runs_the_wear_loop_with_legacy_emitters():
     got = _plain_process("run")
-    # neither scipy.stats nor the diagnose package at import, the command line's included
+    # neither scipy.stats nor the diagnose package at import, nor the fits (optimistix,
+    # lineax, the least-squares core) and the analyses on them, the command line's included
     # (a verb imports what it needs)
     assert got["heavy"] == []
-    assert got["diagnose"].startswith("jaxwear._analyses.diagnose")  # the name resolves
+    assert got["diagnose"].startswith("jaxwear._analyses.diagnose")  # the names resolve
+    assert got["calibrate"] == "jaxwear._inference.calibrate"
     # the process's flags untouched, the wear loop's program compiled with the legacy
     # emitters at LLVM's O1, a program that runs once at O0 (docs/performance.md)
     assert "xla_cpu_use_fusion_emitters" not in got["xla_flags"]
