@@ -355,6 +355,35 @@ def test_packed_coefficients_are_the_same_correction(shaped):
     assert float(jnp.max(jnp.abs(a))) > 0
 
 
+def test_when_where_bands_jacobian_matches_forward_mode(shaped):
+    """The map's marginals differentiated by central differences (`marginal_jacobian`,
+    what the bands use) against forward-mode AD of the same function (`jax.jacfwd`), at a
+    point with the correction on and a worn profile; held columns are left at 0."""
+    import jax
+
+    from jaxwear._analyses.diagnose.shape.map import map_parts, marginal_jacobian
+
+    m = shaped
+    u = np.zeros(len(m.names))
+    rng = np.random.default_rng(1)
+    for var in m.ext.cfg.shape.variables:
+        for k in var.keys():
+            u[m.index[k]] = (0.1 * rng.standard_normal() if var.form == "factor"
+                             else 0.003 * abs(rng.standard_normal()))
+    h = jnp.asarray(m.snapshots(u)[0, -1] * 1e-6)
+    ext = m.ext.with_schedule(None)
+    cols = [m.index[n] for n in ("K_d_per_Pa", "shape_pressure_MPa_05",
+                                 "deposit_cycle_phase_deg_02")]
+    Jw, Jr = marginal_jacobian(ext, u, 0, h, cols)
+    (Aw, Ar) = jax.jacfwd(lambda v: map_parts(ext, v, 0, h)[0])(jnp.asarray(u))
+    for J, A in ((Jw, np.asarray(Aw)), (Jr, np.asarray(Ar))):
+        scale = np.max(np.abs(A[:, cols]))
+        assert scale > 0
+        np.testing.assert_allclose(J[:, cols], A[:, cols], atol=1e-6 * scale)
+        held = np.setdiff1d(np.arange(len(u)), cols)
+        assert np.all(J[:, held] == 0)
+
+
 def test_all_coefficients_zero_is_the_model_as_written(shaped):
     """Nesting: with every coefficient 0 the corrected model is the base model exactly."""
     base = Model(shaped.study, candidates=[])

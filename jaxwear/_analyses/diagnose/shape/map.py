@@ -4,9 +4,17 @@ For the refitted correction, on the experiment that wears most, at its last meas
 profile: the extra wear of one cycle per step i and node j, Δ_ij = (corrected − model's
 own) wear, in µm per 10⁴ cycles. Its marginals say when (over the cycle phase: the extra
 volume made in each step) and where (over the bore angle: the extra depth), each with a
-band from the refit's covariance (linearised: the exact Jacobian of the marginals with
-respect to u, `jax.jacfwd`). The load's events are marked: its reversals (where its
-direction turns fastest) and its peak.
+band from the refit's covariance (linearised: the Jacobian of the marginals with respect to
+the columns the covariance holds, by central differences of one forward program,
+`marginal_jacobian`). The load's events are marked: its reversals (where its direction
+turns fastest) and its peak.
+
+Why differences and not `jax.jacfwd`: the map's Jacobian program was the costliest
+compilation of a shape refit's map, for a figure and a band. Measured on the generator's
+fatigue study (48 x 72, 27 columns, 2026-11-29): `jax.jacfwd` at LLVM's O0 traced,
+lowered and compiled in 3.3 + 1.0 + 7.2 s of CPU, in the background while the refit ran on
+both cores; the forward program 0.75 + 1.1 + 2.5 s, and its 2 x 26 runs 0.1-0.4 s. The
+bands agree with `jax.jacfwd`'s to within `FD_STEP`'s truncation (tests/test_shape.py).
 """
 
 from __future__ import annotations
@@ -24,6 +32,10 @@ from jaxwear._physics.cycle import cycle_rates, run_history
 from jaxwear._physics.effects.shape import state_variables
 
 PER_CYCLES = 1e4  # the map's unit: µm per 10⁴ cycles
+# the central differences' step in u (a log-multiplier, a log-clearance, a correction's
+# coefficient: all O(1)), relative above 1: the truncation error ~FD_STEP² of the
+# marginals' curvature, the contact solve's own tolerance (1e-10 relative) ~1e-10/FD_STEP
+FD_STEP = 1e-5
 EVENT_WINDOW_DEG = 20.0  # "at a reversal": within this many degrees of the cycle
 
 
@@ -86,9 +98,11 @@ def when_where(cm, u, cov, experiment: str, deepest: int, level: float, snaps=No
     if not np.all(np.isfinite(snaps)):
         return None
     h = jnp.asarray(snaps[deepest, -1] * 1e-6)
-    (Jw, Jr), (when, where), (d, load_n, turn) = _jit_maps(cm.ext.with_schedule(None),
-                                                           jnp.asarray(u), deepest, h)
-    Jw, Jr = np.asarray(Jw), np.asarray(Jr)
+    ext = cm.ext.with_schedule(None)
+    (when, where), (d, load_n, turn) = _jit_parts(ext, jnp.asarray(u), deepest, h)
+    # the columns the covariance holds (the others are held: zero variance)
+    cols = np.flatnonzero(np.diag(np.asarray(cov)) > 0)
+    Jw, Jr = marginal_jacobian(ext, u, deepest, h, cols)
     when, where, d = np.asarray(when), np.asarray(where), np.asarray(d)
     load_n, turn = np.asarray(load_n), np.asarray(turn)
     q = norm.ppf(0.5 + level / 2)
@@ -111,43 +125,60 @@ def when_where(cm, u, cov, experiment: str, deepest: int, level: float, snaps=No
 
 
 def compile_maps(cm, deepest: int) -> None:
-    """Compile (and run once) the map's function for the model `cm` on experiment
+    """Compile (and run once) the map's program for the model `cm` on experiment
     `deepest`, so that `when_where` finds it compiled: `shape.analysis` calls this in the
-    background while the refit compiles and runs (the map's compilation is ~5 s of the
-    analysis). A failure here is left to `when_where` to meet and report."""
+    background while the refit compiles and runs. A failure here is left to `when_where`
+    to meet and report."""
     try:
         ext = cm.ext.with_schedule(None)  # the schedule's attempt count: no new program
-        jax.block_until_ready(_jit_maps(ext, jnp.zeros(len(cm.names)), deepest,
-                                        jnp.zeros(ext.cfg.nodes)))
+        jax.block_until_ready(_jit_parts(ext, jnp.zeros(len(cm.names)), deepest,
+                                         jnp.zeros(ext.cfg.nodes)))
     except Exception:  # noqa: BLE001 (the real call reports it)
         pass
 
 
-# O0 (`once`): the map runs twice per refitted model (`compile_maps`'s warm-up and
-# `when_where`), a few tenths of a second each, while its compilation (a Jacobian of one
-# cycle's rates) took 18-34 s of a cold `diagnose --shape` on the fatigue study at O1
-@jit(once=True)
-def _jit_maps(ext, u, deepest, h):
-
+def map_parts(ext, u, deepest, h):
+    """One cycle of experiment `deepest` at u (P,) on the worn profile h (nodes,) [m]:
+    ((when (steps,) [µm·rad per 10⁴ cycles], where (nodes,) [µm per 10⁴ cycles]),
+    (the map (steps, nodes) [µm per 10⁴ cycles], |W| (steps,) [N], the load's turn rate
+    (steps,) [deg/s])): the correction's extra wear, (corrected − model's own) rates."""
     cfg = ext.cfg
     base_cfg = cfg.replace(shape=None)
+    p = jax.tree.map(lambda x: x[deepest], ext.batched_params(u))
+    hist = run_history(p, cfg)
+    S = jnp.zeros(())
+    corrected, sol = cycle_rates(p, cfg, hist, 0, h, S)
+    own, _ = cycle_rates(p, base_cfg, hist, 0, h, S)
+    d = (corrected - own) * 1e6 * PER_CYCLES
+    n = d.shape[1]
+    z = state_variables(sol.pressure, hist.slide[0], hist.dt[0], S, hist.angle[0],
+                        hist.load[0], h)
+    marg = (jnp.sum(d, axis=1) * (2 * jnp.pi / n), jnp.sum(d, axis=0))
+    return marg, (d, hist.load[0], z["load_turn_rate_deg_per_s"][:, 0])
 
-    def parts(v):
-        p = jax.tree.map(lambda x: x[deepest], ext.batched_params(v))
-        hist = run_history(p, cfg)
-        S = jnp.zeros(())
-        corrected, sol = cycle_rates(p, cfg, hist, 0, h, S)
-        own, _ = cycle_rates(p, base_cfg, hist, 0, h, S)
-        d = (corrected - own) * 1e6 * PER_CYCLES
-        n = d.shape[1]
-        z = state_variables(sol.pressure, hist.slide[0], hist.dt[0], S, hist.angle[0],
-                            hist.load[0], h)
-        marg = (jnp.sum(d, axis=1) * (2 * jnp.pi / n), jnp.sum(d, axis=0))
-        return marg, (d, hist.load[0], z["load_turn_rate_deg_per_s"][:, 0])
 
-    J, aux = jax.jacfwd(parts, has_aux=True)(u)
-    marg, _ = parts(u)
-    return J, marg, aux
+# O0 (`once`): the map runs 2 x (columns) + 2 times per refitted model, milliseconds each
+_jit_parts = jit(map_parts, once=True)
+
+
+def marginal_jacobian(ext, u, deepest, h, cols) -> tuple[np.ndarray, np.ndarray]:
+    """d when / d u (steps, P) and d where / d u (nodes, P) by central differences of
+    `map_parts` in the columns `cols` (the others 0), step `FD_STEP` (relative above 1)."""
+    u = np.asarray(u, np.float64)
+    (w0, r0), _ = _jit_parts(ext, jnp.asarray(u), deepest, h)
+    Jw = np.zeros((np.shape(w0)[0], len(u)))
+    Jr = np.zeros((np.shape(r0)[0], len(u)))
+    for k in cols:
+        step = FD_STEP * max(1.0, abs(float(u[k])))
+        out = []
+        for sign in (1.0, -1.0):
+            v = u.copy()
+            v[k] += sign * step
+            out.append(_jit_parts(ext, jnp.asarray(v), deepest, h)[0])
+        (wp, rp), (wm, rm) = out
+        Jw[:, k] = (np.asarray(wp) - np.asarray(wm)) / (2 * step)
+        Jr[:, k] = (np.asarray(rp) - np.asarray(rm)) / (2 * step)
+    return Jw, Jr
 
 
 def _reversals(phase, turn) -> list[float]:
