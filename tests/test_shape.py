@@ -297,17 +297,23 @@ def shaped():
     return Model(study, candidates=[], shape=make_basis(KNOTS, size=8))
 
 
+def _correction_on(m, seed: int) -> np.ndarray:
+    """u of `m` with every correction coefficient drawn: factors N(0, 0.1²), deposits
+    |N(0, 0.003²)| (0.003 per coefficient adds ~10 µm to the base's 8; 1 wore through)."""
+    u = np.zeros(len(m.names))
+    rng = np.random.default_rng(seed)
+    for var in m.ext.cfg.shape.variables:
+        for k in var.keys():
+            u[m.index[k]] = (0.1 * rng.standard_normal() if var.form == "factor"
+                             else 0.003 * abs(rng.standard_normal()))
+    return u
+
+
 def test_correction_gradient_matches_central_differences(shaped):
     """d rows / d c of both forms through the wear loop (forward mode) against central
     finite differences of the rows themselves, at a point with the correction on."""
     m = shaped
-    u = np.zeros(len(m.names))
-    rng = np.random.default_rng(0)
-    for var in m.ext.cfg.shape.variables:
-        for k in var.keys():
-            # deposits of 0.003 per coefficient add ~10 µm to the base's 8 (1 wore through)
-            u[m.index[k]] = (0.1 * rng.standard_normal() if var.form == "factor"
-                             else 0.003 * abs(rng.standard_normal()))
+    u = _correction_on(m, seed=0)
     ev = m.evaluate(u)
     assert float(ev.worn) < 0, "the test point must not wear through"
     for name in ("shape_pressure_MPa_05", "shape_cycle_phase_deg_03",
@@ -364,12 +370,7 @@ def test_when_where_bands_jacobian_matches_forward_mode(shaped):
     from jaxwear._analyses.diagnose.shape.map import map_parts, marginal_jacobian
 
     m = shaped
-    u = np.zeros(len(m.names))
-    rng = np.random.default_rng(1)
-    for var in m.ext.cfg.shape.variables:
-        for k in var.keys():
-            u[m.index[k]] = (0.1 * rng.standard_normal() if var.form == "factor"
-                             else 0.003 * abs(rng.standard_normal()))
+    u = _correction_on(m, seed=1)
     h = jnp.asarray(m.snapshots(u)[0, -1] * 1e-6)
     ext = m.ext.with_schedule(None)
     cols = [m.index[n] for n in ("K_d_per_Pa", "shape_pressure_MPa_05",
