@@ -102,7 +102,7 @@ def when_where(cm, u, cov, experiment: str, deepest: int, level: float, snaps=No
     (when, where), (d, load_n, turn) = _jit_parts(ext, jnp.asarray(u), deepest, h)
     # the columns the covariance holds (the others are held: zero variance)
     cols = np.flatnonzero(np.diag(np.asarray(cov)) > 0)
-    Jw, Jr = marginal_jacobian(ext, u, deepest, h, cols)
+    Jw, Jr = marginal_jacobian(ext, u, deepest, h, cols, at=(when, where))
     when, where, d = np.asarray(when), np.asarray(where), np.asarray(d)
     load_n, turn = np.asarray(load_n), np.asarray(turn)
     q = norm.ppf(0.5 + level / 2)
@@ -161,11 +161,12 @@ def map_parts(ext, u, deepest, h):
 _jit_parts = jit(map_parts, once=True)
 
 
-def marginal_jacobian(ext, u, deepest, h, cols) -> tuple[np.ndarray, np.ndarray]:
+def marginal_jacobian(ext, u, deepest, h, cols, at=None) -> tuple[np.ndarray, np.ndarray]:
     """d when / d u (steps, P) and d where / d u (nodes, P) by central differences of
-    `map_parts` in the columns `cols` (the others 0), step `FD_STEP` (relative above 1)."""
+    `map_parts` in the columns `cols` (the others 0), step `FD_STEP` (relative above 1).
+    `at`: the marginals (when, where) at u where the caller has them (no run for them)."""
     u = np.asarray(u, np.float64)
-    (w0, r0), _ = _jit_parts(ext, jnp.asarray(u), deepest, h)
+    w0, r0 = at if at is not None else _jit_parts(ext, jnp.asarray(u), deepest, h)[0]
     Jw = np.zeros((np.shape(w0)[0], len(u)))
     Jr = np.zeros((np.shape(r0)[0], len(u)))
     for k in cols:
