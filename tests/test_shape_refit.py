@@ -193,3 +193,61 @@ def test_the_refits_first_evaluation_made_ahead_gives_the_same_refit(analysed):
     assert b.correction == a.correction
     assert e2 - e1 == e1 - e0 - 1  # its start was evaluated in the other thread
     assert b.evaluations == a.evaluations
+
+
+def test_a_second_refit_of_the_same_correction_starts_at_the_first_refits_answer(
+        analysed, monkeypatch):
+    """diagnose refits the correction twice on one model (after the base fit, the effect
+    held at off, and on top of the effect found): the second starts from the first's
+    correction (`ShapeResult.refit_at`, `refit._warm_start`) with its own fit's
+    parameters, ahead of the linearised start. Here the same analysis refitted again
+    from its own answer: the least-squares core starts there, below the base fit's
+    misfit, and ends in no more evaluations than from the linearised start; a model with
+    other columns is not started from."""
+    model, base, linear = analysed
+    a = linear.finished()
+    assert a.rmse_after_um is not None and a.refit_at is not None
+    cm, u_a = a.refit_at
+    calls = []
+    solve = refit_module.lsq.solve
+
+    def recording(evaluate, u0, **kw):
+        seen = []
+
+        def ev(v):
+            p = evaluate(v)
+            seen.append(float(np.sqrt(np.mean(np.asarray(p.r) ** 2))))
+            return p
+
+        out = solve(ev, u0, **kw)
+        calls.append((np.array(u0), seen, out))
+        return out
+
+    monkeypatch.setattr(refit_module.lsq, "solve", recording)
+    b = linear.finished(warm=a)
+    monkeypatch.undo()
+    (u0, seen, out), = calls  # one start, and it was usable
+    # the correction's coefficients from the first refit, the fit's own parameters from
+    # the fit's answer (where the first held the effect at off, the effect's value)
+    corr = np.zeros(len(u_a), bool)
+    corr[[cm.index[k] for k in cm.ext.cfg.shape.keys()]] = True
+    assert corr.any() and not corr.all()
+    assert np.array_equal(u0[corr], np.clip(u_a, *cm.bounds_u())[corr])
+    smodel = linear.design.smodel
+    u_fit = refit_module._map_u(smodel, refit_module._map_u(model, base.ev.u, smodel), cm)
+    assert np.array_equal(u0[~corr], u_fit[~corr])
+    assert seen[0] < base.rmse  # the correction already explains most of the misfit
+    assert out.status != "unusable" and b.rmse_after_um is not None
+    assert b.rmse_after_um <= base.rmse
+    assert b.evaluations <= a.evaluations  # (fatigue study: 3 against 9)
+    # with the attempt count the first refit's runs raised its model to, at least
+    assert b.refit_at[0].ext.schedule.attempts >= cm.ext.schedule.attempts
+    # another model's answer (the base model's columns) is no start for this one
+    P = len(u_a)
+    s = refit_module._Setup(cm=cm, u0=u_a, own=u_a, lam=1.0, terms=[], D=[],
+                            free=np.ones(P, bool), lo=np.full(P, -np.inf),
+                            hi=np.full(P, np.inf))
+    assert refit_module._warm_start(s, (model, np.zeros(len(model.names)))) is None
+    assert refit_module._warm_start(s, None) is None
+    assert np.array_equal(refit_module._warm_start(s, (cm, u_a)), u_a)
+

@@ -347,7 +347,9 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         # single-threaded runs). After the first refit, whose program (and map's) it
         # shares where it refits the same carriers: compiled by then, not twice. Its
         # progress lines are printed once it is done (`held`), after the search's.
-        beside = (Background(_finished_quietly, after)
+        # Where both refit one model (`shared`), it starts from the first refit's
+        # correction, with its own fit's parameters (`shape.refit._warm_start`)
+        beside = (Background(_finished_quietly, after, shp if shared else None)
                   if after is not None else None)
         pngs_after = None
         if drawing is not None:
@@ -407,10 +409,10 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     return diag
 
 
-def _finished_quietly(result):
-    """(`result.finished()`, the progress lines it logged, held: `_core.log.held`)."""
+def _finished_quietly(result, warm=None):
+    """(`result.finished(warm)`, the progress lines it logged, held: `_core.log.held`)."""
     with held() as lines:
-        return result.finished(), lines
+        return result.finished(warm), lines
 
 
 NARROW = 10.0  # a combined test passed by less than this factor over α is contested

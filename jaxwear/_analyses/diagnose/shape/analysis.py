@@ -307,14 +307,16 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                                    "peaks": {v.label: v.peak_at for v in results}},
                            interaction=inter, confounded=tuple(confounded))
 
-    def finish() -> ShapeResult:
-        """The refit through the loop and the when/where map (the costly part)."""
+    def finish(warm=None) -> ShapeResult:
+        """The refit through the loop and the when/where map (the costly part); `warm`:
+        an earlier refit's (model, u) whose correction it starts from
+        (`shape.refit._warm_start`)."""
         # this thread's (the refit runs in it): another analysis may run beside it
         e0 = Model.own_evaluations()
         surf = inter.block if inter is not None and inter.carried else None
         rmse_after, status, corr_model, u_fit, cov, snaps, resid, message = _refit(
             smodel, refit_with, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
-            Jw, rho_full, verbose, deepest, surface=surf, ahead=ahead)
+            Jw, rho_full, verbose, deepest, surface=surf, ahead=ahead, warm=warm)
         # the first evaluation made ahead, in another thread, where the refit took it
         e0 -= ahead.evaluations if ahead is not None and ahead.used else 0
         if not math.isfinite(rmse_after):
@@ -330,7 +332,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL, snaps=snaps)
         return replace(result(done, rmse_after, status, correction, ww,
                               linear.evaluations + Model.own_evaluations() - e0),
-                       residual_um=resid, refit_message=message)
+                       residual_um=resid, refit_message=message,
+                       refit_at=(corr_model, np.asarray(u_fit, np.float64)))
 
     if sig and refit_ahead:
         ahead = Ahead(smodel, refit_with, u, free_base, blocks, carriers, form, rho, n_res,

@@ -113,13 +113,19 @@ class ShapeResult:
     # starts that could not be evaluated before it); where `rmse_after_um` is None after a
     # refit, why it has none
     refit_message: str = ""
+    # (the refit's model, u at its answer (P,)), for a later refit of the same correction
+    # on the same model to start from (`shape.refit._warm_start`); None before the refit
+    refit_at: object = field(default=None, repr=False, compare=False)
 
 
-    def finished(self) -> ShapeResult:
-        """This result with its refit run (itself if none is pending)."""
+    def finished(self, warm: ShapeResult | None = None) -> ShapeResult:
+        """This result with its refit run (itself if none is pending); `warm`: an earlier
+        analysis whose refit's correction it starts from where it refits the same
+        correction on the same model (`refit_at`, `shape.refit._warm_start`)."""
         if self.pending is None:
             return self
-        return replace(self.pending(), pngs=self.pngs)
+        return replace(self.pending(None if warm is None else warm.refit_at),
+                       pngs=self.pngs)
 
     def settled_labels(self) -> tuple:
         """Labels of the variable figures the pending refit will not change (all but its
