@@ -195,7 +195,7 @@ def test_the_refits_first_evaluation_made_ahead_gives_the_same_refit(analysed):
     assert b.evaluations == a.evaluations
 
 
-def test_a_second_refit_of_the_same_correction_starts_at_the_first_refits_answer(
+def test_a_second_refit_of_the_same_correction_starts_from_the_first_refits_correction(
         analysed, monkeypatch):
     """diagnose refits the correction twice on one model (after the base fit, the effect
     held at off, and on top of the effect found): the second starts from the first's
