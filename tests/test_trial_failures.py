@@ -311,6 +311,55 @@ def test_an_unfinished_run_finds_its_attempt_count_by_forward_runs(problem, monk
     np.testing.assert_allclose(ev.J, full.J, rtol=1e-7, atol=1e-9 * np.abs(full.J).max())
 
 
+def test_columns_of_distinct_experiments_share_a_tangent_and_give_the_dense_jacobian(
+        small_study):
+    """`evaluation.seeds` (Curtis-Powell-Reid): per-experiment columns (each experiment's
+    clearance and registration offset) of distinct experiments share one forward-mode
+    tangent, read back from their own experiment's rows. Against the dense Jacobian (one
+    unit tangent per column, through the same program): the same J and snapshot Jacobian
+    to round-off, a per-experiment column exactly 0 on the other experiment's rows, and
+    fewer tangents (K_d, the pressure exponent, one for both clearances, one for both
+    offsets: 4 for 6 columns); a subset's width is its padded length less what sharing
+    saves, the same for every subset of one length."""
+    import jax.numpy as jnp
+
+    import jaxwear as jw
+    from jaxwear._inference import calibrate as cal
+    from jaxwear._inference import evaluation as E
+    from jaxwear._inference.attempts import _dynamic, attempts_needed, enough_attempts
+
+    study = dataclasses.replace(jw.load_study(small_study), angle_tolerance_deg=5.0)
+    prob = cal.build_problem(study, cal.study_fit_keys(study))
+    cols = prob.packing.columns
+    exps = [c.experiment for c in cols]
+    assert sorted(e for e in exps if e is not None) == [0, 0, 1, 1], prob.names
+    S, color, owner = E.seeds(cols)
+    assert S.shape == (len(cols), 4)
+    assert sorted(S.sum(axis=0)) == [1.0, 1.0, 2.0, 2.0]
+    u = np.zeros(len(cols))
+    u[0], u[3] = 0.1, 0.02
+    model = _dynamic(enough_attempts(prob, u, need=attempts_needed(prob, u)))
+    uj = jnp.asarray(u)
+    J, J_snaps, _ = E._evaluate_jit(model, uj)
+    P = len(cols)
+    Jd, Jd_snaps, _ = E._seeded(model, uj, jnp.eye(P), jnp.arange(P, dtype=jnp.int32),
+                                jnp.full(P, E.ALL, jnp.int32))
+    J, J_snaps, Jd, Jd_snaps = (np.asarray(a) for a in (J, J_snaps, Jd, Jd_snaps))
+    np.testing.assert_allclose(J, Jd, rtol=1e-9, atol=1e-12 * np.abs(Jd).max())
+    np.testing.assert_allclose(J_snaps, Jd_snaps, rtol=1e-9,
+                               atol=1e-12 * np.abs(Jd_snaps).max())
+    row_exp = np.asarray(prob.data.exp)
+    for j, e in enumerate(exps):
+        if e is not None:
+            assert np.all(Jd[row_exp != e, j] == 0.0) and np.any(J[row_exp == e, j] != 0)
+            assert np.all(J[row_exp != e, j] == 0.0)
+    # a subset padded by repeats (the law search's): its width does not depend on which
+    wanted = [0, 1, 2, 0, 0]
+    width = E.width_of(cols, wanted)
+    assert width == 4 and E.seeds(cols, wanted, width)[0].shape == (P, 4)
+    assert E.width_of(cols, [0, 1, 2, 3, 0]) == 4
+
+
 def test_the_jacobian_of_some_columns_is_those_of_the_full_jacobian(problem):
     """`evaluate(..., columns=)` (the law search's fits hold most of its model's columns):
     the rows as without, the Jacobian's named columns those of the full Jacobian, the

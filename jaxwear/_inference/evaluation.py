@@ -112,39 +112,107 @@ def _rows_and_aux(model: ResidualModel, v):
     return (rows, snaps), aux
 
 
+ALL = -1  # `seeds`' owner of a column every row depends on
+NONE = -2  # its owner for a column whose Jacobian is not computed (0)
+
+
+def seeds(columns, wanted=None, width: int | None = None):
+    """Forward-mode seeds of a Jacobian (Curtis-Powell-Reid compression): (S (P, K) float,
+    color (P,) int, owner (P,) int). A per-experiment column (an experiment's clearance,
+    its registration offset: `Column.experiment`) moves that experiment's rows and
+    snapshots only, so those of distinct experiments share one tangent (the sum of their
+    unit vectors), and each is read back from the rows of its own experiment (`owner`);
+    every other column has a tangent of its own (owner `ALL`). `columns`: the packing's
+    `Column`s (P); `wanted` (K,) indices: the columns computed (repeats allowed; the
+    others `NONE`, 0 in the Jacobian); None: every column. `width`: K at least (zero
+    tangents pad it: one program for every set of `wanted` of one length).
+
+    Why: the experiments run one after another (`ResidualModel.snapshots`'s `lax.map`),
+    and a dense tangent of one experiment's clearance carries zeros through every other
+    experiment's wear loop at the full cost of a tangent. On the generator's fatigue study
+    (5 experiments) the fits' K_d + 5 clearances take 2 tangents instead of 6, the law
+    search's 11 columns 7."""
+    P = len(columns)
+    idx = list(range(P)) if wanted is None else list(dict.fromkeys(int(i) for i in wanted))
+    color = np.zeros(P, np.int32)
+    owner = np.full(P, NONE, np.int32)
+    groups: list[list[int]] = []  # columns per tangent
+    # per tangent: the experiments of its columns (None: one column every row depends on)
+    shared: list[set] = []
+    for j in idx:
+        e = columns[j].experiment
+        if e is None:
+            owner[j] = ALL
+            groups.append([j])
+            shared.append(None)
+            continue
+        owner[j] = int(e)
+        k = next((k for k, s in enumerate(shared) if s is not None and int(e) not in s), None)
+        if k is None:
+            groups.append([])
+            shared.append(set())
+            k = len(groups) - 1
+        groups[k].append(j)
+        shared[k].add(int(e))
+    K = max(len(groups), width or 0, 1)
+    S = np.zeros((P, K))
+    for k, js in enumerate(groups):
+        for j in js:
+            S[j, k] = 1.0
+            color[j] = k
+    return S, color, owner
+
+
+def width_of(columns, wanted) -> int:
+    """The tangents `seeds` needs for `wanted` (K,) padded as its caller padded it: the
+    length of `wanted` less what sharing saves among its distinct columns (the same for
+    every law of the law search, whose padded sets share their per-experiment columns)."""
+    distinct = list(dict.fromkeys(int(i) for i in wanted))
+    used = seeds(columns, distinct)[0].shape[1]
+    return len(wanted) - (len(distinct) - used)
+
+
+def _seeded(model: ResidualModel, u, S, color, owner):
+    """The Jacobian (rows, P) and that of the snapshots (E, S, N, P) at u by forward mode
+    along the seeds `S` (P, K) (`seeds`), with the rows and the run's checks (aux)."""
+    def g(v):
+        return _rows_and_aux(model, v)
+
+    _, (Jk, Jk_snaps), aux = jax.vmap(lambda t: jax.jvp(g, (u,), (t,), has_aux=True),
+                                      in_axes=1, out_axes=(None, -1, None))(S)
+    exp = model.data.exp  # (rows,) each row's experiment
+    own = (owner[None, :] == ALL) | (owner[None, :] == exp[:, None])  # (rows, P)
+    J = jnp.where(own, Jk[:, color], 0.0)
+    E = Jk_snaps.shape[0]
+    own_s = (owner[None, :] == ALL) | (owner[None, :] == jnp.arange(E)[:, None])  # (E, P)
+    J_snaps = jnp.where(own_s[:, None, None, :], Jk_snaps[..., color], 0.0)
+    return J, J_snaps, aux
+
+
 @jit
 def _evaluate_jit(model: ResidualModel, u):
+    """Rows, snapshots and their Jacobians in every column of u (`seeds`: the columns of
+    distinct experiments share a tangent)."""
     TRACES["jacobian"] += 1  # runs when traced only
-    def g(v):
-        return _rows_and_aux(model, v)
-
-    (J, J_snaps), aux = jax.jacfwd(g, has_aux=True)(u)
-    return J, J_snaps, aux
+    S, color, owner = seeds(model.packing.columns)  # the packing is static: constants
+    return _seeded(model, u, jnp.asarray(S, u.dtype), jnp.asarray(color), jnp.asarray(owner))
 
 
 @jit
-def _evaluate_columns_jit(model: ResidualModel, u, cols):
-    """`_evaluate_jit` with the Jacobian's columns `cols` (K,) only (indices into u, a
-    column repeated to pad), the others 0: forward mode costs one tangent per column, and
-    a fit that holds most columns (the law search's one model for every law, 10 law
-    constants of which a law fits 1-5) pays for its free ones only. `cols` is data: one
-    program for every set of the same length."""
+def _evaluate_columns_jit(model: ResidualModel, u, S, color, owner):
+    """`_evaluate_jit` with the Jacobian's columns chosen by `seeds` (its `wanted`, the
+    others 0): forward mode costs one tangent per seed, and a fit that holds most columns
+    (the law search's one model for every law, 10 law constants of which a law fits 1-5)
+    pays for its free ones only. The seeds are data: one program for every set of the
+    same width."""
     TRACES["jacobian"] += 1  # runs when traced only
-    def g(v):
-        return _rows_and_aux(model, v)
-
-    T = jnp.eye(u.shape[0], dtype=u.dtype)[:, cols]  # (P, K) unit tangents
-    _, (Jk, Jk_snaps), aux = jax.vmap(lambda t: jax.jvp(g, (u,), (t,), has_aux=True),
-                                      in_axes=1, out_axes=(None, -1, None))(T)
-    J = jnp.zeros(Jk.shape[:-1] + u.shape, Jk.dtype).at[..., cols].set(Jk)
-    J_snaps = jnp.zeros(Jk_snaps.shape[:-1] + u.shape, Jk.dtype).at[..., cols].set(Jk_snaps)
-    return J, J_snaps, aux
+    return _seeded(model, u, S, color, owner)
 
 
 def _jacobian_run(model: ResidualModel, u, cols):
     if cols is None:
         return _evaluate_jit(model, u)
-    return _evaluate_columns_jit(model, u, cols)
+    return _evaluate_columns_jit(model, u, *cols)
 
 
 # a thread lowering the next level's program ahead (`Compiling`): a compilation is counted
@@ -191,7 +259,11 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
         return unusable_evaluation(model, u, work_failure(model, u)), model
     model = enough_attempts(model, u, need=need)
     uj = jnp.asarray(u, jnp.float64)
-    cols = None if columns is None else jnp.asarray(columns, jnp.int32)
+    cols = None
+    if columns is not None:
+        S, color, owner = seeds(model.packing.columns, columns,
+                                width_of(model.packing.columns, columns))
+        cols = (jnp.asarray(S), jnp.asarray(color), jnp.asarray(owner))
     out = _jacobian_run(_dynamic(model), uj, cols)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
     # layer's rejections), double it (a traced bound: no recompilation) rather than use a

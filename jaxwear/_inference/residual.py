@@ -10,7 +10,8 @@ problem as a `ResidualModel`; `jaxwear._inference.lsq` solves it. A model holds
 - the measured rows (`Data`): where each row lives in the model's snapshots,
 
 and one compiled evaluation returns the rows, their exact forward-mode Jacobian through the
-whole wear loop (`jax.jacfwd`: a handful of tangents pushed alongside the primal), the
+whole wear loop (forward mode: a handful of tangents pushed alongside the primal, the
+columns of distinct experiments sharing one: `evaluation.seeds`), the
 snapshots and their Jacobian. Prior rows are computed on the host from the packing (they
 are analytic in u), so changing a prior never recompiles.
 

@@ -233,7 +233,8 @@ def law_model(model: Model, fit: Fit, law: LawSpec) -> Model:
         return lm
     # the Jacobian of the columns a law fits only (`fit_law`'s free ones: the fit's own
     # and the law's constants), padded to one length for every law (one program): a law
-    # fits 1-5 of the 10 law columns, each a tangent of every evaluation
+    # fits 1-5 of the 10 law columns, each a tangent of every evaluation (the fit's
+    # clearances, one per experiment, share one: `evaluation.seeds`)
     free = [n for n, m in zip(model.names, fit.mask) if m]
     jac = [lm.index[n] for n in [*free, *law.free_keys()] if n in lm.index]
     jac += [jac[0]] * (len(free) + MAX_FREE_LAW - len(jac))
