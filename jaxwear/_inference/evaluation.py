@@ -263,7 +263,7 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
     if columns is not None:
         S, color, owner = seeds(model.packing.columns, columns,
                                 width_of(model.packing.columns, columns))
-        cols = (jnp.asarray(S), jnp.asarray(color), jnp.asarray(owner))
+        cols = (to_device(S), to_device(color), to_device(owner))  # no compilation
     out = _jacobian_run(_dynamic(model), uj, cols)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
     # layer's rejections), double it (a traced bound: no recompilation) rather than use a
