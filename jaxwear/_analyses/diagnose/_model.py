@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import threading
 import time
 
 import numpy as np
 
 from jaxwear._analyses.diagnose._extended import candidate_names
+from jaxwear._core.host import to_device
 from jaxwear._core.noise import series
 from jaxwear._inference.attempts import needs_more_attempts
 from jaxwear._inference.evaluation import (
@@ -133,6 +135,26 @@ class Model:
         out = copy.copy(self)
         object.__setattr__(out, "ext", self.ext.with_defect(np.asarray(defect_um, np.float64)))
         return out
+
+    def with_wear_tolerance(self, factor: float) -> Model:
+        """The same model integrating at `factor` times its adaptive wear tolerance: the
+        same compiled programs (the tolerance is a traced array of the schedule); itself
+        under the paper's fixed-step integrator, which has none."""
+        sched = self.ext.schedule
+        if not sched.adaptive or factor == 1:
+            return self
+        tol = to_device(np.asarray(sched.tolerance, np.float64) * factor)
+        out = copy.copy(self)
+        object.__setattr__(out, "ext", self.ext.with_schedule(
+            dataclasses.replace(sched, tolerance=tol)))
+        return out
+
+    @property
+    def wear_tolerance_um(self) -> float | None:
+        """The adaptive loop's wear tolerance [µm] (the largest of the experiments'), None
+        under the paper's fixed-step integrator."""
+        sched = self.ext.schedule
+        return float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
 
     def with_contact(self, contact: str | None) -> Model:
         """The same model with another contact choice (None: the study's)."""

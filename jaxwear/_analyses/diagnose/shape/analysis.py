@@ -325,7 +325,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
             _log(verbose, f"    the shape's refit gave no RMSE: {message}")
             return replace(result(results, None, status, {}, None,
                                   linear.evaluations + Model.own_evaluations() - e0),
-                           refit_message=message)
+                           refit_message=message,
+                           refit_tolerance_um=corr_model.wear_tolerance_um)
         correction = _correction(corr_model, u_fit, carriers, form)
         done = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
                 and v.form == form else v for v in results]
@@ -333,7 +334,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         return replace(result(done, rmse_after, status, correction, ww,
                               linear.evaluations + Model.own_evaluations() - e0),
                        residual_um=resid, refit_message=message,
-                       refit_at=(corr_model, np.asarray(u_fit, np.float64)))
+                       refit_at=(corr_model, np.asarray(u_fit, np.float64)),
+                       refit_tolerance_um=corr_model.wear_tolerance_um)
 
     if sig and refit_ahead:
         ahead = Ahead(smodel, refit_with, u, free_base, blocks, carriers, form, rho, n_res,

@@ -51,6 +51,17 @@ SETTLED_RMSE = 0.004
 # hardly see; a factor's start now carries the refit's own prior, `_factor_start`, and is
 # integrated there: these fractions are the fallback for a start that still is not.)
 START_FRACTIONS = (0.5, 0.0)
+# The refit integrates at this many times the study's wear tolerance (adaptive integrator).
+# Why: its correction makes the local rate a steep function of the state (a factor e^g of
+# the pressure), so at the study's tolerance its runs took 107-385 adaptive steps, 3-10x
+# the other models' (the generator's `fatigue` study, 48 x 72: ~2.5 s a Jacobian of 23
+# tangents, on the diagnosis's critical path). Its answer is its RMSE, which enters only
+# comparisons with a tolerance of 1 % or more (see `SETTLED_RMSE`). Measured there, at
+# four of the refit's points against a run at a quarter of the tolerance: at 5x the rows
+# moved by 0.0007-0.0029 µm RMS (noise 0.30 µm) and the RMSE by at most 0.1 % (a tenth of
+# that tie); at 10x by up to 0.018 µm RMS and 0.65 %. The JSON says the tolerance
+# (`shape.refit_tolerance_um`).
+REFIT_TOLERANCE = 5.0
 
 
 def _carriers(results, top) -> tuple:
@@ -100,7 +111,8 @@ def _setup(smodel: Model, groups, u, free_base, blocks, carriers, form, rho, n_r
         blocks = {**blocks, tensor.label: (A_t, S_t, Z_t, cols_t, tensor)}
         labels = labels + [tensor.label]
     # the fit's own candidate groups only (the design may carry more, held at off)
-    cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_), tensors))
+    cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_), tensors)
+                        ).with_wear_tolerance(REFIT_TOLERANCE)
     u0 = _map_u(smodel, u, cm)
     own = u0.copy()  # the fit's own answer: the correction off
     # the joint linearised start over the carriers (their GCV penalty)
@@ -254,8 +266,6 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
             smodel, groups, u, free_base, blocks, carriers, form, rho, n_res, Jw, rho_full,
             surface=surface, linear_start=linear_start), None, None
     cm, free, lo, hi = s.cm, s.free, s.lo, s.hi
-    # the when/where map of this model compiles in the background while the refit runs
-    maps = Background(compile_maps, cm, deepest) if maps else None
     evaluate = _objective(s)
 
     log = (lambda m: _log(True, m)) if verbose else None
@@ -279,6 +289,9 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
         # a compilation more in the JSON) and the Jacobian run a third time
         if warm[0].ext.schedule.attempts > cm.ext.schedule.attempts:
             object.__setattr__(cm, "ext", cm.ext.with_schedule(warm[0].ext.schedule))
+        _share_programs(cm, warm[0])
+    # the when/where map of this model compiles in the background while the refit runs
+    maps = Background(compile_maps, cm, deepest) if maps else None
     failed = []
     for what, start in starts:
         point0 = (point_ahead if start_ahead is not None
@@ -335,6 +348,26 @@ def _warm_start(s: _Setup, warm) -> np.ndarray | None:
     out = s.own.copy()
     out[cols] = u[cols]
     return np.clip(out, s.lo, s.hi)
+
+
+def _share_programs(cm: Model, other: Model) -> None:
+    """Give `cm` (in place) the parameters' pytree of `other`, an earlier refit's model of
+    the same configuration, where its strengths are a subset of `cm`'s: `other`'s compiled
+    programs (Jacobian, rates, when/where map) then serve `cm`.
+
+    Why: while the law search runs (`effects.law.searching`, also ahead in a thread of its
+    own) its effects are registered, and parameters built meanwhile in another thread carry
+    their strengths, unused and at off. The second refit's model is built then or not by
+    the threads' timing: with them, a pytree of its own, whose programs compiled again (the
+    generator's `fatigue` study: 7 Jacobian compilations instead of 6 in 3 of 4 runs, ~5 s
+    of CPU). The strengths dropped are of effects the model's configuration does not
+    switch on, so its rows are the same."""
+    mine, theirs = cm.ext.params.effect_params, other.ext.params.effect_params
+    if (cm.ext.cfg != other.ext.cfg or mine.keys() == theirs.keys()
+            or not set(theirs) <= set(mine)):
+        return
+    params = replace(cm.ext.params, effect_params={k: mine[k] for k in theirs})
+    object.__setattr__(cm, "ext", replace(cm.ext, params=params))
 
 
 def _factor_start(A, S, rho, lam, Zs) -> np.ndarray:

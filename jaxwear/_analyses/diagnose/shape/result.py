@@ -116,6 +116,9 @@ class ShapeResult:
     # (the refit's model, u at its answer (P,)), for a later refit of the same correction
     # on the same model to start from (`shape.refit._warm_start`); None before the refit
     refit_at: object = field(default=None, repr=False, compare=False)
+    # the adaptive wear tolerance the refit integrated at [µm] (`refit.REFIT_TOLERANCE`
+    # times the study's), None without a refit or under the paper's integrator
+    refit_tolerance_um: float | None = None
 
 
     def finished(self, warm: ShapeResult | None = None) -> ShapeResult:
@@ -155,6 +158,7 @@ class ShapeResult:
                 "rmse_before_um": _num(self.rmse_before_um),
                 "model_evaluations": self.evaluations, "refit_status": self.status,
                 "refit_message": self.refit_message or None,
+                "refit_tolerance_um": _num(self.refit_tolerance_um),
                 "numerical_error": self.numerical, "summary": self.sentence,
                 "next_test": self.next_test,
                 **({"law": self.law.to_json()} if self.law is not None else {})}
