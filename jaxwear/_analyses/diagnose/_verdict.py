@@ -355,8 +355,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         if drawing is not None:
             pngs, pngs_after = drawing.result()
             shp = replace(shp, pngs=pngs)
-        if warming is not None:
-            warming.result()
+        screened = warming.result() if warming is not None else None
         if law and shp.best is not None and shp.linear:
             # the law of the grammar that explains the base model's misfit (the study as
             # written: with a library effect that only approximates, the law replaces it)
@@ -371,7 +370,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                           correction=shp.correction,
                                           shape_rmse_um=shp.rmse_after_um,
                                           shape_why=shp.refit_message, ahead=ahead,
-                                          verbose=verbose))
+                                          screen=screened, verbose=verbose))
         if beside is not None:
             after, lines = beside.result()
             for line in lines:

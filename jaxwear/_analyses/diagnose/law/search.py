@@ -260,45 +260,24 @@ def fit_law(model: Model, fit: Fit, law: LawSpec, noise_um: float, nu: float, *,
     return law.with_values(values), f, lm
 
 
-def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
-           n: int = PICKS, forms=("factor", "deposit"), prefer=None,
-           correction: dict | None = None, shape_rmse_um: float | None = None,
-           shape_why: str = "", max_evaluations: int = LAW_EVALUATIONS,
-           numerical: bool = True, profile: bool = True, ahead: bool | None = None,
-           verbose: bool = False) -> LawResult:
-    """The law search on the misfit left by `fit` (module docstring); `linear`: the shape
-    analysis's linearised system (`ShapeResult.linear`) on top of the same fit; `forms`:
-    those the search tries; `n`: laws of distinct structure fitted through the loop at
-    most (`law.screen.picks`); `shape_rmse_um`: the shape's correction refitted through
-    the loop: a best law more than `LAW_WORSE` above it is reported as worse than the
-    shape (`LawResult.worse_than_shape`) and is a lead; None (`shape_why`: why the refit
-    has none) leaves that check unmade, and the law a lead that says so. `numerical`: the
-    best law's constants checked against twice the nodes and steps per cycle and corrected
-    to it (`law.numerical.correct_law`: one forward run there, a chord check or two at
-    this level). `profile`: the best law's linearised standard errors checked by two
-    forward runs a constant, and replaced by the profile of the misfit where it is not
-    quadratic (`law.profile.profile_law`). `ahead`: candidates whose fit depends on no
-    law fitted before them are fitted ahead on a second core (`law.ahead`: the same
-    answer; default: where the machine has more than one core). `prefer` and
-    `correction` (the shape's choice and its refitted correction) are reported, not
-    followed: the screen weighs every law of the grammar alike (issue 48)."""
-    # the whole grammar is screened alike (module docstring); `prefer` and `correction`
-    # only decide whether laws with memory are tried (`law.memory.wanted`)
-    # this thread's evaluations (`Model.own_evaluations`): diagnose refits the shape on top
-    # of the effect found beside the search
-    t0, c0, e0 = time.perf_counter(), time.process_time(), Model.own_evaluations()
-    samples, ranges, tops = states_met(model, fit, forms)
-    peaks = linear.get("peaks", {})
+@dataclasses.dataclass(frozen=True)
+class Screening:
+    """The states met at a fit (`states_met`: `samples`, `ranges`, `tops`) and every law of
+    the grammar screened on them (`screened`: (χ² drop, law)), for `forms`."""
 
-    def grid(var, form):
-        return single_laws(var, form, peaks.get(var.name if form == "factor"
-                                                else f"deposit:{var.name}"))
+    samples: dict
+    ranges: dict
+    tops: dict
+    screened: list
+    forms: tuple
+
+
+def _refusals(ranges: dict):
+    """(refuse, refuse_steep): why a law is refused on the states met (`ranges`), "" where
+    it is not."""
 
     def refuse(law):
         return unbounded(law, ranges.get(law.form, {}))
-
-    def bound(law, f):
-        return bounded(law, ranges.get(law.form, {}), own_tops(tops.get(law.form, {}), f))
 
     def refuse_steep(law):
         # `refuse`, and an exponential whose rate grows more than `EXP_GROWTH`-fold beyond
@@ -317,7 +296,62 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                        f"-fold from the upper end of the states met to twice it")
         return why
 
-    screened = screen_grammar(linear, samples, grid, forms, refuse_steep)
+    return refuse, refuse_steep
+
+
+def screening(model: Model, fit: Fit, linear: dict, forms=("factor", "deposit")
+              ) -> Screening:
+    """The states met at `fit` and the grammar's one- and two-term laws screened on the
+    shape's linearised system `linear` (`screen_grammar`): host work and small programs,
+    no model evaluation. `warm` makes it ahead, beside the shape's refit; `search` takes
+    it from there."""
+    samples, ranges, tops = states_met(model, fit, forms)
+    peaks = linear.get("peaks", {})
+
+    def grid(var, form):
+        return single_laws(var, form, peaks.get(var.name if form == "factor"
+                                                else f"deposit:{var.name}"))
+
+    screened = screen_grammar(linear, samples, grid, forms, _refusals(ranges)[1])
+    return Screening(samples, ranges, tops, screened, tuple(forms))
+
+
+def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
+           n: int = PICKS, forms=("factor", "deposit"), prefer=None,
+           correction: dict | None = None, shape_rmse_um: float | None = None,
+           shape_why: str = "", max_evaluations: int = LAW_EVALUATIONS,
+           numerical: bool = True, profile: bool = True, ahead: bool | None = None,
+           screen: Screening | None = None, verbose: bool = False) -> LawResult:
+    """The law search on the misfit left by `fit` (module docstring); `linear`: the shape
+    analysis's linearised system (`ShapeResult.linear`) on top of the same fit; `forms`:
+    those the search tries; `n`: laws of distinct structure fitted through the loop at
+    most (`law.screen.picks`); `shape_rmse_um`: the shape's correction refitted through
+    the loop: a best law more than `LAW_WORSE` above it is reported as worse than the
+    shape (`LawResult.worse_than_shape`) and is a lead; None (`shape_why`: why the refit
+    has none) leaves that check unmade, and the law a lead that says so. `numerical`: the
+    best law's constants checked against twice the nodes and steps per cycle and corrected
+    to it (`law.numerical.correct_law`: one forward run there, a chord check or two at
+    this level). `profile`: the best law's linearised standard errors checked by two
+    forward runs a constant, and replaced by the profile of the misfit where it is not
+    quadratic (`law.profile.profile_law`). `ahead`: candidates whose fit depends on no
+    law fitted before them are fitted ahead on a second core (`law.ahead`: the same
+    answer; default: where the machine has more than one core). `screen`: the screen of
+    `linear` on the states met at `fit`, made ahead (`warm`); None: made here. `prefer` and
+    `correction` (the shape's choice and its refitted correction) are reported, not
+    followed: the screen weighs every law of the grammar alike (issue 48)."""
+    # the whole grammar is screened alike (module docstring); `prefer` and `correction`
+    # only decide whether laws with memory are tried (`law.memory.wanted`)
+    # this thread's evaluations (`Model.own_evaluations`): diagnose refits the shape on top
+    # of the effect found beside the search
+    t0, c0, e0 = time.perf_counter(), time.process_time(), Model.own_evaluations()
+    if screen is None or screen.forms != tuple(forms):
+        screen = screening(model, fit, linear, forms)
+    samples, ranges, tops, screened = screen.samples, screen.ranges, screen.tops, screen.screened
+    refuse, refuse_steep = _refusals(ranges)
+
+    def bound(law, f):
+        return bounded(law, ranges.get(law.form, {}), own_tops(tops.get(law.form, {}), f))
+
     todo = picks(screened, len(linear["rho"]), n)
     _log(verbose, f"  law search: {len(screened)} one- and two-term laws screened; through "
                   f"the loop: " + "; ".join(f"{law.label} (χ² {d:.0f})" for d, law in todo))
@@ -681,7 +715,7 @@ def law_off(lm: Model, model: Model, law: LawSpec):
     return predict
 
 
-def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
+def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> Screening | None:
     """The law model's programs traced and compiled (one each for every law of the
     search) by one evaluation and one forward run of the first candidate's start, ahead
     of `search`: diagnose runs it in the background while the shape's correction is
@@ -690,7 +724,12 @@ def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
     left-out checks' (`start_of`, `loo_refined`): compiled at the search's first start, it
     was 11.8 s of wall there on the fatigue study (load ~9), while the search and the
     second shape refit held both cores; here the core beside the first refit is mostly
-    free. Failures are left to the search, which meets them again and reports them."""
+    free. Failures are left to the search, which meets them again and reports them.
+
+    Returns the search's screen (`screening`), made here too, or None. Why: the states met
+    and the grammar's ~39 000 laws screened on them took ~4 s of host work on the search's
+    thread, after the refit, on the fatigue study's critical path; here they run beside
+    the refit, whose thread waits on its compiled runs."""
     try:
         todo = prescreen(linear)
         if todo:
@@ -699,7 +738,11 @@ def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> None:
                 lm.evaluate(np.zeros(len(lm.names)))
                 lm.predict(np.zeros(len(lm.names)))
     except Exception:  # noqa: BLE001 (the search reports it where it matters)
-        return
+        pass
+    try:
+        return screening(model, fit, linear)
+    except Exception:  # noqa: BLE001 (the search meets it again and reports it)
+        return None
 
 
 # of the screen's (first-order) strength, by forward runs: on the generator's power of
