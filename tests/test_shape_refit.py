@@ -134,7 +134,7 @@ def test_the_law_models_forward_program_is_compiled_ahead_of_the_search(analysed
     """`law.search.warm` (run beside the shape's refit) leaves the search no program to
     compile: the forward run of another law's start (`start_of`'s, the left-out checks')
     traces nothing, as its evaluation does not."""
-    from jaxwear._analyses.diagnose.law.search import law_model, prescreen, warm
+    from jaxwear._analyses.diagnose.law.search import law_model, prescreen, screening, warm
     from jaxwear._analyses.diagnose.law.start import forward_rmse
     from jaxwear._inference.residual import traces, traces_since
     from jaxwear._physics.effects.law import searching
@@ -142,7 +142,13 @@ def test_the_law_models_forward_program_is_compiled_ahead_of_the_search(analysed
     model, base, linear = analysed
     todo = prescreen(linear.linear)
     assert len(todo) >= 2
-    warm(model, base, linear.linear)
+    made = warm(model, base, linear.linear)
+    # ... and the search's screen with it: the one the search makes itself
+    again = screening(model, base, linear.linear)
+    assert len(made.screened) > 1000 and made.forms == ("factor", "deposit")
+    assert [(d, lw.label) for d, lw in made.screened] == [(d, lw.label)
+                                                          for d, lw in again.screened]
+    assert made.ranges == again.ranges and made.tops == again.tops
     before = traces()
     with searching():
         lm = law_model(model, base, todo[-1][1])  # not the law warm ran: the same programs
@@ -152,14 +158,18 @@ def test_the_law_models_forward_program_is_compiled_ahead_of_the_search(analysed
 
 
 def test_the_search_answers_the_same_with_its_candidates_fitted_ahead(analysed):
-    """The search on this study: with `ahead` the same laws fitted, in the same order, with
-    the same RMSE, left-out errors and evidence, and the same model evaluations counted
-    for them (those of the jobs it took included; those it discarded apart)."""
-    from jaxwear._analyses.diagnose.law.search import search
+    """The search on this study: with `ahead` (and its screen made before it, as diagnose
+    makes it beside the shape's refit: `law.search.warm`) the same laws fitted, in the
+    same order, with the same RMSE, left-out errors and evidence, and the same model
+    evaluations counted for them (those of the jobs it took included; those it discarded
+    apart)."""
+    from jaxwear._analyses.diagnose.law.search import screening, search
 
     model, base, linear = analysed
+    made = screening(model, base, linear.linear)
     out = {a: search(model, base, linear.linear, NOISE, math.inf, numerical=False,
-                     profile=False, ahead=a) for a in (False, True)}
+                     profile=False, ahead=a, screen=made if a else None)
+           for a in (False, True)}
     one, two = out[False], out[True]
     assert [f.law.label for f in two.fitted] == [f.law.label for f in one.fitted]
     assert len(one.fitted) >= 2

@@ -304,11 +304,58 @@ def test_an_unfinished_run_finds_its_attempt_count_by_forward_runs(problem, monk
     ev, used = E.evaluate(short, u, doublings=5)
     assert ev.usable and np.isfinite(ev.error_um)
     assert used.schedule.attempts >= 4  # 1 -> 2 cannot take the history's 6+ steps
-    # the short Jacobian run, the first doubling's, then one at the count the forward runs
-    # reached (before: one Jacobian run per doubling, 4 or more)
-    assert calls["jacobian"] == 3 and calls["forward"] >= 1, calls
+    # the short Jacobian run (its bound `HEADROOM` x the count: its doublings counted as
+    # taken), then one at the count the forward runs reached (before: one Jacobian run per
+    # doubling, 4 or more)
+    assert calls["jacobian"] == 2 and calls["forward"] >= 1, calls
     np.testing.assert_allclose(ev.pred, full.pred, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(ev.J, full.J, rtol=1e-7, atol=1e-9 * np.abs(full.J).max())
+
+
+def test_a_count_short_by_up_to_the_headroom_ends_in_one_jacobian_run(problem,
+                                                                         monkeypatch):
+    """A Jacobian run's loop bound is `HEADROOM` times the model's attempt count (traced:
+    the same program), so a run whose estimate was short by up to that factor ends in one
+    go, where it was repeated whole at twice the count: the same history to the bit, no
+    forward run, and the model's count raised to what the repeats would have left (the
+    smallest count x 2^k that holds the attempts it used)."""
+    import jax.numpy as jnp
+
+    from jaxwear._inference import evaluation as E
+
+    u = np.zeros(problem.packing.size)
+    uj = jnp.asarray(u)
+    full, _ = E.evaluate(problem, u)
+    used_attempts = int(E._evaluate_jit(E._dynamic(problem), uj)[2][7])
+    assert full.usable and used_attempts >= full.steps >= 6
+    short_count = -(-used_attempts // 3)  # used in (count, 4 count]: short, in the headroom
+    assert short_count < used_attempts <= E.HEADROOM * short_count
+    short = problem.with_schedule(dataclasses.replace(problem.schedule,
+                                                      attempts=short_count))
+    calls = {"jacobian": 0, "forward": 0}
+    jac, fwd = E._evaluate_jit, E._forward_jit
+
+    def count(name, f):
+        def run(*a, **k):
+            calls[name] += 1
+            return f(*a, **k)
+        return run
+
+    monkeypatch.setattr(E, "_evaluate_jit", count("jacobian", jac))
+    monkeypatch.setattr(E, "_forward_jit", count("forward", fwd))
+    monkeypatch.setattr(E, "enough_attempts", lambda model, u, **k: model)
+    ev, used = E.evaluate(short, u)
+    assert calls == {"jacobian": 1, "forward": 0}
+    assert np.array_equal(ev.pred, full.pred) and np.array_equal(ev.J, full.J)
+    assert ev.steps == full.steps and ev.error_um == full.error_um
+    raised = short_count
+    while raised < used_attempts:
+        raised *= 2
+    assert used.schedule.attempts == raised
+    # a count that holds the run is left as it is
+    same, kept = E.evaluate(problem.with_schedule(dataclasses.replace(
+        problem.schedule, attempts=used_attempts)), u)
+    assert kept.schedule.attempts == used_attempts and np.array_equal(same.pred, full.pred)
 
 
 def test_columns_of_distinct_experiments_share_a_tangent_and_give_the_dense_jacobian(

@@ -214,8 +214,8 @@ def _evaluate_columns_jit(model: ResidualModel, u, S, color, owner):
 # The first run of an evaluation is given this many times its model's attempt count as
 # the loop's (traced) bound. Why: the count is an estimate, and a run that did not reach
 # the end was repeated whole at twice the count, its Jacobian (1 + tangents runs)
-# included: on the generator's fatigue study (48 x 72) the shape's refit ran one of its
-# nine Jacobians twice (6.6 s against ~2.7 s) and the law search ~6 of its 37. Attempts
+# included: on the generator's fatigue study (48 x 72) a diagnosis ran 3 of its 95
+# Jacobian evaluations twice (one of the shape's refit: 6.6 s against ~2.7 s). Attempts
 # after the end cost nothing (the loop stops), so a run that needs up to this many times
 # the count now ends in one go, with the same steps, the same answer to the bit, and the
 # model's count raised as the repeats would have raised it (`_raised`): what later
