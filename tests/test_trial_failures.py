@@ -277,18 +277,9 @@ def test_the_samplers_density_at_a_failing_point_is_minus_infinity(problem):
     assert float(logp({"u": jnp.asarray(bad)})) == -math.inf
 
 
-def test_an_unfinished_run_finds_its_attempt_count_by_forward_runs(problem, monkeypatch):
-    """Where the attempt estimate is far too short (one doubling does not reach the end),
-    the count that reaches it is found by forward runs and the Jacobian run once more, at
-    it (a Jacobian run that does not reach the end uses every attempt, at 1 + P tangents:
-    on the fatigue study's shape refit three doubled Jacobian runs were ~60 s of CPU); the
-    evaluation is the one at an ample count (the same history, to rounding)."""
-    from jaxwear._inference import evaluation as E
-
-    u = np.zeros(problem.packing.size)
-    full, _ = E.evaluate(problem, u)
-    assert full.usable and full.steps >= 6
-    short = problem.with_schedule(dataclasses.replace(problem.schedule, attempts=1))
+def _counted_runs(E, monkeypatch) -> dict:
+    """{"jacobian": n, "forward": n}: the Jacobian and forward programs' runs from here on,
+    with the attempt estimate's raise switched off (the model's own count is used)."""
     calls = {"jacobian": 0, "forward": 0}
     jac, fwd = E._evaluate_jit, E._forward_jit
 
@@ -301,6 +292,22 @@ def test_an_unfinished_run_finds_its_attempt_count_by_forward_runs(problem, monk
     monkeypatch.setattr(E, "_evaluate_jit", count("jacobian", jac))
     monkeypatch.setattr(E, "_forward_jit", count("forward", fwd))
     monkeypatch.setattr(E, "enough_attempts", lambda model, u, **k: model)
+    return calls
+
+
+def test_an_unfinished_run_finds_its_attempt_count_by_forward_runs(problem, monkeypatch):
+    """Where the attempt estimate is far too short (one doubling does not reach the end),
+    the count that reaches it is found by forward runs and the Jacobian run once more, at
+    it (a Jacobian run that does not reach the end uses every attempt, at 1 + P tangents:
+    on the fatigue study's shape refit three doubled Jacobian runs were ~60 s of CPU); the
+    evaluation is the one at an ample count (the same history, to rounding)."""
+    from jaxwear._inference import evaluation as E
+
+    u = np.zeros(problem.packing.size)
+    full, _ = E.evaluate(problem, u)
+    assert full.usable and full.steps >= 6
+    short = problem.with_schedule(dataclasses.replace(problem.schedule, attempts=1))
+    calls = _counted_runs(E, monkeypatch)
     ev, used = E.evaluate(short, u, doublings=5)
     assert ev.usable and np.isfinite(ev.error_um)
     assert used.schedule.attempts >= 4  # 1 -> 2 cannot take the history's 6+ steps
@@ -332,18 +339,7 @@ def test_a_count_short_by_up_to_the_headroom_ends_in_one_jacobian_run(problem,
     assert short_count < used_attempts <= E.HEADROOM * short_count
     short = problem.with_schedule(dataclasses.replace(problem.schedule,
                                                       attempts=short_count))
-    calls = {"jacobian": 0, "forward": 0}
-    jac, fwd = E._evaluate_jit, E._forward_jit
-
-    def count(name, f):
-        def run(*a, **k):
-            calls[name] += 1
-            return f(*a, **k)
-        return run
-
-    monkeypatch.setattr(E, "_evaluate_jit", count("jacobian", jac))
-    monkeypatch.setattr(E, "_forward_jit", count("forward", fwd))
-    monkeypatch.setattr(E, "enough_attempts", lambda model, u, **k: model)
+    calls = _counted_runs(E, monkeypatch)
     ev, used = E.evaluate(short, u)
     assert calls == {"jacobian": 1, "forward": 0}
     assert np.array_equal(ev.pred, full.pred) and np.array_equal(ev.J, full.J)
