@@ -348,6 +348,12 @@ def test_a_count_short_by_up_to_the_headroom_ends_in_one_jacobian_run(problem,
     while raised < used_attempts:
         raised *= 2
     assert used.schedule.attempts == raised
+    # never more room than the caller's doublings allow: a fit's trial (one doubling)
+    # gets twice the count, and this run, short by more, stays unusable as before
+    calls.update(jacobian=0, forward=0)
+    assert 2 * short_count < used_attempts
+    trial, _ = E.evaluate(short, u, doublings=1)
+    assert not trial.usable and calls == {"jacobian": 1, "forward": 0}
     # a count that holds the run is left as it is
     same, kept = E.evaluate(problem.with_schedule(dataclasses.replace(
         problem.schedule, attempts=used_attempts)), u)

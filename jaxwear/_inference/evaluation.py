@@ -221,17 +221,19 @@ def _evaluate_columns_jit(model: ResidualModel, u, S, color, owner):
 # model's count raised as the repeats would have raised it (`_raised`): what later
 # comparisons read of it (`attempts.needs_more_attempts`) is unchanged. A run that cannot
 # reach the end (a stiff trial) spends up to this many times the count before the
-# doublings it would have taken: they are counted as taken.
+# doublings it would have taken: they are counted as taken. Never more than the caller's
+# doublings allow (2^doublings: a fit's trial, allowed one, gets twice the count), so a
+# run is usable exactly where the repeats would have made it so.
 HEADROOM = 4
 
 
-def _headroom(model: ResidualModel) -> ResidualModel:
-    """`_dynamic(model)` whose loop bound is `HEADROOM` times its attempt count (at most
+def _headroom(model: ResidualModel, factor: int) -> ResidualModel:
+    """`_dynamic(model)` whose loop bound is `factor` times its attempt count (at most
     `MAX_ATTEMPTS`)."""
     dyn = _dynamic(model)
-    if not model.schedule.adaptive:
+    if not model.schedule.adaptive or factor <= 1:
         return dyn
-    bound = min(HEADROOM * model.schedule.attempts, MAX_ATTEMPTS)
+    bound = min(factor * model.schedule.attempts, MAX_ATTEMPTS)
     return dyn.with_schedule(dataclasses.replace(dyn.schedule, attempt_limit=to_device(
         np.full(np.shape(dyn.schedule.attempt_limit), bound, np.int32))))
 
@@ -300,8 +302,8 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
         S, color, owner = seeds(model.packing.columns, columns,
                                 width_of(model.packing.columns, columns))
         cols = (to_device(S), to_device(color), to_device(owner))  # no compilation
-    a0 = model.schedule.attempts
-    out = _jacobian_run(_headroom(model), uj, cols)
+    a0, room = model.schedule.attempts, min(HEADROOM, 2 ** max(doublings, 0))
+    out = _jacobian_run(_headroom(model, room), uj, cols)
     # The attempt count is an estimate: where the loop did not reach the end (a stiff
     # layer's rejections), double it (a traced bound: no recompilation) rather than use a
     # truncated history. Not where no experiment took a single step: a model that is not
@@ -312,15 +314,16 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
     # every attempt, and the Jacobian's costs 1 + P tangents. Measured (issue 48): the
     # shape's refit on the fatigue study (51 columns) never reached the end; its three
     # doubled Jacobian runs (2 + 4 + 8 x the first's length) were ~60 s of CPU per refit
-    # of a cold `diagnose --shape`. The first doubling is a Jacobian run as before: most
-    # raises end there, and forward runs first would compile the model's forward program
-    # (3 more compilations on the g_step_p_power_v study, each longer than the run saved).
+    # of a cold `diagnose --shape`. The first doublings are the first run's own headroom
+    # (`HEADROOM`): most raises end there, and forward runs first would compile the model's
+    # forward program (3 more compilations on the g_step_p_power_v study, each longer than
+    # the run saved).
     left = doublings
     if np.isfinite(float(out[2][5])):
         model = _raised(model, out[2][7])
     elif _unfinished(model, out[2][5], out[2][6]):
         # the doublings the headroom stood for, counted as taken (`HEADROOM`)
-        while left > 0 and 2 * model.schedule.attempts <= min(HEADROOM * a0, MAX_ATTEMPTS):
+        while left > 0 and 2 * model.schedule.attempts <= min(room * a0, MAX_ATTEMPTS):
             model = model.with_schedule(model.schedule.more_attempts())
             left -= 1
     while left > 0 and _unfinished(model, out[2][5], out[2][6]):
