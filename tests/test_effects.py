@@ -235,3 +235,50 @@ def test_register_custom_effect_and_contracts():
             name = "double_layer"
         register_effect(Taken())
     assert "bad_effect" not in registered_effects()
+
+
+def test_scoped_effects_hold_for_their_context_and_the_threads_it_starts():
+    """`scoped_effects` (the law search's `searching`): registered for the block's context,
+    the threads started through `_core.background` (and `in_context`) included, not for any
+    other thread; checked as `register_effect` checks; a nested block's end leaves the
+    outer's. Why: a process-wide registration gave models built in other threads the
+    search's strengths by the threads' timing (another pytree, programs compiled again)."""
+    import threading
+
+    from jaxwear._core.background import Background, in_context
+    from jaxwear._physics.effects._base import scoped_effects
+
+    def seen():
+        return ("humidity_test" in registered_effects(),
+                "humidity_gain" in jw.preset("rig").effect_params)
+
+    plain = {}
+
+    def elsewhere():
+        plain["seen"] = seen()
+
+    eff = _Humidity()
+    with scoped_effects(eff):
+        assert seen() == (True, True)
+        assert get_effect("humidity_test") is eff
+        t = threading.Thread(target=elsewhere)
+        t.start()
+        t.join()
+        assert plain["seen"] == (False, False)
+        assert Background(seen).result() == (True, True)
+        t = threading.Thread(target=in_context(elsewhere))
+        t.start()
+        t.join()
+        assert plain["seen"] == (True, True)
+        with scoped_effects(eff):  # nested: its end leaves the outer block's
+            assert seen() == (True, True)
+        assert seen() == (True, True)
+    assert seen() == (False, False)
+
+    class Clash(_Humidity):
+        name = "bad_effect"
+        parameters = {"friction_coefficient": EffectParameter(1.0, 0.0, 0.0, 0.0, 1.0, "μ")}
+
+    with pytest.raises(ValueError, match="already belongs"), scoped_effects(Clash()):
+        pass
+    assert "bad_effect" not in registered_effects()

@@ -12,6 +12,9 @@ tells a thread when the caller's program has been lowered and its XLA compilatio
 - `lowered(pattern)`: an event set once JAX has lowered a program whose name contains
   `pattern` (a `jax.monitoring` listener on JAX's lowering event; where a later JAX renames
   that event the caller's own fallback sets it, see `Compiling` in `_inference.evaluation`).
+- `in_context(fn)`: `fn` to run in another thread in a copy of the caller's context
+  (`contextvars`), as `Background` does: what the caller's block registered for itself
+  (the law search's effects, `effects._base.scoped_effects`) holds there too.
 - Every thread started here is joined at the interpreter's exit (`atexit`): a compilation
   still running while the interpreter tears down its modules may crash it. The command
   line ends its process without that teardown and calls `abandon` first (`_core.interrupt`),
@@ -21,6 +24,7 @@ tells a thread when the caller's program has been lowered and its XLA compilatio
 from __future__ import annotations
 
 import atexit
+import contextvars
 import threading
 from collections.abc import Callable
 
@@ -52,7 +56,7 @@ class Background:
             finally:
                 self.done.set()
 
-        self._thread = threading.Thread(target=run, daemon=True,
+        self._thread = threading.Thread(target=in_context(run), daemon=True,
                                         name=f"jaxwear-{getattr(fn, '__name__', 'work')}")
         with _lock:
             _threads[:] = [t for t in _threads if t.is_alive()]
@@ -67,6 +71,13 @@ class Background:
         if self._err is not None:
             raise self._err
         return self._out
+
+
+def in_context(fn: Callable) -> Callable:
+    """`fn` run in a copy of the calling thread's context (`contextvars`), wherever it is
+    called: a thread (its own or a pool's) starts in an empty context otherwise."""
+    ctx = contextvars.copy_context()
+    return lambda *a, **kw: ctx.run(fn, *a, **kw)
 
 
 def _on_duration(event: str, duration: float, **kw) -> None:

@@ -32,7 +32,7 @@ from jaxwear._analyses.diagnose._result import Candidate, Diagnosis
 from jaxwear._analyses.diagnose._screen import screen
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs, run_tests
 from jaxwear._analyses.diagnose._text import summarize_verdict
-from jaxwear._analyses.diagnose.law.search import search, warm
+from jaxwear._analyses.diagnose.law.search import compile_ahead, search, warm
 from jaxwear._analyses.diagnose.shape.analysis import shape_analysis
 from jaxwear._analyses.diagnose.shape.design import at_answer, prepare_design
 from jaxwear._core.background import Background
@@ -304,6 +304,9 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     # passed narrowly, is weighed against the grammar's best law (the shape runs for it)
     contest = law and contested(status, effects, final_tests)
     if shape or contest or (auto_shape and status in ("unexplained", "partly_explained")):
+        # the law search's programs compiled beside the shape's design and analyses, which
+        # run mostly on one core (`law.search.compile_ahead`)
+        compiled = Background(compile_ahead, model, base) if law else None
 
         # both analyses' linear parts first, their refits through the loop after (`defer`),
         # so that the figures the refits do not change are drawn while they run
@@ -338,7 +341,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         if figures is not None:
             drawing = Background(figures, [shp, after])
         # the law model compiled while the shape's correction is refitted (`law.search.warm`)
-        warming = (Background(warm, model, base, shp.linear, (shp.form, shp.best))
+        warming = (Background(warm, model, base, shp.linear, (shp.form, shp.best),
+                              compiled=compiled)
                    if law and shp.best is not None and shp.linear else None)
         shp = shp.finished()
         # the refit on top of the effect found beside the law search (which needs the
@@ -356,6 +360,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             pngs, pngs_after = drawing.result()
             shp = replace(shp, pngs=pngs)
         screened = warming.result() if warming is not None else None
+        if warming is None and compiled is not None:
+            compiled.join()  # no search: nothing left compiling after the answer
         if law and shp.best is not None and shp.linear:
             # the law of the grammar that explains the base model's misfit (the study as
             # written: with a library effect that only approximates, the law replaces it)

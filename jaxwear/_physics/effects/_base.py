@@ -26,6 +26,8 @@ strength for every effect registered at the time it is built.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from typing import ClassVar
 
 import equinox as eqx
@@ -136,15 +138,24 @@ class Effect(eqx.Module):
 
 
 _REGISTRY: dict[str, Effect] = {}
+# effects registered for one context only (`scoped_effects`), after the registry's own
+_SCOPED: contextvars.ContextVar[tuple] = contextvars.ContextVar("jaxwear_scoped_effects",
+                                                                default=())
 
 
-def register_effect(effect: Effect) -> Effect:
-    """Make an effect available by name to studies, `calibrate`, `diagnose` and `synth`.
+def _effects() -> dict[str, Effect]:
+    """The registry as this context sees it: every effect registered, then its scoped ones."""
+    scoped = _SCOPED.get()
+    if not scoped:
+        return _REGISTRY
+    out = dict(_REGISTRY)
+    out.update((e.name, e) for e in scoped)
+    return out
 
-    Checks what the fitting machinery relies on: a name, at least one strength parameter,
-    defaults and `off` values within bounds, positive scales, and log parameters > 0.
-    Raises `ValueError` naming the problem.
-    """
+
+def _checked(effect: Effect, known: dict[str, Effect]) -> None:
+    """Raise `ValueError` naming what `effect` lacks that the fitting machinery relies on, or
+    a parameter it shares with another of the `known` effects."""
     name = effect.name
     if not name or not isinstance(name, str) or not name.isidentifier():
         raise ValueError(f"an effect needs a `name` that is an identifier, got {name!r}")
@@ -154,7 +165,7 @@ def register_effect(effect: Effect) -> Effect:
     if not effect.strength_keys():
         raise ValueError(f"effect {name}: needs a strength parameter (log=False) whose `off` "
                          f"value gives the base model")
-    taken = {k: e.name for e in _REGISTRY.values() if e.name != name for k in e.parameters}
+    taken = {k: e.name for e in known.values() if e.name != name for k in e.parameters}
     for key, spec in effect.parameters.items():
         if key in taken:
             raise ValueError(f"effect {name}: parameter {key!r} already belongs to effect "
@@ -169,8 +180,41 @@ def register_effect(effect: Effect) -> Effect:
             raise ValueError(f"effect {name}: log-fitted {key} needs lower > 0 and default > 0")
         if spec.realistic is not None and not (spec.lower <= spec.realistic <= spec.upper):
             raise ValueError(f"effect {name}: realistic value of {key} outside its bounds")
-    _REGISTRY[name] = effect
+
+
+def register_effect(effect: Effect) -> Effect:
+    """Make an effect available by name to studies, `calibrate`, `diagnose` and `synth`.
+
+    Checks what the fitting machinery relies on: a name, at least one strength parameter,
+    defaults and `off` values within bounds, positive scales, and log parameters > 0.
+    Raises `ValueError` naming the problem.
+    """
+    _checked(effect, _effects())
+    _REGISTRY[effect.name] = effect
     return effect
+
+
+@contextlib.contextmanager
+def scoped_effects(*effects: Effect):
+    """`effects` registered (checked as `register_effect` does) for the code this context
+    runs, and for the threads it starts through `_core.background.in_context` and the
+    helpers that use it, until the block ends; every other thread sees the registry
+    without them.
+
+    Why (issue 50): diagnose's law search registers its grammar's effects while other
+    threads build models beside it (the shape's refit, programs compiled ahead). With the
+    registry process-wide, a model built meanwhile carried their strengths (unused, at
+    off) or not, by the threads' timing: another pytree, whose programs compiled again."""
+    known = _effects()
+    for eff in effects:
+        if known.get(eff.name) is not eff:
+            _checked(eff, known)
+            known = {**known, eff.name: eff}
+    token = _SCOPED.set(_SCOPED.get() + tuple(effects))
+    try:
+        yield
+    finally:
+        _SCOPED.reset(token)
 
 
 def unregister_effect(name: str) -> None:
@@ -180,16 +224,16 @@ def unregister_effect(name: str) -> None:
 
 
 def get_effect(name: str) -> Effect:
-    return _REGISTRY[name]
+    return _effects()[name]
 
 
 def registered_effects() -> dict[str, Effect]:
-    return dict(_REGISTRY)
+    return dict(_effects())
 
 
 def effect_parameter_specs() -> dict[str, EffectParameter]:
     out = {}
-    for eff in _REGISTRY.values():
+    for eff in _effects().values():
         out.update(eff.parameters)
     return out
 

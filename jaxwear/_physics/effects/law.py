@@ -48,8 +48,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxwear._physics.effects._base import Effect, register_effect, safe_power, unregister_effect
-from jaxwear._physics.effects.law_memory import LAW_MEMORY, MEMORY_EFFECT
+from jaxwear._physics.effects._base import Effect, safe_power, scoped_effects
+from jaxwear._physics.effects.law_memory import LAW_MEMORY
 from jaxwear._physics.effects.parameter import EffectParameter
 from jaxwear._physics.effects.shape import DEPOSIT_UNIT_M, VARIABLES, state_variables, swept_kernel
 
@@ -191,14 +191,11 @@ LAW_SEARCH = LawSearch()
 @contextlib.contextmanager
 def searching():
     """`LAW_SEARCH` and the laws with memory (`effects.law_memory`) registered for the
-    duration (module docstring: never a candidate)."""
-    register_effect(LAW_SEARCH)
-    register_effect(LAW_MEMORY)
-    try:
+    duration, in this context only (`scoped_effects`: the threads it starts through
+    `_core.background` see them, no other thread does; module docstring: never a
+    candidate)."""
+    with scoped_effects(LAW_SEARCH, LAW_MEMORY):
         yield LAW_SEARCH
-    finally:
-        unregister_effect(LAW_EFFECT)
-        unregister_effect(MEMORY_EFFECT)
 
 
 @dataclass(frozen=True)

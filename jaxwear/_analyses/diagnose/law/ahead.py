@@ -34,6 +34,7 @@ import threading
 from concurrent.futures import CancelledError, ThreadPoolExecutor
 
 from jaxwear._analyses.diagnose._model import Model, Stopped, stopping
+from jaxwear._core.background import in_context
 from jaxwear._core.log import held
 
 # one thread beside the search's own: the machine of the 2-minute bar has two cores, and
@@ -73,7 +74,7 @@ class Ahead:
                     return err, lines, Model.own_evaluations() - e0
             return out, lines, Model.own_evaluations() - e0
 
-        self._jobs[key] = self._pool.submit(run)
+        self._jobs[key] = self._pool.submit(in_context(run))
         self._stops[key] = stop
 
     def take(self, key):

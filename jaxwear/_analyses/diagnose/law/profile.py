@@ -58,6 +58,7 @@ import numpy as np
 
 from jaxwear._analyses.diagnose._fit import _log, fit_masked
 from jaxwear._analyses.diagnose._model import Model
+from jaxwear._core.background import in_context
 from jaxwear._core.log import held
 from jaxwear._inference import lsq
 from jaxwear._physics.effects.law import LAW_EFFECT, SYMBOLS, constants
@@ -487,7 +488,7 @@ def profile_law(lf, noise_um: float, nu: float, *, verbose: bool = False):
         # refits from the centre: independent), their lines printed low side first
         if sides_apart:
             with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxwear-profile") as ex:
-                low_side = ex.submit(side, -1.0)
+                low_side = ex.submit(in_context(side), -1.0)
                 high = side(1.0)
                 low = low_side.result()
             apart[0] += low[2]

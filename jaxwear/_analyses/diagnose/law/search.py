@@ -71,7 +71,12 @@ from jaxwear._analyses.diagnose._refit import _tests_for
 from jaxwear._analyses.diagnose._stats import neighbour_pairs
 from jaxwear._analyses.diagnose.law.ahead import Ahead, Shared
 from jaxwear._analyses.diagnose.law.equivalent import equivalents, separation
-from jaxwear._analyses.diagnose.law.memory import after, memory_candidates, wanted
+from jaxwear._analyses.diagnose.law.memory import (
+    DAMAGE_DRIVERS,
+    after,
+    memory_candidates,
+    wanted,
+)
 from jaxwear._analyses.diagnose.law.numerical import correct_law
 from jaxwear._analyses.diagnose.law.profile import profile_law
 from jaxwear._analyses.diagnose.law.result import (  # noqa: F401 (the search's types)
@@ -106,6 +111,7 @@ from jaxwear._physics.effects.law import (
     law_phi_numpy,
     searching,
 )
+from jaxwear._physics.effects.law_memory import MemoryLaw
 
 LAW_EVALUATIONS = 10  # budget of each through-loop fit (model evaluations)
 LOO_TIE = 0.01  # left-out RMSEs within 1 % are a tie, broken by BIC
@@ -715,7 +721,40 @@ def law_off(lm: Model, model: Model, law: LawSpec):
     return predict
 
 
-def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> Screening | None:
+# what `compile_ahead` builds its programs with: any law of each kind gives the same
+# programs (`law_model`), here one switched off (strength 0: the base model's rows)
+_ANY_LAW = LawSpec("factor", (Term("power", LAW_VARIABLES[0], 1.0),))
+_ANY_MEMORY_LAW = MemoryLaw("damage", DAMAGE_DRIVERS[0], 1.0)
+
+
+def compile_ahead(model: Model, fit: Fit) -> None:
+    """The law models' programs traced and compiled, the memoryless laws' (one for every
+    law of the grammar) and the laws with memory's (one for both forms), each by one
+    evaluation and one forward run of a law switched off: what `search` and its jobs
+    ahead (`law.ahead`) will run on, ahead of the shape's analysis, which is all the
+    search waits for. Failures are left to the search, which meets them again.
+
+    Why (issue 50, the generator's fatigue study, 48 x 72, 2 cores): the four compiled
+    at the search's start (`warm`) and in its job ahead, 15 s of compilation while both
+    cores ran the shape's refit and the search's fits: the search waited 6 s for the
+    laws with memory's job at its end. Before the shape's refit, diagnose runs the
+    shape's design and analyses, mostly on one core. The cost where the search then
+    does not run (the shape finds no correction) or tries no law with memory is their
+    compilations and the four runs, on a core otherwise idle. Needs
+    `effects.law.searching` to hold for this thread alone (`scoped_effects`): the
+    threads building the shape's models meanwhile must not see the law's effects."""
+    for law in (_ANY_LAW, _ANY_MEMORY_LAW):
+        try:
+            with searching():
+                lm = law_model(model, fit, law)
+                lm.evaluate(np.zeros(len(lm.names)))
+                lm.predict(np.zeros(len(lm.names)))
+        except Exception:  # noqa: BLE001 (the search reports it where it matters)
+            pass
+
+
+def warm(model: Model, fit: Fit, linear: dict, prefer=None, compiled=None
+         ) -> Screening | None:
     """The law model's programs traced and compiled (one each for every law of the
     search) by one evaluation and one forward run of the first candidate's start, ahead
     of `search`: diagnose runs it in the background while the shape's correction is
@@ -725,18 +764,22 @@ def warm(model: Model, fit: Fit, linear: dict, prefer=None) -> Screening | None:
     was 11.8 s of wall there on the fatigue study (load ~9), while the search and the
     second shape refit held both cores; here the core beside the first refit is mostly
     free. Failures are left to the search, which meets them again and reports them.
+    `compiled`: the `Background` of `compile_ahead` where it runs, joined instead.
 
     Returns the search's screen (`screening`), made here too, or None. Why: the states met
     and the grammar's ~39 000 laws screened on them took ~4 s of host work on the search's
     thread, after the refit, on the fatigue study's critical path; here they run beside
     the refit, whose thread waits on its compiled runs."""
     try:
-        todo = prescreen(linear)
-        if todo:
-            with searching():
-                lm = law_model(model, fit, todo[0][1])
-                lm.evaluate(np.zeros(len(lm.names)))
-                lm.predict(np.zeros(len(lm.names)))
+        if compiled is not None:
+            compiled.join()
+        else:
+            todo = prescreen(linear)
+            if todo:
+                with searching():
+                    lm = law_model(model, fit, todo[0][1])
+                    lm.evaluate(np.zeros(len(lm.names)))
+                    lm.predict(np.zeros(len(lm.names)))
     except Exception:  # noqa: BLE001 (the search reports it where it matters)
         pass
     try:

@@ -289,7 +289,6 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
         # a compilation more in the JSON) and the Jacobian run a third time
         if warm[0].ext.schedule.attempts > cm.ext.schedule.attempts:
             object.__setattr__(cm, "ext", cm.ext.with_schedule(warm[0].ext.schedule))
-        _share_programs(cm, warm[0])
     # the when/where map of this model compiles in the background while the refit runs
     maps = Background(compile_maps, cm, deepest) if maps else None
     failed = []
@@ -348,26 +347,6 @@ def _warm_start(s: _Setup, warm) -> np.ndarray | None:
     out = s.own.copy()
     out[cols] = u[cols]
     return np.clip(out, s.lo, s.hi)
-
-
-def _share_programs(cm: Model, other: Model) -> None:
-    """Give `cm` (in place) the parameters' pytree of `other`, an earlier refit's model of
-    the same configuration, where its strengths are a subset of `cm`'s: `other`'s compiled
-    programs (Jacobian, rates, when/where map) then serve `cm`.
-
-    Why: while the law search runs (`effects.law.searching`, also ahead in a thread of its
-    own) its effects are registered, and parameters built meanwhile in another thread carry
-    their strengths, unused and at off. The second refit's model is built then or not by
-    the threads' timing: with them, a pytree of its own, whose programs compiled again (the
-    generator's `fatigue` study: 7 Jacobian compilations instead of 6 in 3 of 4 runs, ~5 s
-    of CPU). The strengths dropped are of effects the model's configuration does not
-    switch on, so its rows are the same."""
-    mine, theirs = cm.ext.params.effect_params, other.ext.params.effect_params
-    if (cm.ext.cfg != other.ext.cfg or mine.keys() == theirs.keys()
-            or not set(theirs) <= set(mine)):
-        return
-    params = replace(cm.ext.params, effect_params={k: mine[k] for k in theirs})
-    object.__setattr__(cm, "ext", replace(cm.ext, params=params))
 
 
 def _factor_start(A, S, rho, lam, Zs) -> np.ndarray:
