@@ -318,8 +318,7 @@ def sweep(base, cfg: ModelConfig | None = None, grid: dict | None = None, *,
         max_contact_residual=resid.reshape(shape),
         depth_um=depth_um.reshape(shape + (nodes,)),
         error_estimate_um=(err * 1e6).reshape(shape), steps=steps.reshape(shape),
-        tolerance_um=float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive
-        else None, resolution=resolution)
+        tolerance_um=sched.tolerance_um, resolution=resolution)
 
 
 def _at_durations(sched: Schedule, shape, axis, snaps, area, worn, *per_run):

@@ -530,7 +530,7 @@ def unusable_point(model: ResidualModel, u, why: str = "") -> lsq.Point:
 def integration_report(model: ResidualModel, ev: Evaluation) -> dict:
     """The `"integration"` block of a fit's JSON (same keys as `simulate`'s)."""
     sched = model.schedule
-    tol = float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
+    tol = sched.tolerance_um
     err = float(ev.error_um)
     return {"integrator": "adaptive" if sched.adaptive else "paper",
             "error_estimate_um": err if math.isfinite(err) else "inf",

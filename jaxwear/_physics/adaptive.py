@@ -392,8 +392,7 @@ def adaptive_attempts(p: Params, cfg: ModelConfig, sched: Schedule, rates=None) 
     # the limit alone gives ~400); `simulate` and `evaluate` double it if short
     stiff = 3 * float(np.sum(cyc[live] * rates[np.minimum(reg[live], len(rates) - 1)]) / 2.5)
     # accuracy-limited steps grow like tol^(-1/3) (3rd order): ~25 for the rig at 0.002 µm
-    tol_um = DEFAULT_WEAR_TOLERANCE_UM if sched.tolerance is None else \
-        float(np.max(np.asarray(sched.tolerance))) * 1e6
+    tol_um = DEFAULT_WEAR_TOLERANCE_UM if sched.tolerance_um is None else sched.tolerance_um
     acc = 40 * max(1.0, (DEFAULT_WEAR_TOLERANCE_UM / tol_um) ** (1 / 3))
     if not math.isfinite(stiff + acc):
         raise TrialFailed(f"the work estimate is not finite: the wear-rate bound K_d k "

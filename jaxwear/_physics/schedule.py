@@ -64,6 +64,15 @@ class Schedule(eqx.Module):
     def dynamic(self) -> bool:
         return self.attempts == DYNAMIC_ATTEMPTS
 
+    @property
+    def tolerance_um(self) -> float | None:
+        """The adaptive loop's wear tolerance [µm], the largest of its experiments' (a
+        batched schedule holds one each); None under the paper's fixed-step integrator or
+        where none is set. Read on the host (not inside a traced function)."""
+        if not self.adaptive or self.tolerance is None:
+            return None
+        return float(np.max(np.asarray(self.tolerance))) * 1e6
+
     def with_dynamic_attempts(self) -> Schedule:
         """The same run with its attempt count a traced bound instead of a static one (see
         the class docstring). A fit raises the count as K_d moves (the stiffness-limited step

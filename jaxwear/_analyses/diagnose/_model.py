@@ -153,8 +153,7 @@ class Model:
     def wear_tolerance_um(self) -> float | None:
         """The adaptive loop's wear tolerance [µm] (the largest of the experiments'), None
         under the paper's fixed-step integrator."""
-        sched = self.ext.schedule
-        return float(np.max(np.asarray(sched.tolerance))) * 1e6 if sched.adaptive else None
+        return self.ext.schedule.tolerance_um
 
     def with_contact(self, contact: str | None) -> Model:
         """The same model with another contact choice (None: the study's)."""

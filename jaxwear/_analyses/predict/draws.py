@@ -48,8 +48,7 @@ def integration_block(schedule, integ: dict) -> dict:
     return {"integrator": "adaptive" if adaptive else "paper",
             "error_estimate_um": (err if math.isfinite(err) else "inf") if adaptive else None,
             "steps": int(integ["steps"]),
-            "tolerance_um": float(np.max(np.asarray(schedule.tolerance))) * 1e6
-            if adaptive else None}
+            "tolerance_um": schedule.tolerance_um}
 
 
 def new_measurements(max_um, past, noise_um, rng):
