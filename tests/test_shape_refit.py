@@ -337,3 +337,34 @@ def test_a_model_built_in_another_thread_while_the_law_search_runs_shares_its_pr
     ev = other.evaluate(u)
     assert traces_since(before) == {"jacobian": 0, "forward": 0}
     assert np.array_equal(ev.r, cm.evaluate(u).r)
+
+
+def test_the_figures_drawn_beside_the_refit_and_after_it_are_the_reports(analysed):
+    """`shape_pngs` draws a result's figures in two parts, in threads beside diagnose's
+    work: those the refit does not change while it runs, the refitted variables' and the
+    when/where map once it has run (`rest`). Together they are every variable's figure and
+    the map, each once, and each is the PNG the CLI would draw from the finished result
+    (what `write_outputs` drew before, after the answer), byte for byte."""
+    from jaxwear._core.io import png_bytes
+    from jaxwear._report.shape_plot import (
+        WHEN_WHERE,
+        shape_figure,
+        shape_pngs,
+        when_where_figure,
+    )
+
+    model, base, linear = analysed
+    settled = linear.settled_labels()  # drawn before the refit
+    done = linear.finished()
+    (rest,) = shape_pngs([done], rest=True)
+    assert rest and not set(settled) & set(rest)
+    assert set(settled) | (set(rest) - {WHEN_WHERE}) == {v.label for v in done.variables}
+    assert (WHEN_WHERE in rest) == (done.when_where is not None)
+    for label, png in rest.items():
+        fig = when_where_figure(done) if label == WHEN_WHERE else shape_figure(done, label)
+        assert png_bytes(fig) == png, label
+    # a figure drawn before the refit is the one drawn from its answer (one of them: ~0.3 s
+    # each)
+    assert png_bytes(shape_figure(linear, settled[0])) == png_bytes(shape_figure(done,
+                                                                                  settled[0]))
+    assert shape_pngs([None], rest=True) == [{}]

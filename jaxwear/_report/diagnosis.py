@@ -10,7 +10,7 @@ from jaxwear._report.diagnose_html import report_html
 from jaxwear._report.effect_file import effect_file_source
 from jaxwear._report.figures import plt
 from jaxwear._report.law_file import EFFECT_NAME, law_caveat, law_file_source
-from jaxwear._report.shape_plot import file_stem, shape_figure, when_where_figure
+from jaxwear._report.shape_plot import WHEN_WHERE, file_stem, shape_figure, when_where_figure
 from jaxwear._study.outputs import open_outputs
 
 DIAGNOSE_OUTPUTS = ("diagnosis.json", "residuals.csv", "report.html")
@@ -81,10 +81,12 @@ def write_outputs(diag, out_dir, json_file=None) -> dict:
             fig = shape_figure(res, v.label)
             mine[v.label] = out.savefig(fig, name)
             plt().close(fig)
-        if res.when_where is not None:
+        if res.when_where is not None and WHEN_WHERE in res.pngs:
+            mine["when_where"] = out.write_bytes(f"{prefix}_when_where.png",
+                                                 res.pngs[WHEN_WHERE])
+        elif res.when_where is not None:
             fig = when_where_figure(res)
             mine["when_where"] = out.savefig(fig, f"{prefix}_when_where.png")
-            plt().close(fig)
         if res.best is not None and res.correction:
             name = "missing_wear.py" if key == "shape" else "missing_wear_after_effect.py"
             out.write_text(name, effect_file_source(res, str(diag.study.path)))

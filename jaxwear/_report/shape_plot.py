@@ -9,7 +9,6 @@ import numpy as np
 from jaxwear._analyses.diagnose.shape.design import LEVEL
 from jaxwear._analyses.diagnose.shape.text import p_text
 from jaxwear._core.io import png_bytes
-from jaxwear._report.figures import plt
 
 
 def file_stem(label: str) -> str:
@@ -63,17 +62,29 @@ def shape_figure(result, label: str):
     return fig
 
 
-def shape_pngs(results) -> list[dict]:
-    """PNG bytes {label: bytes} of every variable figure of each result (None: {}) whose
-    figure its refit will not change (`ShapeResult.settled_labels`). Drawn while the refit
-    runs (`diagnose`, in a thread of its own: pyplot is not used), written by the CLI."""
+WHEN_WHERE = "when_where"  # the when/where map's key among a result's `pngs`
 
 
+def shape_pngs(results, rest: bool = False) -> list[dict]:
+    """PNG bytes {label: bytes} of each result's figures (None: {}): those its refit will
+    not change (`ShapeResult.settled_labels`), drawn while the refit runs; `rest`: the
+    others and the when/where map (key `WHEN_WHERE`), drawn once it has run, while the law
+    search runs. `diagnose` draws both in threads of their own (pyplot is not used); the
+    CLI writes them.
+
+    Why `rest` (issue 50): drawn by the CLI after the answer, the refitted variables' and
+    the maps' figures (6 on the generator's fatigue study) were ~1.7 s of its last
+    seconds, on one core."""
     out = []
     for res in results:
         pngs = {}
-        for label in (() if res is None else res.settled_labels()):
-            pngs[label] = png_bytes(shape_figure(res, label))
+        if res is not None:
+            settled = res.settled_labels()
+            for label in ([v.label for v in res.variables if v.label not in settled] if rest
+                          else settled):
+                pngs[label] = png_bytes(shape_figure(res, label))
+            if rest and res.when_where is not None:
+                pngs[WHEN_WHERE] = png_bytes(when_where_figure(res))
         out.append(pngs)
     return out
 
@@ -81,9 +92,11 @@ def shape_pngs(results) -> list[dict]:
 def when_where_figure(result):
     """The extra wear of one cycle of the refitted correction over cycle phase × bore angle
     (µm per 10⁴ cycles), its marginals with bands, and the joint load with its reversals."""
+    from matplotlib.figure import Figure
+
     ww = result.when_where
-    pl = plt()
-    fig = pl.figure(figsize=(8, 7.5))
+    # a `Figure`, not pyplot's: `shape_pngs` draws it in a thread of its own
+    fig = Figure(figsize=(8, 7.5))
     gs = fig.add_gridspec(3, 2, width_ratios=[4, 1.3], height_ratios=[1.2, 3, 1.4],
                           hspace=0.35, wspace=0.08)
     ax_w = fig.add_subplot(gs[0, 0])

@@ -63,10 +63,11 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     (`shape.analysis`); without it, only when the verdict is `unexplained` (design.md §7), unless
     `auto_shape` is False (the verdict alone, e.g. a validation script's many studies: the
     shape never changes the verdict and costs more than it); `seed` of its null
-    simulations. `figures`: None, or a function [ShapeResult | None] -> [{label: PNG bytes}]
-    (the report's `shape_pngs`) run in a background thread while the shape's refit runs, for
-    the caller to write (the CLI's `--out`); passed in because the analysis layer draws
-    nothing itself.
+    simulations. `figures`: None, or a function ([ShapeResult | None], rest=False) ->
+    [{label: PNG bytes}] (the report's `shape_pngs`) run in background threads, the figures
+    a refit does not change while it runs, the rest (`rest=True`) once it has run, for the
+    caller to write (the CLI's `--out`); passed in because the analysis layer draws nothing
+    itself.
 
     A paper-integrator study (fixed M, `revolutions_per_update`) whose M is beyond the
     explicit update's stability estimate at the K_d of the data (calibrate's answer, else
@@ -345,6 +346,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                               compiled=compiled)
                    if law and shp.best is not None and shp.linear else None)
         shp = shp.finished()
+        # the refitted variables' figures and the map's, beside the law search
+        drawing_rest = Background(figures, [shp], rest=True) if figures is not None else None
         # the refit on top of the effect found beside the law search (which needs the
         # first refit only): one core each, where they took turns (the fatigue study:
         # ~35 s of the refit's wall and ~55 s of the search's, each a chain of
@@ -353,7 +356,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         # progress lines are printed once it is done (`held`), after the search's.
         # Where both refit one model (`shared`), it starts from the first refit's
         # correction, with its own fit's parameters (`shape.refit._warm_start`)
-        beside = (Background(_finished_quietly, after, shp if shared else None)
+        beside = (Background(_finished_quietly, after, shp if shared else None, figures)
                   if after is not None else None)
         pngs_after = None
         if drawing is not None:
@@ -377,12 +380,14 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                           shape_rmse_um=shp.rmse_after_um,
                                           shape_why=shp.refit_message, ahead=ahead,
                                           screen=screened, verbose=verbose))
+        if drawing_rest is not None:
+            shp = replace(shp, pngs={**shp.pngs, **drawing_rest.result()[0]})
         if beside is not None:
-            after, lines = beside.result()
+            after, lines, rest_after = beside.result()
             for line in lines:
                 _log(verbose, line)
             if pngs_after is not None:
-                after = replace(after, pngs=pngs_after)
+                after = replace(after, pngs={**pngs_after, **rest_after})
         diag = replace(diag, shape=shp, shape_after_effect=after)
         if contest and shp.law is not None and shp.law.best is not None:
             versus = law_against_library(by_contact(final.contact), final,
@@ -414,10 +419,12 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
     return diag
 
 
-def _finished_quietly(result, warm=None):
-    """(`result.finished(warm)`, the progress lines it logged, held: `_core.log.held`)."""
+def _finished_quietly(result, warm=None, figures=None):
+    """(`result.finished(warm)`, the progress lines it logged, held: `_core.log.held`, and
+    the figures its refit made: `figures`' `rest`, {} without it)."""
     with held() as lines:
-        return result.finished(warm), lines
+        done = result.finished(warm)
+    return done, lines, ({} if figures is None else figures([done], rest=True)[0])
 
 
 NARROW = 10.0  # a combined test passed by less than this factor over α is contested
