@@ -327,11 +327,12 @@ def test_non_finite_r_hat_is_null_and_flagged():
 
 
 def test_nuts_integration_block_has_laplaces_form():
-    from types import SimpleNamespace as NS
-
     from jaxwear._analyses.predict.draws import integration_block
+    from jaxwear._physics.schedule import Schedule
 
-    sched = NS(adaptive=True, tolerance=np.asarray(2e-9))
+    one = np.zeros(1)
+    sched = Schedule(cycles=one, regime=one.astype(int), snapshot=one.astype(int),
+                     cycle_end=one, n_snapshots=1, attempts=1, tolerance=np.asarray(2e-9))
     block = integration_block(sched, {"error": 1.5e-9, "steps": 40})
     assert set(block) == {"integrator", "error_estimate_um", "steps", "tolerance_um"}
     assert block["integrator"] == "adaptive" and block["steps"] == 40
