@@ -26,7 +26,8 @@ _PLAIN = """
 import json, sys
 import jaxwear as jw
 import jaxwear.cli  # the command line imports a verb's module when that verb runs
-heavy = sorted(m for m in sys.modules if m in ("scipy.stats", "optimistix", "lineax")
+heavy = sorted(m for m in sys.modules if m in ("scipy.stats", "optimistix", "lineax",
+                                                 "equinox")
                or m.startswith(("jaxwear._analyses.diagnose", "jaxwear._report.diagnosis",
                                 "jaxwear._inference", "jaxwear._analyses.predict")))
 from jaxwear._core import jit as J
@@ -99,7 +100,7 @@ def test_plain_import_is_light_and_runs_the_wear_loop_with_legacy_emitters():
     got = _plain_process("run")
     # neither scipy.stats nor the diagnose package at import, nor the fits (optimistix,
     # lineax, the least-squares core) and the analyses on them, the command line's included
-    # (a verb imports what it needs)
+    # (a verb imports what it needs), nor equinox (the pytrees are `_core.pytree`'s)
     assert got["heavy"] == []
     assert got["diagnose"].startswith("jaxwear._analyses.diagnose")  # the names resolve
     assert got["calibrate"] == "jaxwear._inference.calibrate"

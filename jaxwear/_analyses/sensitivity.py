@@ -19,11 +19,11 @@ import sys
 import time
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.errors import InputError
 from jaxwear._core.jit import jit
 from jaxwear._inference.calibrate import unit_of
@@ -96,8 +96,7 @@ def _log_outputs(s, p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple):
         # cycles. The schedule's cycle counts are host integers, so the dependence enters
         # here, scaling every update's cycles (value unchanged at s = 0).
         T = q.swing_period
-        sched = eqx.tree_at(lambda sc: sc.cycles, sched,
-                            sched.cycles * (jax.lax.stop_gradient(T) / T))
+        sched = pytree.replace(sched, cycles=sched.cycles * (jax.lax.stop_gradient(T) / T))
     r = wear_loop(q, cfg, sched)
     peak, vol = jnp.max(r.depth), r.worn_volume
     return jnp.stack([jnp.log(peak), jnp.log(vol)]), (peak, vol, r.worn_through_cycle,

@@ -55,10 +55,9 @@ import os
 import re
 from collections.abc import Callable, Iterator
 
-import equinox as eqx
 import jax
 
-from jaxwear._core import xla_flags
+from jaxwear._core import pytree, xla_flags
 
 LEGACY_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
 """XLA:CPU's legacy emitters, asked for on jaxwear's own programs (XLA:CPU options, so
@@ -167,7 +166,7 @@ def _traced(args, kwargs) -> bool:
 
 
 class Jit:
-    """`eqx.filter_jit(fun)` that compiles top-level calls with `current_options()`.
+    """`pytree.filter_jit(fun)` that compiles top-level calls with `current_options()`.
     Arrays are traced, everything else is static (as `eqx.filter_jit`). `once`: a program
     run once per evaluation in well under a millisecond, compiled at `ONCE_LEVEL` wherever
     the options set an optimisation level."""
@@ -180,20 +179,20 @@ class Jit:
         functools.update_wrapper(self, fun)
 
     def variant(self, opts: dict | None) -> Callable:
-        """The `eqx.filter_jit` program compiled with `opts` (None: without options)."""
+        """The `pytree.filter_jit` program compiled with `opts` (None: without options)."""
         key = () if not opts else _key(opts)
         f = self._variants.get(key)
         if f is None:
             kw = dict(self._jitkwargs)
             if opts:
                 kw["compiler_options"] = dict(opts)
-            f = self._variants[key] = eqx.filter_jit(self.fun, **kw)
+            f = self._variants[key] = pytree.filter_jit(self.fun, **kw)
         return f
 
     @property
     def _cached(self):
-        """The plain program's compilation cache (`_cached._cache_size()`), as
-        `eqx.filter_jit`'s."""
+        """The plain program's compilation cache (`_cached._cache_size()`): the
+        underlying `jax.jit`."""
         return self.variant(self.options())._cached
 
     def options(self) -> dict | None:
@@ -232,7 +231,7 @@ class Jit:
 
     def lower(self, *args, **kwargs):
         """The top-level program for these arguments traced and lowered with this
-        program's options (`eqx.filter_jit`'s `lower`): its `compile()` is the compilation
+        program's options (`pytree.FilterJit.lower`): its `compile()` is the compilation
         the calls with such arguments use after (for compiling ahead in a thread, where
         the tracing and the compilation are wanted at different moments). Where the
         compilation fails (an option this jaxlib does not know) a call compiles instead."""

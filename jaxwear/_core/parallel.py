@@ -20,7 +20,6 @@ import functools
 import math
 from collections.abc import Callable, Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +27,7 @@ from jax import lax
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from jaxwear._core import pytree
 from jaxwear._core.jit import jit
 
 AXIS = "points"
@@ -122,10 +122,10 @@ def _compiled(fn: Callable, devices: tuple, method: str):
 
     @jit
     def call(broadcast_args, batched_args):
-        dynamic, static = eqx.partition(broadcast_args, eqx.is_array)
+        dynamic, static = pytree.partition(broadcast_args, pytree.is_array)
 
         def local(dynamic, batched):
-            fixed = eqx.combine(dynamic, static)
+            fixed = pytree.combine(dynamic, static)
             return _local(lambda *point: fn(*fixed, *point), method)(*batched)
 
         return jax.shard_map(local, mesh=mesh, in_specs=(P(), P(AXIS)), out_specs=P(AXIS),
@@ -143,7 +143,7 @@ def _place(x: np.ndarray, sharding: NamedSharding) -> jax.Array:
 def _replicate(tree, mesh: Mesh):
     """Array leaves of `tree` as global arrays replicated over `mesh`; other leaves as is."""
     replicated = NamedSharding(mesh, P())
-    return jax.tree.map(lambda x: _place(np.asarray(x), replicated) if eqx.is_array(x) else x,
+    return jax.tree.map(lambda x: _place(np.asarray(x), replicated) if pytree.is_array(x) else x,
                         tree)
 
 

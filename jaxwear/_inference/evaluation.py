@@ -9,11 +9,11 @@ import math
 import threading
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.background import Background
 from jaxwear._core.host import to_device
 from jaxwear._core.jit import jit
@@ -273,7 +273,7 @@ def unusable_evaluation(model: ResidualModel, u, why: str) -> Evaluation:
     """An `Evaluation` of a model that was not run at u (`why`): rows, Jacobian and
     snapshots NaN (shapes from a trace, no compilation), not usable."""
     uj = jnp.asarray(u, jnp.float64)
-    shape = eqx.filter_eval_shape(lambda m, v: m.snapshots(v)[0], _dynamic(model), uj).shape
+    shape = pytree.filter_eval_shape(lambda m, v: m.snapshots(v)[0], _dynamic(model), uj).shape
     n, P = model.n_data, model.packing.size
     r_prior, J_prior = model.prior_rows(np.asarray(u, np.float64))
     return Evaluation(u=np.asarray(u, np.float64), pred=np.full(n, np.nan),

@@ -24,11 +24,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.errors import InputError
 from jaxwear._core.host import to_device
 from jaxwear._physics.effects import (
@@ -95,10 +95,10 @@ class Column:
         return math.isfinite(self.lower) or math.isfinite(self.upper)
 
 
-class Packing(eqx.Module):
+class Packing(pytree.Struct):
     """Columns and their start values (key units): u = 0 is the start."""
 
-    columns: tuple = eqx.field(static=True)
+    columns: tuple = pytree.field(static=True)
     start: jax.Array  # (P,)
 
     @property

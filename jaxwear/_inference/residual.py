@@ -34,11 +34,11 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.errors import InputError
 from jaxwear._core.host import stack, to_device
 from jaxwear._inference.packing import (
@@ -96,7 +96,7 @@ class Layout:
                 and sched.n_snapshots <= self.snapshots)
 
 
-class Data(eqx.Module):
+class Data(pytree.Struct):
     """Measured rows, flattened over experiments: where each lives in the model output."""
 
     exp: jax.Array  # experiment index (rows,)
@@ -201,17 +201,17 @@ def measured_data(study: Study, packing: Packing) -> Data:
                 angle=to_device(rows["angle"], f), offset_col=to_device(rows["offset_col"], i))
 
 
-class ResidualModel(eqx.Module):
+class ResidualModel(pytree.Struct):
     """A study's model and data: u (P,) ↦ rows [µm] (see the module docstring)."""
 
-    cfg: ModelConfig = eqx.field(static=True)
-    exp_names: tuple = eqx.field(static=True)
+    cfg: ModelConfig = pytree.field(static=True)
+    exp_names: tuple = pytree.field(static=True)
     packing: Packing
     params: Params  # batched over experiments (leading axis), candidates at `off`
     schedule: Schedule  # batched
     data: Data
     nominal_angle_deg: jax.Array  # the given registration offsets (experiments,)
-    noise_um: float | None = eqx.field(static=True, default=None)  # the study's, if given
+    noise_um: float | None = pytree.field(static=True, default=None)  # the study's, if given
     # a fixed correction of every row [µm] (rows,): the residual difference between a
     # finer resolution and this one at the answer (defect correction); zeros: none
     defect_um: jax.Array | None = None
@@ -359,7 +359,7 @@ def build_model(study: Study, keys: list[str], start: dict | None = None, *,
             cols += candidate_columns(cand, params)
     if shape is not None:
         cfg = cfg.replace(shape=shape)
-        params = eqx.tree_at(lambda p: p.effect_params, params, {
+        params = pytree.replace(params, effect_params={
             **params.effect_params, **{k: jnp.zeros(len(plist)) for k in shape.keys()}})
         cols += shape_columns(shape.keys())
     packing = packing_of(cols, start)

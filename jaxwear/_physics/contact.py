@@ -23,13 +23,13 @@ from __future__ import annotations
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.custom_batching import custom_vmap
 
+from jaxwear._core import pytree
 from jaxwear._core.batching import cond_any, in_chunks
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, StepArray, StepNodeArray
@@ -37,7 +37,7 @@ from jaxwear._core.types import Array, Float, NodeArray, StepArray, StepNodeArra
 sg = lax.stop_gradient
 
 
-class ContactSolution(eqx.Module):
+class ContactSolution(pytree.Struct):
     """Pressure field and pin offsets for every step of a cycle.
 
     - `pressure` (steps, nodes): p_ij [Pa];

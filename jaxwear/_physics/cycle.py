@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import dataclasses
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxwear._core import pytree
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, Scalar
 from jaxwear._physics.config import ModelConfig
@@ -20,7 +20,7 @@ from jaxwear._physics.load import LoadHistory, load_history
 from jaxwear._physics.params import Params
 
 
-class WearResult(eqx.Module):
+class WearResult(pytree.Struct):
     """Outcome of a wear simulation (SI units).
 
     - `depth`: final wear depth h_j [m], (nodes,). `snapshots`: (n_snapshots, nodes) [m].

@@ -8,10 +8,10 @@ amplitude, each file, is its own cycle). Every driver's load is multiplied by `l
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.types import Array, Float
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.load_cycle import resample
@@ -19,7 +19,7 @@ from jaxwear._physics.mechanism import _safe_atan2, crank_slider_forces
 from jaxwear._physics.params import Params
 
 
-class LoadHistory(eqx.Module):
+class LoadHistory(pytree.Struct):
     """Per-step load and motion of one cycle, for each regime (a duty block, or the one
     cycle of a crank). Arrays (regimes, steps) unless said:
 
@@ -115,8 +115,7 @@ def load_history(p: Params, cfg: ModelConfig) -> LoadHistory:
     else:
         hist = _crank_slider(p, cfg)
     s = p.load_scale
-    return eqx.tree_at(lambda h: (h.load, h.fx, h.fy), hist,
-                       (s * hist.load, s * hist.fx, s * hist.fy))
+    return pytree.replace(hist, load=s * hist.load, fx=s * hist.fx, fy=s * hist.fy)
 
 
 def block_periods(p: Params, cfg: ModelConfig) -> list[float]:

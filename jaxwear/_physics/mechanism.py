@@ -7,16 +7,16 @@ hand-derived eqs 4-7 are in `kinematics_by_hand` and the tests check that both a
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
 
+from jaxwear._core import pytree
 from jaxwear._core.types import StepArray
 from jaxwear._physics.params import Params
 
 
-class Kinematics(eqx.Module):
+class Kinematics(pytree.Struct):
     """Positions and their first/second time derivatives, each shaped like `t`."""
 
     phi2: StepArray  # Φ2 [rad]
@@ -28,7 +28,7 @@ class Kinematics(eqx.Module):
     gy_dd: StepArray
 
 
-class JointForce(eqx.Module):
+class JointForce(pytree.Struct):
     """Reaction force F_C of the slider's pin on the coupler, per step."""
 
     fx: StepArray  # F_Cx [N]

@@ -10,10 +10,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.errors import InputError
 from jaxwear._core.host import to_device
 from jaxwear._core.types import Scalar
@@ -24,7 +24,7 @@ def _f(x) -> Scalar:
     return to_device(x, np.float64)  # a host number: no compilation (`_core.host`)
 
 
-class Params(eqx.Module):
+class Params(pytree.Struct):
     """All physical parameters, SI units (m, kg, N, Pa, s, rad).
 
     Crank-slider (design.md §1, Table 1) and oscillating driver (§2) share one pytree; fields a
@@ -78,8 +78,7 @@ class Params(eqx.Module):
         for k in kw:
             if k not in names:
                 raise KeyError(f"Params has no field {k!r}")
-        return eqx.tree_at(lambda p: [getattr(p, k) for k in kw], self,
-                           [_f(v) for v in kw.values()])
+        return pytree.replace(self, **{k: _f(v) for k, v in kw.items()})
 
     def get(self, key: str) -> Scalar:
         """SI value of a study key (a physical parameter or an effect strength)."""
@@ -94,15 +93,15 @@ class Params(eqx.Module):
         eff = {k: v for k, v in values.items() if k not in PARAMETER_KEYS}
         out = self
         if fields_kw:
-            out = eqx.tree_at(lambda p: [getattr(p, k) for k in fields_kw], out,
-                              [jnp.asarray(v, jnp.float64) for v in fields_kw.values()])
+            out = pytree.replace(out, **{k: jnp.asarray(v, jnp.float64)
+                                         for k, v in fields_kw.items()})
         if eff:
             unknown = [k for k in eff if k not in out.effect_params]
             if unknown:
                 raise KeyError(f"unknown parameter keys {unknown}")
             new = dict(out.effect_params)
             new.update({k: jnp.asarray(v, jnp.float64) for k, v in eff.items()})
-            out = eqx.tree_at(lambda p: p.effect_params, out, new)
+            out = pytree.replace(out, effect_params=new)
         return out
 
 

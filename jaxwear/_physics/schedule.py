@@ -10,11 +10,11 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.errors import InputError
 from jaxwear._core.host import to_device
 from jaxwear._core.types import Array, Float, Int
@@ -23,7 +23,7 @@ DYNAMIC_ATTEMPTS = -1
 """`Schedule.attempts` of a schedule whose attempt count is traced (`attempt_limit`)."""
 
 
-class Schedule(eqx.Module):
+class Schedule(pytree.Struct):
     """Per-update arrays, shape (updates,).
 
     - `cycles`: the amplification M of each update (0 for padding).
@@ -43,10 +43,10 @@ class Schedule(eqx.Module):
     regime: Int[Array, " updates"]
     snapshot: Int[Array, " updates"]
     cycle_end: Float[Array, " updates"]
-    n_snapshots: int = eqx.field(static=True)
+    n_snapshots: int = pytree.field(static=True)
     # requested snapshot i is the order[i]-th distinct count in increasing order
-    order: tuple = eqx.field(static=True, default=())
-    attempts: int = eqx.field(static=True, default=0)
+    order: tuple = pytree.field(static=True, default=())
+    attempts: int = pytree.field(static=True, default=0)
     tolerance: Float[Array, ""] | None = None
     # Optional early stop (adaptive only): the loop ends at the first snapshot at or after
     # `stop_after` cycles where the maximum depth is ≥ `stop_depth` [m]; snapshots after it

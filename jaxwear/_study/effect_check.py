@@ -35,11 +35,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._core.errors import InputError
 from jaxwear._physics.effects._base import Effect, RateContext
 from jaxwear._physics.effects.shape import swept_kernel
@@ -90,7 +90,7 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
     params = dict(base.effect_params)
     for k, s in eff.parameters.items():
         params[k] = jnp.asarray(s.default * s.to_si, jnp.float64)
-    base = eqx.tree_at(lambda p: p.effect_params, base, params)
+    base = pytree.replace(base, effect_params=params)
     pressure, slide, dt, angle, load = _cycle()
     # as the wear loop gives them: the kernel where the effect asks for it (else None)
     swept = swept_kernel(angle, NODES) if getattr(eff, "uses_swept_kernel", False) else None

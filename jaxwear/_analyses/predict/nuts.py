@@ -41,13 +41,13 @@ import math
 import time
 import warnings
 
-import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
 from jaxwear._analyses.predict.draws import DrawForecasts, run_forward
+from jaxwear._core import pytree
 from jaxwear._core.errors import InputError, ModelFailure
 from jaxwear._core.jit import jit
 from jaxwear._core.log import log as _log
@@ -71,14 +71,14 @@ def log_prior(problem, u):
     return problem.packing.log_prior(u)
 
 
-class Whitening(eqx.Module):
+class Whitening(pytree.Struct):
     """u = u_hat + exp(log_noise - log_noise_hat) L v (see the module docstring); `scaled`
     False (noise given): u = u_hat + L v."""
 
     u_hat: jax.Array  # (p,)
     L: jax.Array  # (p, p) lower triangular
     log_noise_hat: jax.Array  # ()
-    scaled: bool = eqx.field(static=True, default=True)
+    scaled: bool = pytree.field(static=True, default=True)
 
     def u_of(self, z):
         f = jnp.exp(z["log_noise"] - self.log_noise_hat) if self.scaled else 1.0

@@ -1,10 +1,11 @@
 """The effect interface: a candidate piece of physics the base model may be missing (§5).
 
-An effect is a small stateless `eqx.Module` with a name, parameters (study keys with units,
-defaults, bounds) and up to three hooks into the wear loop. Every hook's default is the
-identity, and the wear loop never calls an effect that is switched off, so a disabled
-effect leaves results bit-for-bit unchanged. Strength parameters at their `off` value give
-the base model too (nesting), which is what makes score tests and likelihood ratios valid.
+An effect is a small stateless pytree (a `_core.pytree.Struct`) with a name, parameters
+(study keys with units, defaults, bounds) and up to three hooks into the wear loop. Every
+hook's default is the identity, and the wear loop never calls an effect that is switched
+off, so a disabled effect leaves results bit-for-bit unchanged. Strength parameters at
+their `off` value give the base model too (nesting), which is what makes score tests and
+likelihood ratios valid.
 
 Writing your own takes a subclass, its parameters and one hook (docs/effects.md has the
 full walk-through, calibration/examples/custom_effect.py a runnable example):
@@ -30,15 +31,15 @@ import contextlib
 import contextvars
 from typing import ClassVar
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core import pytree
 from jaxwear._physics.effects.parameter import EffectParameter
 from jaxwear._physics.effects.structural import STRUCTURAL_CANDIDATES
 
 
-class RateContext(eqx.Module):
+class RateContext(pytree.Struct):
     """What a local wear-rate hook may use, for one cycle (all SI).
 
     `pressure` (steps, nodes) [Pa]; `slide` dS_i (steps,) [m]; `dt` Δt_i (steps,) [s];
@@ -68,7 +69,7 @@ class RateContext(eqx.Module):
     memory: object = None
 
 
-class Effect(eqx.Module):
+class Effect(pytree.Struct):
     """Base of all effects. Subclasses set `name`, `parameters`, `signature` and override
     any of the hooks below. They hold no state: their strengths live in
     `Params.effect_params` under the study keys of `parameters`.

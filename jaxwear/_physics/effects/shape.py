@@ -44,10 +44,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import partial
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaxwear._core import pytree
 
 # name -> (unit, periodic, per step (same for every node))
 VARIABLES: dict[str, tuple[str, bool, bool]] = {
@@ -371,7 +372,7 @@ def pack(p, shape: ShapeBasis | None):
     eff = dict(p.effect_params)
     # last axis: (keys,) for one experiment, (experiments, keys) for a batch
     eff[PACKED] = jnp.stack([jnp.asarray(eff.pop(k)) for k in shape.keys()], axis=-1)
-    return eqx.tree_at(lambda q: q.effect_params, p, eff)
+    return pytree.replace(p, effect_params=eff)
 
 
 def shape_terms(shape: ShapeBasis, p, pressure, slide, dt, sliding, angle, load,
