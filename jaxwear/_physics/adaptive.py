@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxwear._core import tangents
 from jaxwear._core.errors import TrialFailed
 from jaxwear._core.jit import jit
 from jaxwear._physics.config import ModelConfig
@@ -86,6 +87,7 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
     """
     effects = [get_effect(n) for n in cfg.effects]
     hist = run_history(p, cfg)
+    anchor = tangents.anchor_of((p, h0, schedule.cycles))
     n = cfg.nodes
     area = node_area(p, n)
     per_cycle_slide = jnp.sum(hist.slide, axis=1)
@@ -205,10 +207,10 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
             return (K.at[i].set(k), Wk.at[i].set(w), ws, jnp.maximum(rmax, r),
                     jnp.maximum(imax, it)), None
 
-        K0 = jnp.zeros((4, h.shape[0]), h.dtype)
+        K0, W0, r0 = tangents.ready(
+            (jnp.zeros((4, h.shape[0]), h.dtype), jnp.zeros(4), jnp.zeros(())), anchor)
         (K, Wk, ws, r_att, i_att), _ = lax.scan(
-            stage, (K0, jnp.zeros(4), ws, jnp.zeros(()), jnp.zeros((), jnp.int32)),
-            jnp.arange(4))
+            stage, (K0, W0, ws, r0, jnp.zeros((), jnp.int32)), jnp.arange(4))
         y1 = h + step * (jnp.asarray(_BS_A)[3] @ K)  # the last stage's own input, bit for bit
         k1, w1, k4, w4 = K[0], Wk[0], K[3], Wk[3]
         wsum = jnp.asarray(_BS_BW) @ Wk
@@ -278,11 +280,17 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
                                                      jnp.asarray(False))), attempt, c)
 
     z = jnp.zeros(())
-    c0 = (y0, z, jnp.zeros((), jnp.int32), z, jnp.minimum(total / 64, span[0]),
-          jnp.zeros_like(y0), z, jnp.asarray(False), jnp.zeros(n), jnp.zeros((), jnp.int32),
-          jnp.zeros((), jnp.int32),
-          jnp.full((schedule.n_snapshots, n), jnp.inf if stop else 0.0), z, z,
-          jnp.zeros((), jnp.int32), jnp.asarray(-1.0),
+    # the carries the steps give a tangent, ready for it from the start: the attempt's
+    # body is traced once under forward mode, not until its fixpoint (`_core.tangents`);
+    # not the step size and the warm starts (stop-gradient)
+    y0, S0, pos0, k10, w10, err0, snaps0, vol0, res0, worn0 = tangents.ready(
+        (y0, z, z, jnp.zeros_like(y0), z, jnp.zeros(n),
+         jnp.full((schedule.n_snapshots, n), jnp.inf if stop else 0.0), z, z,
+         jnp.asarray(-1.0)), anchor)
+    c0 = (y0, S0, jnp.zeros((), jnp.int32), pos0, jnp.minimum(total / 64, span[0]),
+          k10, w10, jnp.asarray(False), err0, jnp.zeros((), jnp.int32),
+          jnp.zeros((), jnp.int32), snaps0, vol0, res0,
+          jnp.zeros((), jnp.int32), worn0,
           (starts0, jnp.broadcast_to(lax.stop_gradient(h0), (n_reg, n))))
     if schedule.dynamic:
         # A while loop bounded by the traced attempt count: one compilation for any count

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from jaxwear._core import pytree
+from jaxwear._core import pytree, tangents
 from jaxwear._core.types import StepArray
 from jaxwear._physics.params import Params
 
@@ -150,6 +150,8 @@ def crank_slider_forces(p: Params, t: StepArray, algorithm: str = "scla", scla_p
     gamma = jnp.full_like(t, gamma0)
     zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype),
                          jax.eval_shape(one_pass, gamma)[:3])
-    kin, fx, fy, _, change = lax.fori_loop(0, scla_passes, body,
-                                           (*zeros, gamma, jnp.zeros_like(t)))
+    # every carry ready for the parameters' tangents: one trace of the pass under forward
+    # mode, not two (`_core.tangents`)
+    init = tangents.ready((*zeros, gamma, jnp.zeros_like(t)), tangents.anchor_of((p, t)))
+    kin, fx, fy, _, change = lax.fori_loop(0, scla_passes, body, init)
     return JointForce(fx, fy, kin, change)

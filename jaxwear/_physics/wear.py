@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from jaxwear._core import tangents
 from jaxwear._core.errors import InputError, WornThroughError
 from jaxwear._core.host import to_device
 from jaxwear._core.jit import jit
@@ -120,10 +121,17 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
         return lax.scan(jax.checkpoint(body), carry, xs_block)
 
     prev0 = (jnp.zeros(n), jnp.asarray(-1, jnp.int32), jnp.ones(()))
-    carry0 = (h0, jnp.zeros(()), jnp.zeros((schedule.n_snapshots, n)), jnp.zeros(()),
-              jnp.zeros(()), jnp.zeros((), jnp.int32), jnp.asarray(-1.0), starts0,
+    # the carries the updates give a tangent, ready for it from the start: each level of
+    # the checkpointed scan traced once under forward mode, not until its fixpoint
+    # (`_core.tangents`); not the warm starts, the previous rate and the error estimate
+    # (stop-gradient)
+    h0r, S0, snaps0, vol0, res0, worn0, mem0 = tangents.ready(
+        (h0, jnp.zeros(()), jnp.zeros((schedule.n_snapshots, n)), jnp.zeros(()),
+         jnp.zeros(()), jnp.asarray(-1.0), jnp.zeros((m, n))),
+        tangents.anchor_of((p, h0, schedule.cycles)))
+    carry0 = (h0r, S0, snaps0, vol0, res0, jnp.zeros((), jnp.int32), worn0, starts0,
               jnp.broadcast_to(lax.stop_gradient(h0), (n_reg, n)), prev0, jnp.zeros(n),
-              jnp.zeros((), jnp.int32), jnp.zeros((m, n)))
+              jnp.zeros((), jnp.int32), mem0)
     (h, S, snaps, vol, res, its, worn, _, _, _, err, steps, mem), _ = lax.scan(block, carry0,
                                                                                xs)
     if schedule.order and list(schedule.order) != list(range(schedule.n_snapshots)):
