@@ -117,3 +117,43 @@ def test_a_users_effect_with_a_field_is_a_pytree():
     assert jax.tree.leaves(g) == [2.0]
     assert jax.tree.map(lambda x: x * 2, g).factor == 4.0
     assert Gain.name == "test_pytree_gain"
+
+
+def _lowered_names(f, *args):
+    names = []
+
+    def listen(event, duration, **kw):
+        if event.endswith("jaxpr_to_mlir_module_duration"):
+            names.append(str(kw.get("fun_name")))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        f(*args)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return names
+
+
+def test_a_program_is_named_after_its_function():
+    # what `_core.background.lowered("_evaluate_jit")` and the logs read
+    def a_program_name(box):
+        return box.a + 1.0
+
+    names = _lowered_names(pytree.filter_jit(a_program_name), Box(np.ones(2)))
+    assert names == ["jit(a_program_name)"]
+
+
+def test_the_background_sees_the_evaluation_program_lowered():
+    from jaxwear._core import background
+    from jaxwear._core.jit import jit
+
+    @jit
+    def _evaluate_jit_probe(box):
+        return jnp.sum(box.a)
+
+    ev = background.lowered("_evaluate_jit")
+    try:
+        _evaluate_jit_probe(Box(np.arange(3.0)))
+        assert ev.wait(5.0)
+    finally:
+        background.forget(ev)

@@ -159,6 +159,13 @@ class FilterJit:
             dyn_out, out_key = _split(out)
             return dyn_out, _Static(out_key)
 
+        # the program is named after `fun` (JAX names it after the function it jits): the
+        # events and logs that say which program compiled read it (`_core.background.
+        # lowered("_evaluate_jit")`), as do the persistent cache's keys
+        inner.__name__ = getattr(fun, "__name__", "program")
+        inner.__qualname__ = getattr(fun, "__qualname__", inner.__name__)
+        inner.__module__ = getattr(fun, "__module__", None) or __name__
+
         self._cached = jax.jit(inner, static_argnums=1, **jitkwargs)
         functools.update_wrapper(self, fun)
 
