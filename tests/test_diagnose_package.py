@@ -75,3 +75,31 @@ def test_model_is_the_calibration_problem_with_candidate_columns():
     u[i] = math.log((0.05 + st.clearance_tolerance_um * 1e-3) / 0.05)
     assert m.packing.prior_rows(u)[0][0] == pytest.approx(1.0, rel=1e-12)
     assert jw.diagnose.__module__ == "jaxwear._analyses.diagnose._verdict"
+
+
+def test_the_shapes_design_is_started_ahead_only_where_the_verdict_will_likely_run_it(
+        monkeypatch):
+    # `_verdict._design_ahead`: a misfit well above the noise that no candidate's score
+    # explains half of (the generator's fatigue and thermal studies: 38 % and 41 %)
+    from types import SimpleNamespace
+
+    from jaxwear._analyses.diagnose import _verdict
+
+    started = []
+    monkeypatch.setattr(_verdict, "Background", lambda fn, *a, **k: started.append(fn) or fn)
+    model = SimpleNamespace(n=1000)
+    noise = 0.3
+    expected = (1000 - 6) * noise ** 2
+
+    def ahead(rss, explained, allowed=True, scores=True):
+        started.clear()
+        base = SimpleNamespace(k=6, rss=rss)
+        sc = [SimpleNamespace(explained=explained)] if scores else []
+        out = _verdict._design_ahead(model, base, noise, sc, allowed)
+        return out is not None and started == [_verdict.prepare_design]
+
+    assert ahead(3 * expected, 0.38)
+    assert not ahead(3 * expected, 0.6)  # a candidate that explains most of it
+    assert not ahead(1.2 * expected, 0.1)  # near the noise: likely adequate or found
+    assert not ahead(3 * expected, 0.38, allowed=False)  # `--shape` or no shape
+    assert not ahead(3 * expected, 0.38, scores=False)  # no candidates

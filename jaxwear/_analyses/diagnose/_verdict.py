@@ -201,6 +201,7 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
 
     # 2-3. is it noise? score tests of every candidate at the base fit
     scores = screen(model, base, noise, nu, verbose=verbose)
+    ahead = _design_ahead(model, base, noise, scores, auto_shape and job is None)
     base_tests = _tests_for(model, base, noise, nu, pairs, scores)
     _log(verbose, f"  base: chi-square ratio {base_tests.ratio:.3f} (p {base_tests.p_chi2:.1e})"
                   f", lag-1 autocorrelation {base_tests.rho:.3f} "
@@ -322,7 +323,13 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
             # of its own: on the fatigue study a compilation and a run of 7 s, one
             # forward run at the finer level 1.5 s), where one with the base's groups
             # only would not carry the effect's
-            design = prepare_design(model, base, verbose=verbose)
+            if ahead is not None:
+                _log(verbose, "  shape: the design's Jacobian (the model with the "
+                              "correction, every candidate held at off) was computed "
+                              "beside the refits")
+                design = ahead.result()
+            else:
+                design = prepare_design(model, base, verbose=verbose)
         shp = shape_analysis(model, base, noise, nu, after="base", seed=seed,
                              verbose=verbose, design=design,
                              numerical_um=(finer_minus_rows if _at_start(base, 0.1)
@@ -494,6 +501,34 @@ def settle(base_systematic: bool, best, unresolved: bool) -> str:
     if base_systematic or unresolved:
         return "unexplained"
     return "adequate"
+
+
+AHEAD_BELOW = 0.5
+"""The share of the base fit's systematic misfit below which the best candidate's score
+leaves the shape's design to be computed ahead (`_design_ahead`)."""
+
+
+def _design_ahead(model: Model, base, noise: float, scores, allowed: bool):
+    """The shape's design (`prepare_design` at the base fit, every candidate held at off)
+    started beside the refits, or None: where the shape runs by itself (`allowed`: the
+    verdict decides it and `--shape` has not started it), the base misfit is well above the
+    noise (1.5x, where the screen says how much of it a candidate explains) and no
+    candidate's linearised score explains half of it. The verdict is then most likely
+    partly explained (or unexplained), which runs the shape on this design.
+
+    Why: the design's Jacobian (150 correction columns and the candidates') took 7-12 s
+    of compilation and ~2 s of runs on the critical path of a partly explained diagnosis
+    (the generator's fatigue study, 2 cores), after the verdict; its candidates' refits
+    run mostly on one core meanwhile. Where the verdict turns out not to run the shape
+    (a refit explains what the screen did not), the work is left unused: the answer is
+    the same, the CPU is spent. The design is the one the verdict would prepare itself
+    (the same arguments), so the analysis and its numbers do not change."""
+    if not allowed or not scores:
+        return None
+    expected = (model.n - base.k) * noise ** 2
+    if base.rss <= 1.5 * expected or scores[0].explained >= AHEAD_BELOW:
+        return None
+    return Background(prepare_design, model, base)
 
 
 def verdict_status(tests, lowers: bool) -> str:
