@@ -14,6 +14,13 @@ from jaxwear._analyses.diagnose._stats import f_sf
 SHAPE_GRID = (0.1, 0.3, 1.0, 3.0, 10.0)  # multiples of a shape parameter's default tried
 
 
+def well_above_noise(model, fit, noise_um: float) -> bool:
+    """The fit's misfit is over 1.5x what noise alone leaves ((n - k) σ²): a share of it
+    that a candidate explains means something (the screen says it; the shape's design is
+    started ahead on it, `_verdict._design_ahead`)."""
+    return fit.rss > 1.5 * (model.n - fit.k) * noise_um ** 2
+
+
 @dataclass(frozen=True)
 class Screen:
     """Score test of one candidate at a fit (linearised: one Gauss-Newton step).
@@ -100,7 +107,7 @@ def screen(model: Model, fit: Fit, noise_um: float, nu: float = math.inf, *,
             best = replace(best, p=min(1.0, p * len(grid)))
             out.append(best)
             share = (f", explains {100 * best.explained:.0f}% of the misfit"
-                     if fit.rss > 1.5 * (model.n - fit.k) * noise_um ** 2 else "")
+                     if well_above_noise(model, fit, noise_um) else "")
             _log(verbose, f"    score {g:18s} {best.score:10.1f} (p {best.p:.1e}{share})")
     out.sort(key=lambda s: -s.score)
     return out

@@ -29,7 +29,7 @@ from jaxwear._analyses.diagnose._refit import (
     refit_leaders,
 )
 from jaxwear._analyses.diagnose._result import Candidate, Diagnosis
-from jaxwear._analyses.diagnose._screen import screen
+from jaxwear._analyses.diagnose._screen import screen, well_above_noise
 from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs, run_tests
 from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._analyses.diagnose.law.search import compile_ahead, search, warm
@@ -525,8 +525,7 @@ def _design_ahead(model: Model, base, noise: float, scores, allowed: bool):
     (the same arguments), so the analysis and its numbers do not change."""
     if not allowed or not scores:
         return None
-    expected = (model.n - base.k) * noise ** 2
-    if base.rss <= 1.5 * expected or scores[0].explained >= AHEAD_BELOW:
+    if not well_above_noise(model, base, noise) or scores[0].explained >= AHEAD_BELOW:
         return None
     return Background(prepare_design, model, base)
 
