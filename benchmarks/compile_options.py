@@ -105,7 +105,10 @@ def _child(variant: str, cli: list[str] | None, out: Path, cases: list[str]) -> 
     from jaxwear._physics.config import boom_config
     from jaxwear._physics.wear import build_schedule, wear_loop
 
-    J.options(opts).__enter__()  # for the whole process
+    # for the whole process: the context manager is held, since a discarded one is closed
+    # at once (its generator's `finally` pops the options again)
+    held = J.options(opts)
+    held.__enter__()
     assert J.current_options() == opts, J.current_options()
     doc: dict = {"options": opts}
     arrays = {}

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import threading
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxwear._core.background import Background
 from jaxwear._core.jit import jit
-from jaxwear._physics.cycle import WearResult, cycle_increment
+from jaxwear._physics.cycle import WearResult, cycle_increment, run_history
 from jaxwear._physics.wear import build_schedule, check_result, schedule_numerics, simulate
 from jaxwear._study.study import Experiment, Study
 
@@ -43,6 +47,27 @@ def _pressure(p, cfg, h, hist, regime):
     # The contact call of the wear itself (friction and every effect's contact terms), so
     # that the plotted pressure is the pressure that wore the bore.
     return cycle_increment(p, cfg, hist, regime, h, jnp.zeros(()))[2].pressure
+
+
+def pressure_ahead(study: Study, after: threading.Event):
+    """`last_cycle_pressure`'s program compiled in a daemon thread once `after` is set (the
+    first experiment's wear loop lowered: its XLA compilation leaves the interpreter free
+    and a core idle), by one call on the first experiment's shapes at zero load and an
+    unworn bore. Why: traced, lowered and compiled after the first experiment, it was
+    ~0.4 s of a cold `simulate` on the rig study (2 cores, 2026-11-30). Failures are left
+    to `last_cycle_pressure`, which meets them again. Returns the `Background`."""
+
+    def run():
+        after.wait()
+        try:
+            p = study.params(study.experiments[0])
+            shapes = jax.eval_shape(lambda p: run_history(p, study.config), p)
+            hist = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+            _pressure(p, study.config, jnp.zeros(study.config.nodes), hist, 0)
+        except Exception:  # noqa: BLE001 (met again, and reported, where it is used)
+            pass
+
+    return Background(run)
 
 
 def last_cycle_pressure(study: Study, exp: Experiment, res: WearResult, regime: int = 0):

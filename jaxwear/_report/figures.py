@@ -67,11 +67,35 @@ def thinned_label(label: str, n: int, max_points: int = PLOT_POINTS) -> str:
     return f"{label} ({n} rows: lowest and highest of {max_points // 2} bins)"
 
 
+def fixed_layout(fig, axes, *, right: float, top: float, bottom: float,
+                 hspace: float | None = None) -> None:
+    """The figure's margins without `tight_layout`, for a column of axes whose x label and
+    title are one line each: `right`, `top`, `bottom` as fractions of the figure (those
+    tight_layout chose for these figures), the left margin from the widest y tick label.
+
+    Why: tight_layout measures every text by drawing it, a second partial draw of each
+    figure: 0.05-0.16 s of the 0.2-0.45 s a `simulate` figure took (3 per experiment,
+    ~1 s of a 5-experiment study's ~10 s; measured 2026-11-30, docs/performance.md). The
+    y tick labels are known before drawing (the axis's formatter at its ticks in view);
+    the left margin is 0.45 in for the label and the ticks plus 0.09 in a character, which
+    gave tight_layout's margin within 0.03 in for labels of 1 to 6 characters."""
+    chars = 1
+    for ax in axes:
+        lo, hi = sorted(ax.get_ylim())
+        pad = 1e-9 * (hi - lo)
+        ticks = [t for t in ax.get_yticks() if lo - pad <= t <= hi + pad]
+        labels = ax.yaxis.get_major_formatter().format_ticks(ticks)
+        chars = max([chars, *map(len, labels)])
+    left = (0.48 + 0.09 * chars) / fig.get_figwidth()
+    fig.subplots_adjust(left=left, right=right, top=top, bottom=bottom, hspace=hspace)
+
+
 def finish(fig, ax, path) -> None:
-    """Grid, legend and layout of a one-axes figure, written to `path` and closed."""
+    """Grid, legend and layout of a one-axes figure (a one-line x label and title),
+    written to `path` and closed."""
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
+    fixed_layout(fig, [ax], right=0.96, top=0.9, bottom=0.165)
     save_figure(fig, path)
     plt().close(fig)
 
@@ -115,7 +139,7 @@ def plot_load(path, name, fx, fy, angle_rad):
     a2.set_xlabel("step")
     a2.set_ylim(0, 360)
     a2.grid(alpha=0.3)
-    fig.tight_layout()
+    fixed_layout(fig, [a1, a2], right=0.98, top=0.93, bottom=0.115, hspace=0.11)
     save_figure(fig, path)
     pl.close(fig)
 
@@ -131,7 +155,7 @@ def plot_pressure_map(path, title, pressure_pa):
     ax.set_ylabel("step of the cycle")
     ax.set_title(title)
     fig.colorbar(im, ax=ax, label="contact pressure [MPa]")
-    fig.tight_layout()
+    fixed_layout(fig, [ax], right=0.98, top=0.91, bottom=0.145)
     save_figure(fig, path)
     pl.close(fig)
 

@@ -40,6 +40,9 @@ class Verb:
     out_required = False  # --out without a default (synth)
     out_help = f"output folder (default {DEFAULT_OUT})"
     fits_data = False  # fits the study's measurements: refuse data with no wear in them
+    # the program whose XLA compilation the figures' library is imported beside (a fit's
+    # Jacobian where the verb fits data; None: imported where the first figure needs it)
+    plots_after: str | None = None
 
     def add_arguments(self, p) -> None:
         """The verb's own options (STUDY, --out and --json are added by `add_to`)."""
@@ -101,10 +104,11 @@ class Verb:
         opts["estimate"] = check_work(self.work_study(study, opts),
                                       tangents=self.tangents(study, opts),
                                       length_from=self.length_from(study, opts))
-        if not self.fits_data:
+        after = "_evaluate_jit" if self.fits_data else self.plots_after
+        if after is None:
             return self.run(study, out, opts)
-        # the figures' library imported while the fit's Jacobian program compiles
-        lowered = background.lowered("_evaluate_jit")
+        # the figures' library imported while the verb's first large program compiles
+        lowered = background.lowered(after)
         warm_plots(lowered)
         try:
             return self.run(study, out, opts)

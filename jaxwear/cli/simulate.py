@@ -11,7 +11,13 @@ import time
 
 import numpy as np
 
-from jaxwear._analyses.simulate import common_length, last_cycle_pressure, run_experiment
+from jaxwear._analyses.simulate import (
+    common_length,
+    last_cycle_pressure,
+    pressure_ahead,
+    run_experiment,
+)
+from jaxwear._core import background
 from jaxwear._core.log import progress
 from jaxwear._physics.config import timed
 from jaxwear._physics.cycle import WearResult
@@ -77,6 +83,9 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
     for line in amplification_warnings(study):
         progress(line)
     length = common_length(study)
+    if out is not None and plots:
+        # the pressure maps' program compiled beside the first experiment's
+        pressure_ahead(study, background.lowered("wear_loop"))
     for i, exp in enumerate(study.experiments, start=1):
         t0 = time.perf_counter()
         what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
@@ -144,6 +153,7 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
 class Simulate(Verb):
     name = "simulate"
     help = "predict wear profiles for a study"
+    plots_after = "wear_loop"
 
     def outputs(self, study, opts):
 
