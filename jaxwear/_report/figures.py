@@ -77,8 +77,9 @@ def fixed_layout(fig, axes, *, right: float, top: float, bottom: float,
     figure: 0.05-0.16 s of the 0.2-0.45 s a `simulate` figure took (3 per experiment,
     ~1 s of a 5-experiment study's ~10 s; measured 2026-11-30, docs/performance.md). The
     y tick labels are known before drawing (the axis's formatter at its ticks in view);
-    the left margin is 0.45 in for the label and the ticks plus 0.09 in a character, which
-    gave tight_layout's margin within 0.03 in for labels of 1 to 6 characters."""
+    the left margin is 0.48 in for the label and the ticks plus 0.09 in a character: 0.01-
+    0.08 in wider than tight_layout's on the rig's and the boom's figures, and within 0.1
+    in of it for labels of 1 to 6 characters (`tests/test_figure_layout.py`)."""
     chars = 1
     for ax in axes:
         lo, hi = sorted(ax.get_ylim())
