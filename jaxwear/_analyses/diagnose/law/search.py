@@ -77,7 +77,7 @@ from jaxwear._analyses.diagnose.law.memory import (
     memory_candidates,
     wanted,
 )
-from jaxwear._analyses.diagnose.law.numerical import correct_law
+from jaxwear._analyses.diagnose.law.numerical import correct_law, finer_model
 from jaxwear._analyses.diagnose.law.profile import profile_law
 from jaxwear._analyses.diagnose.law.result import (  # noqa: F401 (the search's types)
     LAW_WORSE,
@@ -732,7 +732,9 @@ def compile_ahead(model: Model, fit: Fit) -> None:
     law of the grammar) and the laws with memory's (one for both forms), each by one
     evaluation and one forward run of a law switched off: what `search` and its jobs
     ahead (`law.ahead`) will run on, ahead of the shape's analysis, which is all the
-    search waits for. Failures are left to the search, which meets them again.
+    search waits for; then the forward program at twice the nodes and steps per cycle of
+    each kind (`law.numerical.finer_model`), which checks the answer's constants at the
+    search's end. Failures are left to the search, which meets them again.
 
     Why (issue 50, the generator's fatigue study, 48 x 72, 2 cores): the four compiled
     at the search's start (`warm`) and in its job ahead, 15 s of compilation while both
@@ -750,6 +752,16 @@ def compile_ahead(model: Model, fit: Fit) -> None:
                 lm.evaluate(np.zeros(len(lm.names)))
                 lm.predict(np.zeros(len(lm.names)))
         except Exception:  # noqa: BLE001 (the search reports it where it matters)
+            pass
+    # and the finer level's forward programs, where the answer's constants are checked
+    # at the search's end (`law.numerical.correct_law`): compiled there, 2.7 s of XLA in
+    # the check's 6.2 s, the last step of a partly explained diagnosis (fatigue study)
+    for law in (_ANY_LAW, _ANY_MEMORY_LAW):
+        try:
+            with searching():
+                fm = finer_model(law_model(model, fit, law))
+                fm.predict(np.zeros(len(fm.names)))
+        except Exception:  # noqa: BLE001 (the check meets it again and says so)
             pass
 
 
