@@ -152,9 +152,10 @@ def test_a_correction_that_does_not_lower_the_misfit_is_halved_then_not_made(dep
 
 
 def test_the_finer_levels_program_is_compiled_ahead_of_the_check(deposit_fit):
-    """`law.search.compile_ahead` (beside the shape's analyses) compiles the forward program
-    of the finer level the answer's constants are checked at, on a law switched off: the
-    check of the fitted deposit law then compiles no forward program (a factor law of the
+    """`law.search.compile_ahead` (beside the shape's analyses) compiles the memoryless
+    laws' forward program at the finer level the answer's constants are checked at, on a
+    law switched off (`finer_ahead`): the check of the fitted deposit law then compiles no
+    forward program (a factor law of the
     grammar and a deposit share the programs). Measured on the generator's fatigue study
     (48 x 72, 2 cores): the check at the diagnosis's end took 2.3 and 3.0 s with it,
     6.2 s without (2.7 s of it XLA's compile)."""

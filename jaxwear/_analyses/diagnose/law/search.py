@@ -462,6 +462,8 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 out = memory_fit(law)
             finally:  # stopped (`Stopped`): the slot filled, so that nothing waits on it
                 shared.put(i, out)
+        if numerical:  # the check's program of a law with memory, should one be the answer
+            finer_ahead(model, fit, _ANY_MEMORY_LAW)
         return start_lines
 
     def memory_now():
@@ -732,9 +734,9 @@ def compile_ahead(model: Model, fit: Fit) -> None:
     law of the grammar) and the laws with memory's (one for both forms), each by one
     evaluation and one forward run of a law switched off: what `search` and its jobs
     ahead (`law.ahead`) will run on, ahead of the shape's analysis, which is all the
-    search waits for; then the forward program at twice the nodes and steps per cycle of
-    each kind (`law.numerical.finer_model`), which checks the answer's constants at the
-    search's end. Failures are left to the search, which meets them again.
+    search waits for; then the memoryless kind's forward program at twice the nodes and
+    steps per cycle (`finer_ahead`). Failures are left to the search, which meets them
+    again.
 
     Why (issue 50, the generator's fatigue study, 48 x 72, 2 cores): the four compiled
     at the search's start (`warm`) and in its job ahead, 15 s of compilation while both
@@ -753,16 +755,25 @@ def compile_ahead(model: Model, fit: Fit) -> None:
                 lm.predict(np.zeros(len(lm.names)))
         except Exception:  # noqa: BLE001 (the search reports it where it matters)
             pass
-    # and the finer level's forward programs, where the answer's constants are checked
-    # at the search's end (`law.numerical.correct_law`): compiled there, 2.7 s of XLA in
-    # the check's 6.2 s, the last step of a partly explained diagnosis (fatigue study)
-    for law in (_ANY_LAW, _ANY_MEMORY_LAW):
-        try:
-            with searching():
-                fm = finer_model(law_model(model, fit, law))
-                fm.predict(np.zeros(len(fm.names)))
-        except Exception:  # noqa: BLE001 (the check meets it again and says so)
-            pass
+    finer_ahead(model, fit, _ANY_LAW)
+
+
+def finer_ahead(model: Model, fit: Fit, law) -> None:
+    """The forward program at twice the nodes and steps per cycle of a law of `law`'s kind
+    (memoryless, or with memory; `law.numerical.finer_model`), compiled by one run of
+    that law switched off: where the answer's constants are checked at the search's end
+    (`law.numerical.correct_law`). Compiled there, it was 2.7 s of XLA in the check's
+    6.2 s, the last step of a partly explained diagnosis (the generator's fatigue study,
+    2 cores). The memoryless kind's is compiled with the search's programs
+    (`compile_ahead`); the kind with memory's by the job that fits such laws ahead
+    (`search`), after its fits.
+    Failures are left to the check, which meets them again and says so."""
+    try:
+        with searching():
+            fm = finer_model(law_model(model, fit, law))
+            fm.predict(np.zeros(len(fm.names)))
+    except Exception:  # noqa: BLE001 (the check meets it again and says so)
+        pass
 
 
 def warm(model: Model, fit: Fit, linear: dict, prefer=None, compiled=None
