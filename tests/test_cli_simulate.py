@@ -210,3 +210,24 @@ def test_bad_input_exits_2_with_one_line(bad_runs, case):
     assert err and "\n" not in err, err  # exactly one line
     for token in tokens:
         assert token in err, (token, err)
+
+
+def test_a_second_study_in_one_process_leaves_no_thread_waiting(tmp_path):
+    """`simulate` compiles the pressure map's program in a thread that waits for the first
+    experiment's wear loop to be lowered. Run twice in one process (a notebook, a script
+    calling `jaxwear.cli.main`), the second finds that loop compiled and never lowers it:
+    the thread must still end with the study, else the interpreter's exit joins it for
+    ever."""
+    import threading
+
+    from jaxwear.cli import main
+
+    (tmp_path / "study.toml").write_text(STUDY.replace('profile = "measured.csv"\n', "")
+                                         .replace("revolutions = 2000", "revolutions = 200"))
+    for k in range(2):
+        assert main(["simulate", str(tmp_path / "study.toml"), "--out",
+                     str(tmp_path / f"out{k}")]) == 0
+        assert (tmp_path / f"out{k}" / "pressure_n276-c005.png").exists()
+        left = [t for t in threading.enumerate()
+                if t.name == "jaxwear-pressure_program" and t.is_alive()]
+        assert left == [], left

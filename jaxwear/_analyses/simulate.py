@@ -57,7 +57,7 @@ def pressure_ahead(study: Study, after: threading.Event):
     ~0.4 s of a cold `simulate` on the rig study (2 cores, 2026-11-30). Failures are left
     to `last_cycle_pressure`, which meets them again. Returns the `Background`."""
 
-    def run():
+    def pressure_program():  # the thread's name: jaxwear-pressure_program
         after.wait()
         try:
             p = study.params(study.experiments[0])
@@ -67,7 +67,7 @@ def pressure_ahead(study: Study, after: threading.Event):
         except Exception:  # noqa: BLE001 (met again, and reported, where it is used)
             pass
 
-    return Background(run)
+    return Background(pressure_program)
 
 
 def last_cycle_pressure(study: Study, exp: Experiment, res: WearResult, regime: int = 0):

@@ -83,14 +83,43 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
     for line in amplification_warnings(study):
         progress(line)
     length = common_length(study)
+    ahead = lowered = None
     if out is not None and plots:
         # the pressure maps' program compiled beside the first experiment's
-        pressure_ahead(study, background.lowered("wear_loop"))
+        lowered = background.lowered("wear_loop")
+        ahead = pressure_ahead(study, lowered)
+    try:
+        _experiments(study, out, plots, osc, length, angles, rows, snap_rows, summary,
+                     lowered)
+    finally:
+        if lowered is not None:
+            # a wear loop compiled before in this process is not lowered again: the call
+            # ahead goes on now (never left waiting, to be joined at the interpreter's exit)
+            background.forget(lowered)
+    if ahead is not None:
+        ahead.join()  # ended with the study: nothing of it compiles on after the answer
+    if out is not None:
+        out.write_csv("profiles.csv", ["experiment", "angle_deg", "depth_um"], rows)
+        if snap_rows:
+            col = "hours" if osc else "revolutions"
+            out.write_csv("snapshots.csv", ["experiment", col, "angle_deg", "depth_um"],
+                          snap_rows)
+        out.write_json("summary.json", {"experiments": summary, "resolution": resolution})
+    return summary
+
+
+def _experiments(study, out, plots, osc, length, angles, rows, snap_rows, summary,
+                 lowered) -> None:
+    """`simulate_study`'s loop: each experiment run, its rows and summary collected, its
+    load files and figures written. `lowered`: the event `pressure_ahead` waits on, set
+    once the first experiment has run."""
     for i, exp in enumerate(study.experiments, start=1):
         t0 = time.perf_counter()
         what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
         progress(f"[{i}/{len(study.experiments)}] {exp.name}: {what} ...")
         res = run_experiment(study, exp, pad_to=length)
+        if lowered is not None:
+            background.forget(lowered)
         depth_um = np.asarray(res.depth) * 1e6
         dt = time.perf_counter() - t0
         rows += [(exp.name, a, d) for a, d in zip(angles, depth_um)]
@@ -140,14 +169,6 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
                     meas = (exp.history.hours, exp.history.depth * 1e3)
                 rep.plot_history(out.path(f"history_{exp.name}.png"), exp.name, snaps,
                                  snap_um.max(axis=1) / 1e3, meas)
-    if out is not None:
-        out.write_csv("profiles.csv", ["experiment", "angle_deg", "depth_um"], rows)
-        if snap_rows:
-            col = "hours" if osc else "revolutions"
-            out.write_csv("snapshots.csv", ["experiment", col, "angle_deg", "depth_um"],
-                          snap_rows)
-        out.write_json("summary.json", {"experiments": summary, "resolution": resolution})
-    return summary
 
 
 class Simulate(Verb):
