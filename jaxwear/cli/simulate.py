@@ -89,12 +89,68 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
         lowered = background.lowered("wear_loop")
         ahead = pressure_ahead(study, lowered)
     try:
-        _experiments(study, out, plots, osc, length, angles, rows, snap_rows, summary,
-                     lowered)
+        for i, exp in enumerate(study.experiments, start=1):
+            t0 = time.perf_counter()
+            what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
+            progress(f"[{i}/{len(study.experiments)}] {exp.name}: {what} ...")
+            res = run_experiment(study, exp, pad_to=length)
+            if lowered is not None:
+                # lowered by now; a wear loop compiled before in this process is not
+                # lowered again, and the call ahead must not wait for it
+                background.forget(lowered)
+            depth_um = np.asarray(res.depth) * 1e6
+            dt = time.perf_counter() - t0
+            rows += [(exp.name, a, d) for a, d in zip(angles, depth_um)]
+            snaps = exp.snapshot_points
+            snap_um = np.asarray(res.snapshots) * 1e6
+            for s, prof in zip(snaps, snap_um):
+                snap_rows += [(exp.name, s, a, d) for a, d in zip(angles, prof)]
+            peak = int(np.argmax(depth_um))
+            summary[exp.name] = {
+                "peak_depth_um": float(depth_um[peak]), "peak_angle_deg": float(angles[peak]),
+                "worn_volume_mm3": float(res.worn_volume) * 1e9,
+                "sliding_distance_m": float(res.sliding_distance),
+                "max_contact_residual": float(res.max_residual),
+                "scla_last_pass_gamma_change_deg": float(np.degrees(np.max(
+                    np.asarray(res.history.gamma_change)))),
+                "wall_time_s": dt,
+                "integration": integration_report(res, study.integrator, study.wear_tolerance_um),
+            }
+            if out is not None:
+                summary[exp.name]["load_history"] = write_load_files(out, study, exp, res)
+            progress(f"    peak {depth_um[peak]:.3f} µm at {angles[peak]:.0f}°, "
+                     f"volume {float(res.worn_volume) * 1e9:.4f} mm³, integration error "
+                     f"≈ {float(res.error_estimate) * 1e6:.2g} µm in {int(res.steps)} steps "
+                     f"({dt:.2f} s)")
+            if out is not None and plots:
+                measured = None
+                if exp.profile is not None:
+                    last = exp.profile.revolutions == np.max(exp.profile.revolutions)
+                    measured = (np.degrees(exp.profile.angle[last]), exp.profile.depth[last] * 1e6)
+                unit = "h" if osc else "rev"
+                labels = [(f"{s:g} {unit}", d) for s, d in zip(snaps, snap_um)]
+                frame = {"load_history": "the load file's frame, from its x axis, counter-"
+                                         "clockwise",
+                         "oscillating": "bushing frame, counter-clockwise"}.get(
+                    study.config.driver, "from B→D, counter-clockwise")
+                rep.plot_profile(out.path(f"profile_{exp.name}.png"), exp.name, angles, depth_um,
+                                 measured, labels if len(labels) > 1 else None, frame=frame)
+                hist = res.history
+                rep.plot_load(out.path(f"load_{exp.name}.png"), exp.name, np.asarray(hist.fx[0]),
+                              np.asarray(hist.fy[0]), np.asarray(hist.angle[0]))
+                rep.plot_pressure_map(out.path(f"pressure_{exp.name}.png"),
+                                      f"{exp.name}: pressure, last cycle ({study.config.contact})",
+                                      last_cycle_pressure(study, exp, res))
+                if osc and snaps:
+                    meas = None
+                    if exp.history is not None:
+                        meas = (exp.history.hours, exp.history.depth * 1e3)
+                    rep.plot_history(out.path(f"history_{exp.name}.png"), exp.name, snaps,
+                                     snap_um.max(axis=1) / 1e3, meas)
     finally:
         if lowered is not None:
-            # a wear loop compiled before in this process is not lowered again: the call
-            # ahead goes on now (never left waiting, to be joined at the interpreter's exit)
+            # where the first experiment raised, the call ahead goes on now (never left
+            # waiting, to be joined at the interpreter's exit)
             background.forget(lowered)
     if ahead is not None:
         ahead.join()  # ended with the study: nothing of it compiles on after the answer
@@ -106,69 +162,6 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
                           snap_rows)
         out.write_json("summary.json", {"experiments": summary, "resolution": resolution})
     return summary
-
-
-def _experiments(study, out, plots, osc, length, angles, rows, snap_rows, summary,
-                 lowered) -> None:
-    """`simulate_study`'s loop: each experiment run, its rows and summary collected, its
-    load files and figures written. `lowered`: the event `pressure_ahead` waits on, set
-    once the first experiment has run."""
-    for i, exp in enumerate(study.experiments, start=1):
-        t0 = time.perf_counter()
-        what = f"{exp.hours:g} h" if osc else f"{exp.revolutions:g} rev"
-        progress(f"[{i}/{len(study.experiments)}] {exp.name}: {what} ...")
-        res = run_experiment(study, exp, pad_to=length)
-        if lowered is not None:
-            background.forget(lowered)
-        depth_um = np.asarray(res.depth) * 1e6
-        dt = time.perf_counter() - t0
-        rows += [(exp.name, a, d) for a, d in zip(angles, depth_um)]
-        snaps = exp.snapshot_points
-        snap_um = np.asarray(res.snapshots) * 1e6
-        for s, prof in zip(snaps, snap_um):
-            snap_rows += [(exp.name, s, a, d) for a, d in zip(angles, prof)]
-        peak = int(np.argmax(depth_um))
-        summary[exp.name] = {
-            "peak_depth_um": float(depth_um[peak]), "peak_angle_deg": float(angles[peak]),
-            "worn_volume_mm3": float(res.worn_volume) * 1e9,
-            "sliding_distance_m": float(res.sliding_distance),
-            "max_contact_residual": float(res.max_residual),
-            "scla_last_pass_gamma_change_deg": float(np.degrees(np.max(
-                np.asarray(res.history.gamma_change)))),
-            "wall_time_s": dt,
-            "integration": integration_report(res, study.integrator, study.wear_tolerance_um),
-        }
-        if out is not None:
-            summary[exp.name]["load_history"] = write_load_files(out, study, exp, res)
-        progress(f"    peak {depth_um[peak]:.3f} µm at {angles[peak]:.0f}°, "
-                 f"volume {float(res.worn_volume) * 1e9:.4f} mm³, integration error "
-                 f"≈ {float(res.error_estimate) * 1e6:.2g} µm in {int(res.steps)} steps "
-                 f"({dt:.2f} s)")
-        if out is not None and plots:
-            measured = None
-            if exp.profile is not None:
-                last = exp.profile.revolutions == np.max(exp.profile.revolutions)
-                measured = (np.degrees(exp.profile.angle[last]), exp.profile.depth[last] * 1e6)
-            unit = "h" if osc else "rev"
-            labels = [(f"{s:g} {unit}", d) for s, d in zip(snaps, snap_um)]
-            frame = {"load_history": "the load file's frame, from its x axis, counter-"
-                                     "clockwise",
-                     "oscillating": "bushing frame, counter-clockwise"}.get(
-                study.config.driver, "from B→D, counter-clockwise")
-            rep.plot_profile(out.path(f"profile_{exp.name}.png"), exp.name, angles, depth_um,
-                             measured, labels if len(labels) > 1 else None, frame=frame)
-            hist = res.history
-            rep.plot_load(out.path(f"load_{exp.name}.png"), exp.name, np.asarray(hist.fx[0]),
-                          np.asarray(hist.fy[0]), np.asarray(hist.angle[0]))
-            rep.plot_pressure_map(out.path(f"pressure_{exp.name}.png"),
-                                  f"{exp.name}: pressure, last cycle ({study.config.contact})",
-                                  last_cycle_pressure(study, exp, res))
-            if osc and snaps:
-                meas = None
-                if exp.history is not None:
-                    meas = (exp.history.hours, exp.history.depth * 1e3)
-                rep.plot_history(out.path(f"history_{exp.name}.png"), exp.name, snaps,
-                                 snap_um.max(axis=1) / 1e3, meas)
 
 
 class Simulate(Verb):
