@@ -3,6 +3,7 @@ control, its stability limit and its static attempt budget (docs/design.md §4).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -27,6 +28,7 @@ from jaxwear._physics.cycle import (
 from jaxwear._physics.effects import get_effect
 from jaxwear._physics.load import load_history
 from jaxwear._physics.params import Params
+from jaxwear._physics.remat import KEEP_NEWTON, outer_policy
 from jaxwear._physics.schedule import Schedule, bucket
 
 # Bogacki-Shampine 3(2) pair (FSAL): nodes c, weights b (3rd order), error weights b - b̂.
@@ -309,9 +311,10 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
         inner = max(1, int(math.ceil(math.sqrt(A))))
         outer = int(math.ceil(A / inner))
 
-        @jax.checkpoint
+        # the contact solves' Newton answers kept, 4 stages an attempt (`remat`)
+        @functools.partial(jax.checkpoint, policy=outer_policy(A, hist.load.shape[-1], 4))
         def block(c, _):
-            return lax.scan(jax.checkpoint(body), c, None, length=inner)
+            return lax.scan(jax.checkpoint(body, policy=KEEP_NEWTON), c, None, length=inner)
 
         c, trace = lax.scan(block, c0, None, length=outer)
         trace = jax.tree.map(lambda a: a.reshape(-1), trace)  # (outer * inner,) >= attempts

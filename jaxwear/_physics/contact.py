@@ -27,12 +27,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.ad_checkpoint import checkpoint_name
 from jax.custom_batching import custom_vmap
 
 from jaxwear._core import pytree
 from jaxwear._core.batching import cond_any, in_chunks
 from jaxwear._core.periodic import interp_periodic
 from jaxwear._core.types import Array, Float, NodeArray, StepArray, StepNodeArray
+from jaxwear._physics.remat import NEWTON
 
 sg = lax.stop_gradient
 
@@ -400,7 +402,8 @@ def _symmetric(load, angle, nx, ny, g, k, area, iterations):
     node), the pin displaced along the load only; one scalar equation per step."""
     cosj = nx * jnp.cos(angle)[:, None] + ny * jnp.sin(angle)[:, None]
     kA = k * area
-    s_star = sg(_newton_1d(sg(load), sg(cosj), sg(g), sg(kA), iterations))
+    s_star = checkpoint_name(sg(_newton_1d(sg(load), sg(cosj), sg(g), sg(kA), iterations)),
+                             NEWTON)  # kept by the wear loops' checkpoints (`remat`)
     d = s_star[:, None] * cosj - g
     act = sg(d > 0)
     f = jnp.sum(jnp.where(act, kA * d * cosj, 0.0), 1) - load
@@ -493,9 +496,10 @@ def _unsymmetric(load, angle, nx, ny, g, k, area, iterations, tol, start):
             return lax.scan(attempt, first, jnp.arange(2))[0][:4]
 
         e_star, r_star, hess, its = in_chunks(tries, e0, data)
-    e_star = sg(e_star)
-    r = _residual_at(e_star, sg(r_star), nx, ny, g, kA, W)  # differentiable in g, k, W
-    e = e_star - jnp.stack(_solve2(tuple(map(sg, hess)), r[:, 0], r[:, 1]), axis=1)
+    # kept by the wear loops' checkpoints: reverse mode does not iterate again (`remat`)
+    e_star, r_star, hess = checkpoint_name(sg((e_star, r_star, hess)), NEWTON)
+    r = _residual_at(e_star, r_star, nx, ny, g, kA, W)  # differentiable in g, k, W
+    e = e_star - jnp.stack(_solve2(hess, r[:, 0], r[:, 1]), axis=1)
     delta = e[:, 0:1] * nx + e[:, 1:2] * ny - g
     pressure = jnp.where(delta > 0, k * delta, 0.0)
     res = jnp.linalg.norm(sg(r_star), axis=1) / jnp.maximum(sg(load), 1e-300)

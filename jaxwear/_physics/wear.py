@@ -3,12 +3,14 @@
 One update: contact for all steps of a cycle at once (vectorised), Δh_j = Σ_i K_d p_ij dS_i,
 h ← h + M Δh. Updates run under `lax.scan`; the scan is split in two levels with
 `jax.checkpoint` on each inner block, so reverse-mode memory grows like √updates, not like
-updates × steps × nodes (100 000 revolutions at M = 1 fit in memory).
+updates × steps × nodes (100 000 revolutions at M = 1 fit in memory); the checkpoints keep
+the contact solves' Newton answers (`remat`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -37,6 +39,7 @@ from jaxwear._physics.effects.shape import pack as pack_shape
 from jaxwear._physics.limits import contact_failure
 from jaxwear._physics.load import block_periods
 from jaxwear._physics.params import Params
+from jaxwear._physics.remat import KEEP_NEWTON, outer_policy
 from jaxwear._physics.schedule import Schedule, bucket, crank_segments, duty_segments, make_schedule
 
 
@@ -116,9 +119,10 @@ def wear_loop(p: Params, cfg: ModelConfig, schedule: Schedule, h0: NodeArray | N
     xs = (padded(schedule.cycles, 0.0), padded(schedule.regime, 0),
           padded(schedule.snapshot, schedule.n_snapshots), padded(schedule.cycle_end, 0.0))
 
-    @jax.checkpoint
+    # the contact solves' Newton answers kept, not iterated again in reverse mode (`remat`)
+    @functools.partial(jax.checkpoint, policy=outer_policy(U, hist.load.shape[-1], 1))
     def block(carry, xs_block):
-        return lax.scan(jax.checkpoint(body), carry, xs_block)
+        return lax.scan(jax.checkpoint(body, policy=KEEP_NEWTON), carry, xs_block)
 
     prev0 = (jnp.zeros(n), jnp.asarray(-1, jnp.int32), jnp.ones(()))
     # the carries the updates give a tangent, ready for it from the start: each level of

@@ -289,7 +289,9 @@ def run_nuts(problem, result, fprob, fprob_fine=None, *, noise_um=None, level=0.
     refinement; `_predict_draws.DrawForecasts`). `fprob_fine`: the forecast problem at the
     level the fit's answer is corrected to (None: none).
     `forward_mode`: gradients by forward mode (p tangents through the wear loop: measured
-    faster than reverse mode, which re-runs the checkpointed loop, for p ≤ ~6).
+    faster than reverse mode for p ≤ ~6, when reverse mode still ran the contact solves'
+    Newton iterations again; it keeps them since 2026-11-30, `_physics.remat`, and the
+    crossover was not measured again).
     `cov`: the fit's Laplace covariance of u (p, p) for the whitening (None: L = I).
     `fprob` may carry an early stop (`Schedule.stopping_at`): its +inf snapshots are
     filled with the last computed one (`_predict.fill_past_stop`).
