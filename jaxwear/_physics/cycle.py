@@ -75,6 +75,17 @@ def memory_size(cfg: ModelConfig) -> int:
     return sum(get_effect(n).memory_states for n in cfg.effects)
 
 
+def archard_rate(p: Params, pressure, slide):
+    """K_d p_ij dS_i (eq 21): each step's wear [m] (steps, nodes) from the pressure [Pa]
+    (steps, nodes) and the steps' sliding [m] (steps,).
+
+    K_d is folded into the steps' sliding first. Why: reverse mode's cotangent of K_d is
+    then a sum over the steps of a row sum, not one sum over steps x nodes, which XLA:CPU
+    runs as a blocked reduce-window at ~1.1 ms a call at 360 x 360 (a row sum ~0.1 ms;
+    docs/performance.md, "Reverse mode keeps the Newton answers")."""
+    return pressure * (p.wear_coefficient * slide)[:, None]
+
+
 def cycle_rates(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding,
                 start=None, memory=None):
     """Wear of each step of one cycle on the frozen profile `h` [m] (steps, nodes), with the
@@ -101,7 +112,7 @@ def _cycle(p: Params, cfg: ModelConfig, hist: LoadHistory, regime, h, sliding, s
             friction = mu if friction is None else friction + mu
     sol = solve_contact(load, angle, h, p.clearance, k, area, contact=cfg.contact,
                         friction=friction, iterations=cfg.newton_iterations, start=start)
-    rate = p.wear_coefficient * sol.pressure * slide[:, None]  # eq 21, per step
+    rate = archard_rate(p, sol.pressure, slide)  # eq 21, per step
     ds = None
     if effects:
         m_total = memory_size(cfg)

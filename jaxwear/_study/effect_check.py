@@ -41,6 +41,7 @@ import numpy as np
 
 from jaxwear._core import pytree
 from jaxwear._core.errors import InputError
+from jaxwear._physics.cycle import archard_rate
 from jaxwear._physics.effects._base import Effect, RateContext
 from jaxwear._physics.effects.shape import swept_kernel
 from jaxwear._physics.params import preset
@@ -94,7 +95,7 @@ def check_effect(path, eff: Effect, class_line: int) -> None:
     pressure, slide, dt, angle, load = _cycle()
     # as the wear loop gives them: the kernel where the effect asks for it (else None)
     swept = swept_kernel(angle, NODES) if getattr(eff, "uses_swept_kernel", False) else None
-    rate = base.wear_coefficient * pressure * slide[:, None]
+    rate = archard_rate(base, pressure, slide)
     sense = jnp.where(jnp.arange(STEPS) % 2 == 0, 1.0, -1.0)
     name = type(eff).__name__
     # each hook compiled once (the settings share its shapes) and run as the wear loop runs

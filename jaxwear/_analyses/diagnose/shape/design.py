@@ -16,7 +16,7 @@ import numpy as np
 from jaxwear._analyses.diagnose._fit import Fit, _log
 from jaxwear._analyses.diagnose._model import Model
 from jaxwear._core.jit import jit
-from jaxwear._physics.cycle import cycle_increment
+from jaxwear._physics.cycle import archard_rate, cycle_increment
 from jaxwear._physics.effects.shape import (
     DEPOSIT_VARIABLES,
     FORMS,
@@ -171,7 +171,7 @@ def _cycle_states(p, cfg, hist, regime, h, sliding):
     slide, dt = hist.slide[regime], hist.dt[regime]
     z = state_variables(sol.pressure, slide, dt, sliding, hist.angle[regime],
                         hist.load[regime], h)
-    rate = p.wear_coefficient * sol.pressure * slide[:, None]
+    rate = archard_rate(p, sol.pressure, slide)
     return {k: jnp.broadcast_to(v, sol.pressure.shape) for k, v in z.items()}, rate
 
 
