@@ -82,7 +82,7 @@ def archard_rate(p: Params, pressure, slide):
     K_d is folded into the steps' sliding first. Why: reverse mode's cotangent of K_d is
     then a sum over the steps of a row sum, not one sum over steps x nodes, which XLA:CPU
     runs as a blocked reduce-window at ~1.1 ms a call at 360 x 360 (a row sum ~0.1 ms;
-    docs/performance.md, "Reverse mode keeps the Newton answers")."""
+    docs/performance.md, "K_d enters through the steps' sliding")."""
     return pressure * (p.wear_coefficient * slide)[:, None]
 
 
