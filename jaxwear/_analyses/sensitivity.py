@@ -5,10 +5,18 @@ function theorem (see `_contact`), the wear loop's scan is differentiated as is.
 every physical parameter that enters the configured driver and joint (and the strengths of
 the effects switched on), except those at 0, where a logarithmic derivative is undefined.
 
-Forward mode (`jax.jacfwd`, one tangent per parameter) is the default: measured on CPU it
-compiles faster than reverse mode (`jax.jacrev`, two outputs) and runs about as fast
-(64 nodes x 72 steps, 15 parameters: 0.05 s vs 0.09 s; full size, 10 000 revolutions:
-5.7 s vs 4.3 s, compile 32 s vs 45 s on a busy 2-core machine).
+Forward mode (`jax.jacfwd`, one tangent per parameter) is the default: its program
+compiles faster than reverse mode's (`jax.jacrev`, two outputs), and a single call on a
+short run is mostly compilation. Reverse mode runs faster once compiled, and on long runs
+the first call too. Measured on a quiet 2-core CPU (2026-11-30, 20:56 UTC, the adaptive
+integrator, 15 parameters on the rig and 13 on the boom), first call / a second call:
+- rig, 10 000 rev, 64 x 72: fwd 4.3 / 0.06 s, rev 8.6 / 0.03 s;
+- rig, 10 000 rev, 360 x 360: fwd 5.2 / 1.46 s, rev 8.3 / 0.36 s;
+- boom, 25 h, 360 x 360: fwd 24.3 / 18.8 s, rev 11.0 / 7.2 s (peak memory 325 MB
+  against 449 MB for the whole process);
+- `study_sensitivities` of `calibration/rig/study.toml` (5 experiments, one
+  compilation): fwd 6.5-7.3 s, rev 5.6-6.6 s (three runs each).
+Pass `mode="rev"` for long runs and repeated calls.
 
 A normalised sensitivity S means: a 1 % increase of θ changes y by about S %.
 """
