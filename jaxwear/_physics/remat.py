@@ -13,7 +13,8 @@ that stays under `OUTER_BYTES`, else they run the Newton iterations again once (
 and keep only the block's carries.
 
 Measured (2026-11-30, docs/performance.md, "Reverse mode keeps the Newton answers"): the
-gradient of a 5-experiment rig loss at 360 x 360, M = 500 (20 updates).
+gradient of a 5-experiment rig loss at 360 x 360, M = 500 (20 updates), took 5.0x its
+forward run's time before and 2.9x after.
 """
 
 from __future__ import annotations
