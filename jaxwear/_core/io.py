@@ -318,7 +318,12 @@ def png_bytes(fig, dpi: int = FIGURE_DPI) -> bytes:
 
 
 def save_figure(fig, path, dpi: int = FIGURE_DPI) -> None:
-    """`fig.savefig` through a temporary file (format from the suffix)."""
+    """`fig.savefig` through a temporary file (format from the suffix); where `path` is a
+    binary file object (a figure drawn for another process: `_report.painter`), a PNG
+    written to it."""
+    if hasattr(path, "write"):
+        fig.savefig(path, format="png", dpi=dpi)
+        return
     path = Path(path)
     with atomic_open(path, "wb") as f:
         fig.savefig(f, format=path.suffix.lstrip(".") or "png", dpi=dpi)

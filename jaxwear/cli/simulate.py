@@ -23,6 +23,7 @@ from jaxwear._physics.config import timed
 from jaxwear._physics.cycle import WearResult
 from jaxwear._physics.wear import integration_report
 from jaxwear._report import figures as rep
+from jaxwear._report.painter import Painter
 from jaxwear._study.load_file import load_rows, write_load_file
 from jaxwear._study.outputs import per_experiment
 from jaxwear._study.resolution import amplification_warnings, for_forward
@@ -88,6 +89,9 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
         # the pressure maps' program compiled beside the first experiment's
         lowered = background.lowered("wear_loop")
         ahead = pressure_ahead(study, lowered)
+    # figures drawn beside the model in a helper process (`painter`), started now: it
+    # imports matplotlib while the first experiment compiles
+    paint = Painter() if out is not None and plots else None
     try:
         for i, exp in enumerate(study.experiments, start=1):
             t0 = time.perf_counter()
@@ -133,20 +137,28 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
                                          "clockwise",
                          "oscillating": "bushing frame, counter-clockwise"}.get(
                     study.config.driver, "from B→D, counter-clockwise")
-                rep.plot_profile(out.path(f"profile_{exp.name}.png"), exp.name, angles, depth_um,
-                                 measured, labels if len(labels) > 1 else None, frame=frame)
+                paint.draw(out.path(f"profile_{exp.name}.png"), rep.plot_profile, exp.name,
+                           angles, depth_um, measured, labels if len(labels) > 1 else None,
+                           frame=frame)
                 hist = res.history
-                rep.plot_load(out.path(f"load_{exp.name}.png"), exp.name, np.asarray(hist.fx[0]),
-                              np.asarray(hist.fy[0]), np.asarray(hist.angle[0]))
-                rep.plot_pressure_map(out.path(f"pressure_{exp.name}.png"),
-                                      f"{exp.name}: pressure, last cycle ({study.config.contact})",
-                                      last_cycle_pressure(study, exp, res))
+                paint.draw(out.path(f"load_{exp.name}.png"), rep.plot_load, exp.name,
+                           np.asarray(hist.fx[0]), np.asarray(hist.fy[0]),
+                           np.asarray(hist.angle[0]))
+                paint.draw(out.path(f"pressure_{exp.name}.png"), rep.plot_pressure_map,
+                           f"{exp.name}: pressure, last cycle ({study.config.contact})",
+                           np.asarray(last_cycle_pressure(study, exp, res)))
                 if osc and snaps:
                     meas = None
                     if exp.history is not None:
                         meas = (exp.history.hours, exp.history.depth * 1e3)
-                    rep.plot_history(out.path(f"history_{exp.name}.png"), exp.name, snaps,
-                                     snap_um.max(axis=1) / 1e3, meas)
+                    paint.draw(out.path(f"history_{exp.name}.png"), rep.plot_history,
+                               exp.name, snaps, snap_um.max(axis=1) / 1e3, meas)
+        if paint is not None:
+            paint.close()  # every figure written
+    except BaseException:
+        if paint is not None:
+            paint.abort()  # nothing more is written after an error or an interrupt
+        raise
     finally:
         if lowered is not None:
             # where the first experiment raised, the call ahead goes on now (never left
