@@ -8,14 +8,16 @@ the effects switched on), except those at 0, where a logarithmic derivative is u
 Forward mode (`jax.jacfwd`, one tangent per parameter) is the default: its program
 compiles faster than reverse mode's (`jax.jacrev`, two outputs), and a single call on a
 short run is mostly compilation. Reverse mode runs faster once compiled, and on long runs
-the first call too. Measured on a quiet 2-core CPU (2026-11-30, 20:56 UTC, the adaptive
-integrator, 15 parameters on the rig and 13 on the boom), first call / a second call:
-- rig, 10 000 rev, 64 x 72: fwd 4.3 / 0.06 s, rev 8.6 / 0.03 s;
-- rig, 10 000 rev, 360 x 360: fwd 5.2 / 1.46 s, rev 8.3 / 0.36 s;
-- boom, 25 h, 360 x 360: fwd 24.3 / 18.8 s, rev 11.0 / 7.2 s (peak memory 325 MB
-  against 449 MB for the whole process);
+the first call too. Measured on a quiet 2-core CPU (2026-11-30, 23:20 UTC, the adaptive
+integrator with its stages checkpointed (`_physics.remat`), 15 parameters on the rig and
+13 on the boom), first call / a second call:
+- rig, 10 000 rev, 64 x 72: fwd 2.7 / 0.05 s, rev 5.0 / 0.01 s;
+- rig, 10 000 rev, 360 x 360: fwd 4.3 / 1.75 s, rev 5.6 / 0.17 s;
+- boom, 25 h, 360 x 360: fwd 32.0 / 30.4 s, rev 6.7 / 2.7 s (the process's peak memory:
+  fwd 319 MB, rev 419 MB);
 - `study_sensitivities` of `calibration/rig/study.toml` (5 experiments, one
-  compilation): fwd 6.5-7.3 s, rev 5.6-6.6 s (three runs each).
+  compilation; 20:56 UTC, another machine, before the stages were checkpointed): fwd
+  6.5-7.3 s, rev 5.6-6.6 s (three runs each).
 Pass `mode="rev"` for long runs and repeated calls.
 
 A normalised sensitivity S means: a 1 % increase of θ changes y by about S %.

@@ -89,7 +89,8 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
     implicit Euler with the diagonal-plus-rank-two Winkler Jacobian) were measured and
     rejected: docs/numerics.md, "Stiff layers".
     One scan iteration is one attempted step (a static number, under the same two-level
-    checkpointing as eq 23); attempts after the end skip all work. Step sizes are held
+    checkpointing as eq 23, each stage checkpointed at the inner level: `remat`);
+    attempts after the end skip all work. Step sizes are held
     fixed under differentiation (gradients of the solution on the chosen steps; they
     differ from those of the adaptive answer by about the integration error).
 
@@ -222,8 +223,11 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
 
         K0, W0, r0 = tangents.ready(
             (jnp.zeros((4, h.shape[0]), h.dtype), jnp.zeros(4), jnp.zeros(())), anchor)
+        # each stage checkpointed (`remat`): reverse mode keeps its carries and Newton's
+        # answers, not the stacked (steps, nodes) fields of the four stages
         (K, Wk, ws, r_att, i_att), _ = lax.scan(
-            stage, (K0, W0, ws, r0, jnp.zeros((), jnp.int32)), jnp.arange(4))
+            jax.checkpoint(stage, policy=KEEP_NEWTON, prevent_cse=False),
+            (K0, W0, ws, r0, jnp.zeros((), jnp.int32)), jnp.arange(4))
         y1 = h + step * (jnp.asarray(_BS_A)[3] @ K)  # the last stage's own input, bit for bit
         k1, w1, k4, w4 = K[0], Wk[0], K[3], Wk[3]
         wsum = jnp.asarray(_BS_BW) @ Wk
@@ -327,10 +331,11 @@ def _adaptive_trace(p: Params, cfg: ModelConfig, schedule: Schedule, h0, replay=
         inner = max(1, int(math.ceil(math.sqrt(A))))
         outer = int(math.ceil(A / inner))
 
-        # the contact solves' Newton answers kept, 4 stages an attempt (`remat`)
+        # the contact solves' Newton answers kept, 4 stages an attempt (`remat`); the
+        # attempts of a block are not checkpointed one by one: their stages are
         @functools.partial(jax.checkpoint, policy=outer_policy(A, hist.load.shape[-1], 4))
         def block(c, _):
-            return lax.scan(jax.checkpoint(body, policy=KEEP_NEWTON), c, None, length=inner)
+            return lax.scan(body, c, None, length=inner)
 
         c, trace = lax.scan(block, c0, None, length=outer)
         trace = jax.tree.map(lambda a: a.reshape(-1), trace)  # (outer * inner,) >= attempts

@@ -15,6 +15,16 @@ and keep only the block's carries.
 Measured (2026-11-30, docs/performance.md, "Reverse mode keeps the Newton answers"): the
 gradient of a 5-experiment rig loss at 360 x 360, M = 500 (20 updates), took 5.0x its
 forward run's time before and 2.9x after.
+
+The adaptive integrator's attempts are four Runge-Kutta stages, each a cycle: its inner
+level checkpoints each *stage* (`KEEP_NEWTON`), not each attempt. A checkpointed attempt
+ran again in the backward pass stacked its stages' (steps, nodes) fields (the pressure,
+the rate, the contact's intermediate fields: seven at 360 x 360, 1 MB each), and writing
+and reading them (dynamic-slice fusions and copies) was ~1/4 of the backward pass. A
+checkpointed stage keeps its carries and Newton's answers and is run again alone. The
+gradient of the rig's adaptive loss took 3.9-4.1x its forward run's time before and
+2.5-2.6x after, the boom's 3.5-3.6x and 2.3-2.4x, with the same numbers bit for bit
+(docs/performance.md, "Reverse mode through the adaptive loop: each stage checkpointed").
 """
 
 from __future__ import annotations
