@@ -107,3 +107,30 @@ def test_oscillating_joint_scaling_identities():
     np.testing.assert_allclose(S["backing_thickness_mm"], -S["backing_E_GPa"], atol=1e-10)
     np.testing.assert_allclose(S["load_angle_deg"], 0.0, atol=1e-10)
     assert S["K_d_per_Pa"][1] > 0.9  # and the derivatives are not trivially zero
+
+
+def test_auto_mode_by_the_runs_length():
+    """`mode="auto"` takes reverse mode from `REV_WORK` node-steps of cycle evaluations on
+    (its first call is then faster: the module docstring's crossings), forward mode below."""
+    from jaxwear._analyses.sensitivity import REV_WORK, auto_mode
+    from jaxwear._physics.config import boom_config
+    from jaxwear._physics.wear import build_schedule
+
+    short = build_schedule(P, CFG, revolutions=REVS, M=M)  # 30 updates of 64 x 72
+    assert auto_mode(short, CFG) == "fwd"
+    assert short.updates * NODES * STEPS < REV_WORK
+    boom, cfg = jw.preset("boom", K_d_per_Pa=3.8e-13), boom_config(nodes=180, steps_per_rev=144)
+    long = build_schedule(boom, cfg, hours=25)  # adaptive: 3 cycles an attempt
+    assert long.adaptive and 3 * long.attempts * 180 * 144 >= REV_WORK
+    assert auto_mode(long, cfg) == "rev"
+    # a traced attempt count (the fits' forward-mode path): reverse mode cannot run it
+    assert auto_mode(long.with_dynamic_attempts(), cfg) == "fwd"
+
+
+def test_reverse_mode_agrees_with_forward_mode(sens):
+    rev = sensitivities(P, CFG, revolutions=REVS, M=M, mode="rev")
+    assert sens.mode == "fwd" and rev.mode == "rev"
+    scale = np.max(np.abs(sens.peak))
+    np.testing.assert_allclose(rev.peak, sens.peak, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(rev.volume, sens.volume, rtol=0,
+                               atol=1e-9 * np.max(np.abs(sens.volume)))

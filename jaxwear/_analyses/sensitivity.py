@@ -5,10 +5,11 @@ function theorem (see `_contact`), the wear loop's scan is differentiated as is.
 every physical parameter that enters the configured driver and joint (and the strengths of
 the effects switched on), except those at 0, where a logarithmic derivative is undefined.
 
-Forward mode (`jax.jacfwd`, one tangent per parameter) is the default: its program
-compiles faster than reverse mode's (`jax.jacrev`, two outputs), and a single call on a
-short run is mostly compilation. Reverse mode runs faster once compiled, and on long runs
-the first call too. Measured on a quiet 2-core CPU (2026-11-30, 23:20 UTC, the adaptive
+By default (`mode="auto"`) the run's length chooses: forward mode (`jax.jacfwd`, one
+tangent per parameter) compiles faster than reverse mode (`jax.jacrev`, two outputs), and
+a single call on a short run is mostly compilation; reverse mode runs faster once
+compiled, and on long runs the first call too. `REV_WORK` is where the first call's times
+cross (below). Measured on a quiet 2-core CPU (2026-11-30, 23:20 UTC, the adaptive
 integrator with its stages checkpointed (`_physics.remat`), 15 parameters on the rig and
 13 on the boom), first call / a second call:
 - rig, 10 000 rev, 64 x 72: fwd 2.7 / 0.05 s, rev 5.0 / 0.01 s;
@@ -18,7 +19,11 @@ integrator with its stages checkpointed (`_physics.remat`), 15 parameters on the
 - `study_sensitivities` of `calibration/rig/study.toml` (5 experiments, one
   compilation; 20:56 UTC, another machine, before the stages were checkpointed): fwd
   6.5-7.3 s, rev 5.6-6.6 s (three runs each).
-Pass `mode="rev"` for long runs and repeated calls.
+And where the two cross (23:30 UTC, the first call, with a test suite running beside):
+the boom at 90 x 72 (work 2e7 node-steps, see `REV_WORK`) fwd 7.7 s, rev 9.1 s; at
+180 x 144 (8e7) fwd 19.0 s, rev 11.3 s; the rig's 100 000 rev at 360 x 360 (1e8) fwd
+42.4 s, rev 27.6 s. Pass `mode="rev"` for repeated calls, where reverse mode wins at any
+length.
 
 A normalised sensitivity S means: a 1 % increase of θ changes y by about S %.
 """
@@ -42,6 +47,14 @@ from jaxwear._physics.effects import effect_parameter_specs, get_effect
 from jaxwear._physics.params import PARAMETER_KEYS, Params, key_to_si
 from jaxwear._physics.schedule import Schedule, bucket, pad_schedule
 from jaxwear._physics.wear import build_schedule, schedule_numerics, wear_loop
+from jaxwear._study.budget import EVALUATIONS_PER_ATTEMPT
+
+REV_WORK = 5e7
+"""Node-steps of a run's cycle evaluations (the static schedule's: 3 a Runge-Kutta attempt,
+1 an update of eq 23; times nodes times steps a cycle) from which `mode="auto"` takes
+reverse mode: between the rig's 10 000 rev at 360 x 360 (2.5e7, forward mode's first
+call 4.3 s against 5.6 s) and the boom's 25 h at 180 x 144 (8e7, 19.0 s against 11.3 s;
+the module docstring)."""
 
 # What enters each part of the model (crank_mass does not: the crank turns at constant
 # speed; the pin's elastic constants do not: the pin is rigid in the Winkler model).
@@ -77,6 +90,7 @@ class Sensitivities:
     - `peak`, `volume`: d ln(peak depth) / d ln θ and d ln(worn volume) / d ln θ, (keys,).
     - `worn_through_cycle` (-1: never) and `max_contact_residual` of the run.
     - `error_estimate_um`, `steps`: the wear integration's error estimate and step count.
+    - `mode`: the autodiff mode that computed them, `"fwd"` or `"rev"`.
     """
 
     keys: list
@@ -90,6 +104,7 @@ class Sensitivities:
     max_contact_residual: float
     error_estimate_um: float = 0.0
     steps: int = 0
+    mode: str = "fwd"
 
     def as_dict(self) -> dict:
         return {k: {"value": float(v), "unit": u, "peak_depth": float(a),
@@ -123,8 +138,18 @@ def _jac(p: Params, cfg: ModelConfig, sched: Schedule, keys: tuple, mode: str):
     return jax.jacrev(f, has_aux=True)(s0)
 
 
+def auto_mode(sched: Schedule, cfg: ModelConfig) -> str:
+    """The autodiff mode `mode="auto"` takes for a run of `sched`: `"rev"` from `REV_WORK`
+    node-steps of cycle evaluations on, else `"fwd"` (and for a schedule whose attempt
+    count is traced: reverse mode cannot go through its while loop)."""
+    if sched.dynamic:
+        return "fwd"
+    evals = EVALUATIONS_PER_ATTEMPT * sched.attempts if sched.adaptive else sched.updates
+    return "rev" if evals * cfg.nodes * cfg.steps_per_rev >= REV_WORK else "fwd"
+
+
 def sensitivities(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
-                  M: float | None = None, keys=None, mode: str = "fwd",
+                  M: float | None = None, keys=None, mode: str = "auto",
                   schedule: Schedule | None = None) -> Sensitivities:
     """d ln y / d ln θ of y = peak depth and worn volume, by autodiff through the wear loop.
 
@@ -133,8 +158,9 @@ def sensitivities(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
       (oscillating joint); `M`: cycles per wear update of eq 23 (None: the adaptive
       integrator at its default tolerance, as `simulate`).
     - `keys`: study keys θ (default: `relevant_keys(p, cfg)`; each must be non-zero).
-    - `mode`: `"fwd"` (`jax.jacfwd`: one tangent per parameter) or `"rev"` (`jax.jacrev`:
-      one reverse pass per output, through the checkpointed scan).
+    - `mode`: `"fwd"` (`jax.jacfwd`: one tangent per parameter), `"rev"` (`jax.jacrev`:
+      one reverse pass per output, through the checkpointed scan) or `"auto"` (the
+      default: by the run's length, `auto_mode`). The answers agree to round-off.
     - `schedule`: a prebuilt schedule (overrides revolutions/hours/M), e.g. padded so that
       several runs share one compilation.
 
@@ -147,10 +173,12 @@ def sensitivities(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
             raise InputError(f"sensitivity: unknown parameter {k!r}")
         if float(p.get(k)) == 0:
             raise InputError(f"sensitivity: {k} is 0, where d ln y / d ln θ is undefined")
-    if mode not in ("rev", "fwd"):
-        raise ValueError(f"sensitivity: mode must be 'rev' or 'fwd', got {mode!r}")
+    if mode not in ("rev", "fwd", "auto"):
+        raise ValueError(f"sensitivity: mode must be 'auto', 'rev' or 'fwd', got {mode!r}")
     sched = schedule if schedule is not None else build_schedule(
         p, cfg, revolutions=revolutions, hours=hours, M=M)
+    if mode == "auto":
+        mode = auto_mode(sched, cfg)
     if mode == "fwd":  # a traced attempt count (no reverse pass through a while loop)
         sched = sched.with_dynamic_attempts()
     J, (peak, vol, worn, resid, err, steps) = jax.device_get(_jac(p, cfg, sched, keys, mode))
@@ -168,7 +196,7 @@ def sensitivities(p: Params, cfg: ModelConfig, *, revolutions=None, hours=None,
                          units=[unit_of(k) for k in keys], peak_depth_um=float(peak) * 1e6,
                          worn_volume_mm3=float(vol) * 1e9, peak=J[0], volume=J[1],
                          worn_through_cycle=float(worn), max_contact_residual=float(resid),
-                         error_estimate_um=float(err) * 1e6, steps=int(steps))
+                         error_estimate_um=float(err) * 1e6, steps=int(steps), mode=mode)
 
 
 def _padded_schedules(study) -> list[Schedule]:
@@ -184,16 +212,21 @@ def _padded_schedules(study) -> list[Schedule]:
     return out
 
 
-def study_sensitivities(study, *, progress: bool = False) -> dict:
-    """`Sensitivities` of every experiment of a study, by name (one compilation)."""
+def study_sensitivities(study, *, mode: str = "auto", progress: bool = False) -> dict:
+    """`Sensitivities` of every experiment of a study, by name (one compilation); `mode`
+    as `sensitivities`, `"auto"` chosen once for the study (its padded schedules are
+    alike)."""
     out = {}
     scheds = _padded_schedules(study)
+    if mode == "auto":
+        mode = max((auto_mode(sc, study.config) for sc in scheds), key=("fwd", "rev").index)
     for i, (e, sc) in enumerate(zip(study.experiments, scheds), start=1):
         t0 = time.perf_counter()
         p = study.params(e)
-        out[e.name] = sensitivities(p, study.config, schedule=sc)
+        out[e.name] = sensitivities(p, study.config, schedule=sc, mode=mode)
         if progress:
-            print(f"  [{i}/{len(scheds)}] {e.name}: {len(out[e.name].keys)} parameters "
+            print(f"  [{i}/{len(scheds)}] {e.name}: {len(out[e.name].keys)} parameters, "
+                  f"{'reverse' if mode == 'rev' else 'forward'} mode "
                   f"({time.perf_counter() - t0:.1f} s)", file=sys.stderr, flush=True)
     return out
 

@@ -27,8 +27,9 @@ class Sensitivity(Verb):
 
     def run(self, study, out, opts):
 
-        print(f"sensitivity: {len(study.experiments)} experiments, forward-mode autodiff "
-              f"through the wear loop (the first compiles it)", file=sys.stderr, flush=True)
+        print(f"sensitivity: {len(study.experiments)} experiments, autodiff through the "
+              f"wear loop (forward or reverse mode by the runs' length; the first compiles "
+              f"it)", file=sys.stderr, flush=True)
         results = sen.study_sensitivities(study, progress=True)
         rows = []
         for name, r in results.items():
@@ -40,6 +41,7 @@ class Sensitivity(Verb):
         out.write_json("sensitivity.json", {name: {
             "peak_depth_um": r.peak_depth_um, "worn_volume_mm3": r.worn_volume_mm3,
             "worn_through_cycle": r.worn_through_cycle, "sensitivities": r.as_dict(),
+            "autodiff_mode": r.mode,
             "integration": {"integrator": study.integrator,
                             "error_estimate_um": r.error_estimate_um, "steps": r.steps,
                             "tolerance_um": study.wear_tolerance_um
