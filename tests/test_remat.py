@@ -22,17 +22,31 @@ from jaxwear._physics import remat
 from jaxwear._physics.wear import build_schedule, wear_loop
 
 
-def count(jaxpr, name: str) -> int:
-    """Equations of primitive `name` in `jaxpr`, its sub-programs included."""
-    n = 0
+def equations(jaxpr):
+    """Every equation of `jaxpr`, its sub-programs' included."""
     for eqn in jaxpr.eqns:
-        n += eqn.primitive.name == name
+        yield eqn
         for v in eqn.params.values():
             for sub in (v if isinstance(v, (list, tuple)) else [v]):
                 inner = getattr(sub, "jaxpr", sub)
                 if hasattr(inner, "eqns"):
-                    n += count(inner, name)
-    return n
+                    yield from equations(inner)
+
+
+def count(jaxpr, name: str) -> int:
+    """Equations of primitive `name` in `jaxpr`, its sub-programs included."""
+    return sum(eqn.primitive.name == name for eqn in equations(jaxpr))
+
+
+def rig_loss(p0, cfg, sched):
+    """Σh³/Σh² of a rig run [µm] as a function of (K_d, clearance)."""
+
+    def f(x):
+        p = p0.with_values({"K_d_per_Pa": x[0], "clearance_mm": x[1]})
+        h = wear_loop(p, cfg, sched).depth * 1e6
+        return jnp.sum(h**3) / jnp.sum(h**2)
+
+    return f
 
 
 @pytest.mark.parametrize("contact,M", [("unsymmetric", 100.0), ("symmetric", 100.0),
@@ -44,11 +58,7 @@ def test_the_gradient_runs_no_newton_iteration_of_its_own(contact, M):
     sched = build_schedule(p0, cfg, revolutions=2000, M=M)
     assert sched.adaptive == (M is None) and not sched.dynamic
 
-    def f(x):
-        p = p0.with_values({"K_d_per_Pa": x[0], "clearance_mm": x[1]})
-        h = wear_loop(p, cfg, sched).depth * 1e6
-        return jnp.sum(h**3) / jnp.sum(h**2)
-
+    f = rig_loss(p0, cfg, sched)
     x = jnp.asarray([1e-13, 0.05])
     forward = count(jax.make_jaxpr(f)(x).jaxpr, "while")
     backward = count(jax.make_jaxpr(jax.grad(f))(x).jaxpr, "while")
@@ -79,27 +89,12 @@ def test_the_gradient_sums_no_steps_by_nodes_field_at_once():
     cfg = jw.ModelConfig(nodes=64, steps_per_rev=72)
     sched = build_schedule(p0, cfg, revolutions=2000)
 
-    def f(x):
-        p = p0.with_values({"K_d_per_Pa": x[0], "clearance_mm": x[1]})
-        h = wear_loop(p, cfg, sched).depth * 1e6
-        return jnp.sum(h**3) / jnp.sum(h**2)
-
-    found = []
-
-    def walk(jaxpr):
-        for eqn in jaxpr.eqns:
-            if (eqn.primitive.name == "reduce_sum"
-                    and tuple(eqn.invars[0].aval.shape[-2:]) == (72, 64)
-                    and {eqn.invars[0].aval.ndim - 2, eqn.invars[0].aval.ndim - 1}
-                    <= set(eqn.params["axes"])):
-                found.append(eqn)
-            for v in eqn.params.values():
-                for sub in (v if isinstance(v, (list, tuple)) else [v]):
-                    inner = getattr(sub, "jaxpr", sub)
-                    if hasattr(inner, "eqns"):
-                        walk(inner)
-
-    walk(jax.make_jaxpr(jax.grad(f))(jnp.asarray([1e-13, 0.05])).jaxpr)
+    jaxpr = jax.make_jaxpr(jax.grad(rig_loss(p0, cfg, sched)))(jnp.asarray([1e-13, 0.05]))
+    found = [eqn for eqn in equations(jaxpr.jaxpr)
+             if eqn.primitive.name == "reduce_sum"
+             and tuple(eqn.invars[0].aval.shape[-2:]) == (72, 64)
+             and {eqn.invars[0].aval.ndim - 2, eqn.invars[0].aval.ndim - 1}
+             <= set(eqn.params["axes"])]
     assert found == [], [str(e.source_info.traceback) for e in found][:1]
 
 
@@ -117,25 +112,10 @@ def test_the_adaptive_gradient_stacks_no_stage_fields():
     sched = build_schedule(p0, cfg, revolutions=2000)
     assert sched.adaptive and not sched.dynamic
 
-    def f(x):
-        p = p0.with_values({"K_d_per_Pa": x[0], "clearance_mm": x[1]})
-        h = wear_loop(p, cfg, sched).depth * 1e6
-        return jnp.sum(h**3) / jnp.sum(h**2)
-
-    stacked, stage_scans = [], []
-
-    def walk(jaxpr):
-        for eqn in jaxpr.eqns:
-            if eqn.primitive.name == "scan" and eqn.params["length"] == 4:
-                stage_scans.append(eqn)
-                stacked.extend(v.aval.shape for v in eqn.outvars
-                               if tuple(v.aval.shape[:1] + v.aval.shape[-2:]) == (4, 72, 64))
-            for v in eqn.params.values():
-                for sub in (v if isinstance(v, (list, tuple)) else [v]):
-                    inner = getattr(sub, "jaxpr", sub)
-                    if hasattr(inner, "eqns"):
-                        walk(inner)
-
-    walk(jax.make_jaxpr(jax.grad(f))(jnp.asarray([1e-13, 0.05])).jaxpr)
+    jaxpr = jax.make_jaxpr(jax.grad(rig_loss(p0, cfg, sched)))(jnp.asarray([1e-13, 0.05]))
+    stage_scans = [eqn for eqn in equations(jaxpr.jaxpr)
+                   if eqn.primitive.name == "scan" and eqn.params["length"] == 4]
+    stacked = [v.aval.shape for eqn in stage_scans for v in eqn.outvars
+               if tuple(v.aval.shape[:1] + v.aval.shape[-2:]) == (4, 72, 64)]
     assert stage_scans  # the stage loops are there to look at
     assert stacked == [], stacked
