@@ -12,8 +12,10 @@ import contextlib
 import csv
 import io
 import os
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -54,8 +56,8 @@ clearance_mm = 0.10
 PROFILE = "angle_deg,depth_um\n0,1.0\n90,0.2\n178.5,2.4\n270,0.1\n"
 
 
-def run_cli(args, cwd, timeout=300):
-    env = dict(os.environ)
+def run_cli(args, cwd, timeout=300, extra_env=None):
+    env = dict(os.environ, **(extra_env or {}))
     env["JAXWEAR_CACHE_DIR"] = str(cwd / ".jax-cache")  # keep the CLI's cache out of $HOME
     env.pop("JAXWEAR_DEBUG", None)
     return subprocess.run([sys.executable, "-m", "jaxwear", *args], cwd=cwd, env=env,
@@ -109,6 +111,26 @@ def test_simulate_units_match_library(good_run):
         ref = np.asarray(jw.simulate(p, cfg, revolutions=2000, M=100).depth) * 1e6
         depth = np.array([float(r[2]) for r in rows if r[0] == name])
         assert depth == pytest.approx(ref, rel=1e-6, abs=1e-9 * ref.max())
+
+
+def test_simulate_compiles_jaxwear_programs_only(tmp_path):
+    """Every program a `simulate` compiles is one of jaxwear's (a function of the package,
+    compiled through `_core.jit`), none an eager operation on a device array: each of
+    those (a `jnp.max` of a result, a product of two rows of the load history) was an XLA
+    compilation of its own, 20-90 ms in every process, below the persistent cache's
+    threshold (10 of the 13 programs of a cached `simulate` of the rig study,
+    docs/performance.md). The names come from JAX's own compile log."""
+    (tmp_path / "study.toml").write_text(STUDY)
+    (tmp_path / "measured.csv").write_text(PROFILE)
+    proc = run_cli(["simulate", "study.toml", "--out", "out"], tmp_path,
+                   extra_env={"JAX_LOG_COMPILES": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    names = set(re.findall(r"Compiling jit\(([^)]+)\)", proc.stderr))
+    assert "wear_loop" in names  # the log is there to read
+    package = Path(jw.__file__).parent
+    source = "\n".join(f.read_text() for f in package.rglob("*.py"))
+    eager = sorted(n for n in names if not re.search(rf"\bdef {re.escape(n)}\(", source))
+    assert eager == [], eager
 
 
 def test_simulate_writes_plots(good_run):

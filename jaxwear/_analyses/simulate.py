@@ -62,8 +62,10 @@ def pressure_ahead(study: Study, after: threading.Event):
         try:
             p = study.params(study.experiments[0])
             shapes = jax.eval_shape(lambda p: run_history(p, study.config), p)
-            hist = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-            _pressure(p, study.config, jnp.zeros(study.config.nodes), hist, 0)
+            # zeros put on the device (jnp.zeros compiled a program for each shape), as the
+            # real call's arrays are: the same entry of the program's cache
+            hist = jax.tree.map(lambda s: jax.device_put(np.zeros(s.shape, s.dtype)), shapes)
+            _pressure(p, study.config, jax.device_put(np.zeros(study.config.nodes)), hist, 0)
         except Exception:  # noqa: BLE001 (met again, and reported, where it is used)
             pass
 

@@ -209,8 +209,9 @@ def integration_report(res: WearResult, integrator: str, tolerance_um: float | N
     """The `"integration"` block of JSON outputs: error estimate [µm] (largest over a batch),
     accepted and rejected steps, tolerance [µm] (adaptive) and integrator."""
     return {"integrator": integrator,
-            "error_estimate_um": float(jnp.max(res.error_estimate)) * 1e6,
-            "steps": int(jnp.max(res.steps)), "rejected_steps": int(jnp.max(res.rejected_steps)),
+            "error_estimate_um": float(np.max(np.asarray(res.error_estimate))) * 1e6,
+            "steps": int(np.max(np.asarray(res.steps))),
+            "rejected_steps": int(np.max(np.asarray(res.rejected_steps))),
             "tolerance_um": tolerance_um if integrator == "adaptive" else None}
 
 
@@ -257,13 +258,16 @@ def check_result(res: WearResult, cfg: ModelConfig, what: str = "simulation", p=
     """Raise for a run whose numbers are not physical: a contact solve that did not converge
     (`_plausible.contact_failure`: exit 2 naming the keys when the load strains the layer
     beyond the model's range, given the parameters `p`) or a layer worn through."""
-    worn = float(jnp.max(res.worn_through_cycle))
+    # NumPy on the host copies: an eager jnp.max compiled a program of its own for each
+    # shape (20-90 ms of XLA each, every process; `integration_report` too)
+    worn = float(np.max(np.asarray(res.worn_through_cycle)))
     unit = {"oscillating": "swing cycle", "load_history": "load cycle"}.get(cfg.driver,
                                                                             "revolution")
-    residual = float(jnp.max(res.max_residual))
+    residual = float(np.max(np.asarray(res.max_residual)))
     if not residual < 1e-9:
 
-        raise contact_failure(what, p, cfg, residual, float(jnp.max(res.history.load)))
+        raise contact_failure(what, p, cfg, residual,
+                              float(np.max(np.asarray(res.history.load))))
     if worn >= 0:
         raise WornThroughError(f"{what}: the bushing layer is worn through at {unit} "
                                f"{worn:.0f} (h ≥ layer thickness)")

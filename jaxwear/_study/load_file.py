@@ -181,10 +181,13 @@ def load_rows(hist, regime: int, pin_radius: float) -> list[tuple]:
     and the rotation accumulated before it (Σ_k<i of the step's sense x sliding / R_p), so
     that the file read back (`read_load_file`, `resample` at the same steps) gives the
     same steps."""
-    load = np.asarray(hist.load[regime], np.float64)
-    ang = np.asarray(hist.angle[regime], np.float64)
-    dt = np.asarray(hist.dt[regime], np.float64)
-    rot = np.asarray(hist.sense[regime] * hist.slide[regime], np.float64) / float(pin_radius)
+    # host copies first: indexing and multiplying the device arrays compiled a program for
+    # each operation (20-50 ms of XLA each)
+    load = np.asarray(hist.load, np.float64)[regime]
+    ang = np.asarray(hist.angle, np.float64)[regime]
+    dt = np.asarray(hist.dt, np.float64)[regime]
+    rot = (np.asarray(hist.sense, np.float64)[regime] * np.asarray(hist.slide, np.float64)[regime]
+           / float(pin_radius))
     t = np.r_[0.0, np.cumsum(dt)[:-1]]
     phi = np.degrees(np.r_[0.0, np.cumsum(rot)[:-1]])
     return [(float(a), float(b), float(c), float(d)) for a, b, c, d in

@@ -53,7 +53,8 @@ def write_load_files(out, study: Study, exp: Experiment, res: WearResult) -> dic
     back through preset "load_history" (the rig and the boom as two examples of it)."""
 
     names = load_file_names(study, exp)
-    pin = float(study.params(exp).pin_radius)
+    p = study.params(exp)
+    pin = float(p.bore_radius) - float(p.clearance)  # R_p on the host (no eager program)
     for k, name in enumerate(names):
         write_load_file(out, name, load_rows(res.history, k, pin))
     if len(names) == 1:
@@ -142,8 +143,8 @@ def simulate_study(study: Study, out=None, plots=True) -> dict:
                            frame=frame)
                 hist = res.history
                 paint.draw(out.path(f"load_{exp.name}.png"), rep.plot_load, exp.name,
-                           np.asarray(hist.fx[0]), np.asarray(hist.fy[0]),
-                           np.asarray(hist.angle[0]))
+                           np.asarray(hist.fx)[0], np.asarray(hist.fy)[0],
+                           np.asarray(hist.angle)[0])
                 paint.draw(out.path(f"pressure_{exp.name}.png"), rep.plot_pressure_map,
                            f"{exp.name}: pressure, last cycle ({study.config.contact})",
                            np.asarray(last_cycle_pressure(study, exp, res)))

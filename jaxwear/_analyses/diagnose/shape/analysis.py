@@ -39,7 +39,6 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-import jax.numpy as jnp
 import numpy as np
 from scipy.stats import chi2
 
@@ -397,7 +396,7 @@ def _counted(fn, *args):
 def _variable_result(var, pf, c, Z, excess, rss0, rng, ev, deepest, cols) -> VariableShape:
     zg = (np.linspace(0.0, 360.0, 181)[:-1] if var.periodic else
           var.at_coordinate(np.linspace(0.0, 1.0, 181)))
-    Bg = np.asarray(var.basis(jnp.asarray(zg)))
+    Bg = var.basis(zg, xp=np)  # on the host (as the law screen's): no eager program
     g = Bg @ c
     w, V = np.linalg.eigh(0.5 * (pf.cov + pf.cov.T))
     L = V * np.sqrt(np.clip(w, 0.0, None))
