@@ -219,7 +219,7 @@ def study_sensitivities(study, *, mode: str = "auto", progress: bool = False) ->
     out = {}
     scheds = _padded_schedules(study)
     if mode == "auto":
-        mode = max((auto_mode(sc, study.config) for sc in scheds), key=("fwd", "rev").index)
+        mode = "rev" if any(auto_mode(sc, study.config) == "rev" for sc in scheds) else "fwd"
     for i, (e, sc) in enumerate(zip(study.experiments, scheds), start=1):
         t0 = time.perf_counter()
         p = study.params(e)
