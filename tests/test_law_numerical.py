@@ -151,22 +151,40 @@ def test_a_correction_that_does_not_lower_the_misfit_is_halved_then_not_made(dep
     assert "did not lower the misfit" in text and "corrected to" not in text, text
 
 
-def test_the_finer_levels_program_is_compiled_ahead_of_the_check(deposit_fit):
-    """`law.search.compile_ahead` (beside the shape's analyses) compiles the memoryless
-    laws' forward program at the finer level the answer's constants are checked at, on a
-    law switched off (`finer_ahead`): the check of the fitted deposit law then compiles no
-    forward program (a factor law of the
-    grammar and a deposit share the programs). Measured on the generator's fatigue study
-    (48 x 72, 2 cores): the check at the diagnosis's end took 2.3 and 3.0 s with it,
-    6.2 s without (2.7 s of it XLA's compile)."""
+def test_the_finer_levels_program_is_compiled_ahead_of_the_check(deposit_fit, monkeypatch):
+    """`law.search.finer_ahead` (a job of the search ahead) compiles the memoryless laws'
+    forward program at the finer level the answer's constants are checked at, on a law
+    switched off: the check of the fitted deposit law then compiles no forward program (a
+    factor law of the grammar and a deposit share the programs). Measured on the
+    generator's fatigue study (48 x 72, 2 cores): the check at the diagnosis's end took
+    2.3 and 3.0 s with it, 6.2 s without (2.7 s of it XLA's compile). It is not compiled
+    with the search's programs (`compile_ahead`): there it was wasted wherever a law with
+    memory answered (the fatigue study: 5.6 s of CPU beside the shape's refit)."""
+    from jaxwear._analyses.diagnose.law import search
     from jaxwear._analyses.diagnose.law.numerical import correct_law
-    from jaxwear._analyses.diagnose.law.search import compile_ahead
     from jaxwear._inference.evaluation import _forward_jit
 
     lf, _, _, model, base = deposit_fit
-    compile_ahead(model, base)
+    finer = search.finer_ahead
+    calls = []
+    monkeypatch.setattr(search, "finer_ahead", lambda *a: calls.append(a))
+    search.compile_ahead(model, base)
+    assert calls == []
+    finer(model, base, search._ANY_LAW)
     before = _forward_jit._cached._cache_size()
     with searching():
         out = correct_law(lf, NOISE)
     assert out.numerical.forward_runs >= 1 and out.numerical.finer == (72, 108)
     assert _forward_jit._cached._cache_size() == before
+
+
+def test_the_job_of_the_laws_with_memory_compiles_the_leading_kinds_check():
+    """After its fits, the job of the laws with memory compiles the check program of the
+    kind with the lowest RMSE so far (the answer's likely kind); the memoryless kind where
+    it fitted none or a memoryless law fits better."""
+    from jaxwear._analyses.diagnose.law.search import _ANY_LAW, _ANY_MEMORY_LAW, leading_kind
+
+    assert leading_kind([0.3217, 0.5107], [0.4588, 0.3617]) is _ANY_MEMORY_LAW
+    assert leading_kind([0.40], [0.4588, 0.3617]) is _ANY_LAW
+    assert leading_kind([], [0.36]) is _ANY_LAW
+    assert leading_kind([0.33], []) is _ANY_MEMORY_LAW

@@ -34,7 +34,7 @@ from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_pairs, run_tests
 from jaxwear._analyses.diagnose._text import summarize_verdict
 from jaxwear._analyses.diagnose.law.search import compile_ahead, search, warm
 from jaxwear._analyses.diagnose.shape.analysis import shape_analysis
-from jaxwear._analyses.diagnose.shape.design import at_answer, prepare_design
+from jaxwear._analyses.diagnose.shape.design import NumericalAhead, at_answer, prepare_design
 from jaxwear._core.background import Background
 from jaxwear._core.errors import InputError
 from jaxwear._core.jsonfmt import json_float
@@ -309,6 +309,11 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         # the law search's programs compiled beside the shape's design and analyses, which
         # run mostly on one core (`law.search.compile_ahead`)
         compiled = Background(compile_ahead, model, base) if law else None
+        # the first analysis's numerical-error run (a forward program at the finer level)
+        # beside the design's Jacobian, not after it (`shape.design.NumericalAhead`)
+        numerical_ahead = (None if finer_minus_rows is not None and _at_start(base, 0.1)
+                           else NumericalAhead(model, base, [g for g in model.candidates
+                                                              if g in base.groups]))
 
         # both analyses' linear parts first, their refits through the loop after (`defer`),
         # so that the figures the refits do not change are drawn while they run
@@ -334,7 +339,8 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                              verbose=verbose, design=design,
                              numerical_um=(finer_minus_rows if _at_start(base, 0.1)
                                            else None), defer=figures is not None,
-                             refit_groups=shared, refit_ahead=True)
+                             refit_groups=shared, refit_ahead=True,
+                             numerical_ahead=numerical_ahead)
         after = None
         if twice:
             # with the effect's own contact model, on the first analysis's columns (its

@@ -54,6 +54,7 @@ import copy
 import dataclasses
 import math
 import os
+import sys
 import time
 from types import SimpleNamespace
 
@@ -454,6 +455,7 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             cands = memory_candidates(model, fit, prefer, correction, law_model, [],
                                       noise_um, verbose=verbose)
         shared.publish(start_lines, [law for _, law, _ in cands])
+        mine = []  # the RMSEs [µm] of this job's usable fits
         for i, law in enumerate(shared.items):
             if not shared.claim(i):
                 continue
@@ -462,15 +464,26 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                 out = memory_fit(law)
             finally:  # stopped (`Stopped`): the slot filled, so that nothing waits on it
                 shared.put(i, out)
-        if numerical:  # the check's program of a law with memory, should one be the answer
-            finer_ahead(model, fit, _ANY_MEMORY_LAW)
+            if isinstance(out[0], tuple) and out[0][3] is not None:
+                mine.append(out[0][1].rmse)
+        if numerical:
+            # the answer's check program at the finer level, of the kind that leads once
+            # this job's fits are done (against the memoryless laws the search has fitted
+            # by then: a list its thread appends to); the other kind's, should it answer,
+            # compiles at the check
+            finer_ahead(model, fit, leading_kind(mine, [f.rmse_um for f in list(fitted)]))
         return start_lines
 
     def memory_now():
         skip, shp = any(f.at_noise for f in fitted), as_shape(fitted, shape_rmse_um)
         if skip or not wanted(prefer, correction, fitted, noise_um, shp):
+            decided["memory"] = False
             ahead.drop("memory")
             return []
+        # laws with memory are tried: the job fitting them compiles the check program of
+        # the kind that leads after their fits (`memory_ahead`)
+        decided["memory"] = True
+        ahead.drop("finer")
         if not ahead.started("memory") or not shared.wait_ready(
                 lambda: ahead.finished("memory")):
             ahead.take("memory")  # an error the job raised before its fits, raised here
@@ -490,6 +503,15 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
             memo[id(law)] = (done, lines, evals)
         return [(math.nan, law, "memory") for law in shared.items]
 
+    decided = {"memory": None}  # whether laws with memory are tried (`memory_now`)
+
+    def finer_memoryless():
+        # only where the search has decided against laws with memory: where it tries them,
+        # or has not decided yet (their job, which ran before this one, is done), that
+        # job compiled the leading kind's program (`memory_ahead`)
+        if decided["memory"] is False:
+            finer_ahead(model, fit, _ANY_LAW)
+
     independent = [law for i, (_, law) in enumerate(todo) if i > 0 and from_fitted(
         law, [SimpleNamespace(law=lw) for _, lw in todo[:i]], linear) is law]
     queue = independent[::-1]
@@ -503,6 +525,10 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                     ahead.submit("memory", memory_ahead)
                 else:
                     ahead.submit(("screen", lw.label), screen_ahead, lw)
+            if numerical:
+                # the memoryless kind's program of the answer's check at the finer level,
+                # last, after the job of the laws with memory
+                ahead.submit("finer", finer_memoryless)
             # the screen's picks, then the laws with memory, where the history shows or no
             # law of the present states reaches the noise (`law.memory`)
             for drop, law, src in after(screen_then_peer(), memory_now):
@@ -610,6 +636,12 @@ def search(model: Model, fit: Fit, linear: dict, noise_um: float, nu: float, *,
                               + (f"; refused: {lf.refused}" if lf.refused else "")
                               + "".join(f"; bounded: {c['reason']}" for c in caps))
         finally:
+            if numerical and sys.exc_info()[0] is None:
+                lead = rank(fitted)
+                if lead and not isinstance(lead[0].law, MemoryLaw):
+                    # the memoryless answer's check program, compiled ahead (its run
+                    # counted as used), or, not begun, by the check itself
+                    ahead.take("finer")
             ahead.close()
             for _, _, evals in memo.values():  # laws with memory fitted ahead, not tried
                 ahead.discarded["model_evaluations"] += evals
@@ -734,9 +766,10 @@ def compile_ahead(model: Model, fit: Fit) -> None:
     law of the grammar) and the laws with memory's (one for both forms), each by one
     evaluation and one forward run of a law switched off: what `search` and its jobs
     ahead (`law.ahead`) will run on, ahead of the shape's analysis, which is all the
-    search waits for; then the memoryless kind's forward program at twice the nodes and
-    steps per cycle (`finer_ahead`). Failures are left to the search, which meets them
-    again.
+    search waits for. Failures are left to the search, which meets them again. (The
+    forward program at twice the nodes and steps per cycle, `finer_ahead`, is the search's
+    own job ahead: compiled here, the memoryless kind's was wasted wherever a law with
+    memory answered, 5-6 s of CPU beside the shape's refit on the fatigue study.)
 
     Why (issue 50, the generator's fatigue study, 48 x 72, 2 cores): the four compiled
     at the search's start (`warm`) and in its job ahead, 15 s of compilation while both
@@ -755,7 +788,16 @@ def compile_ahead(model: Model, fit: Fit) -> None:
                 lm.predict(np.zeros(len(lm.names)))
         except Exception:  # noqa: BLE001 (the search reports it where it matters)
             pass
-    finer_ahead(model, fit, _ANY_LAW)
+
+
+def leading_kind(memory_rmse_um, memoryless_rmse_um):
+    """The kind of law (`_ANY_MEMORY_LAW` or `_ANY_LAW`) whose check program at the finer
+    level the job of the laws with memory compiles after its fits: the kind of the lowest
+    RMSE [µm] among its fits (`memory_rmse_um`) and the memoryless laws fitted by then
+    (`memoryless_rmse_um`); a guess at the answer (ranked later by left-out errors and
+    evidence), whose miss costs a compilation at the check."""
+    mem = min(memory_rmse_um, default=math.inf)
+    return _ANY_MEMORY_LAW if mem <= min(memoryless_rmse_um, default=math.inf) else _ANY_LAW
 
 
 def finer_ahead(model: Model, fit: Fit, law) -> None:
@@ -764,10 +806,13 @@ def finer_ahead(model: Model, fit: Fit, law) -> None:
     that law switched off: where the answer's constants are checked at the search's end
     (`law.numerical.correct_law`). Compiled there, it was 2.7 s of XLA in the check's
     6.2 s, the last step of a partly explained diagnosis (the generator's fatigue study,
-    2 cores). The memoryless kind's is compiled with the search's programs
-    (`compile_ahead`); the kind with memory's by the job that fits such laws ahead
-    (`search`), after its fits.
-    Failures are left to the check, which meets them again and says so."""
+    2 cores). The search submits the memoryless kind's as its last job ahead; where laws
+    with memory are tried, that job is dropped and the job fitting them compiles the
+    leading kind's once its fits are done (`search`). Why not with the search's programs
+    (`compile_ahead`, until 2026-12-01): on the fatigue study its compilation (5.6 s of
+    CPU) ran beside the shape's refit's, on the critical path of both cores, and a law
+    with memory answered. Failures are left to the check, which meets them again and
+    says so."""
     try:
         with searching():
             fm = finer_model(law_model(model, fit, law))

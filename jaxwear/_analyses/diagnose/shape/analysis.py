@@ -95,13 +95,15 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                    verbose: bool = False, numerical: bool = True,
                    numerical_um: np.ndarray | None = None,
                    design: Design | None = None, defer: bool = False,
-                   refit_groups=None, refit_ahead: bool = False) -> ShapeResult:
+                   refit_groups=None, refit_ahead: bool = False,
+                   numerical_ahead=None) -> ShapeResult:
     """The shape of the misfit left by `fit` (of `model`) along every state variable, in
     both forms (module docstring). `noise_um` σ [µm] with `nu` degrees of freedom
     (diagnose's noise level). `numerical`: count the model's numerical error: the rows of
     a finer level minus the fit's rows at its answer, `numerical_um` (rows,) [µm] where the
     caller has them (calibrate's resolution check ran that forward run at this answer),
-    else one forward run at twice the nodes and steps.
+    else one forward run at twice the nodes and steps (`numerical_ahead`: that run made in
+    the background, `design.NumericalAhead`, taken where it was made for this fit).
 
     `design` (`prepare_design`, or an earlier analysis's `ShapeResult.design`): the basis,
     the states met in the data and the correction's columns, computed at `fit`'s answer
@@ -185,7 +187,15 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
             _log(verbose, "    the model's numerical error: the rows of the resolution "
                           "check at this answer (no run of its own)")
         else:
-            d = numerical_error_rows(model, fit, verbose, candidates=own_groups)
+            made = (numerical_ahead.take(model, fit, own_groups)
+                    if numerical_ahead is not None else None)
+            if made is not None:
+                (d, nodes_steps), evals = made
+                waited.append(evals)
+                _log(verbose, f"    the model's numerical error: one run at {nodes_steps}, "
+                              f"made beside the design")
+            else:
+                d = numerical_error_rows(model, fit, verbose, candidates=own_groups)
         if d is not None and not np.all(np.isfinite(d)):
             d = None
     # correlated noise along the scans: prewhiten (AR(1) read from second differences of
