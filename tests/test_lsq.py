@@ -505,9 +505,9 @@ def test_settled_rmse_stops_where_the_step_promises_less_than_the_numerical_floo
     """A fit whose answer is its misfit (`settled_rmse`) also stops once the next
     Gauss-Newton step predicts a decrease of ½χ² below the floor the model's numerical
     error can move it by (rows that jump by 0.02 with u, `error_um` 0.02: a floor of
-    Σ|r|·0.02/σ²), and says so, whatever fraction of the RMSE it predicts left (here a
-    threshold too small to stop it); without it the fit stalls on trials the floor
-    decides. Its RMSE is then within 1 % of the RMSE the fit reaches by going on, and
+    Σ|r|·0.02/σ²) and a trial from there has failed, and says so, whatever fraction of
+    the RMSE it predicts left (here a threshold too small to stop it); without it the fit
+    stalls on trials the floor decides. Its RMSE is then within 1 % of the RMSE the fit reaches by going on, and
     within 5 % of the true least-squares RMSE (scipy's, without the floor): the jitter
     alone (RMS 0.014 beside σ = 0.05) adds 4 % in quadrature. Why: the fatigue study's
     shape refit, whose last five trials (four rejected, ~1 s each) moved its RMSE within
@@ -518,6 +518,7 @@ def test_settled_rmse_stops_where_the_step_promises_less_than_the_numerical_floo
     out = lsq.solve(exp_model(y, jitter=0.02), np.array([0.0, 0.2]), noise_um=SIGMA,
                     max_evaluations=40, settled_rmse=1e-12)
     assert out.status == "converged" and "numerical error" in out.message, out.message
+    assert "the last trial was rejected" in out.message
     assert out.predicted_decrease <= out.floor
     assert out.evaluations < plain.evaluations
     assert out.point.rms_um < 1.01 * plain.point.rms_um
