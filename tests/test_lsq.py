@@ -507,8 +507,9 @@ def test_settled_rmse_stops_where_the_step_promises_less_than_the_numerical_floo
     error can move it by (rows that jump by 0.02 with u, `error_um` 0.02: a floor of
     Σ|r|·0.02/σ²) and a trial from there has failed, and says so, whatever fraction of
     the RMSE it predicts left (here a threshold too small to stop it); without it the fit
-    stalls on trials the floor decides. Its RMSE is then within 1 % of the RMSE the fit reaches by going on, and
-    within 5 % of the true least-squares RMSE (scipy's, without the floor): the jitter
+    stalls on trials the floor decides. Its RMSE is then within 1 % of the RMSE the fit
+    reaches by going on, and within 5 % of the true least-squares RMSE (scipy's, without
+    the floor): the jitter
     alone (RMS 0.014 beside σ = 0.05) adds 4 % in quadrature. Why: the fatigue study's
     shape refit, whose last five trials (four rejected, ~1 s each) moved its RMSE within
     0.45 %."""
