@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 
+import jax
 import numpy as np
 
 from jaxwear._analyses.simulate import (
@@ -53,8 +54,9 @@ def write_load_files(out, study: Study, exp: Experiment, res: WearResult) -> dic
     back through preset "load_history" (the rig and the boom as two examples of it)."""
 
     names = load_file_names(study, exp)
-    p = study.params(exp)
-    pin = float(p.bore_radius) - float(p.clearance)  # R_p on the host (no eager program)
+    # R_p of the parameters' host copies: on device arrays the subtraction is an eager
+    # program of its own
+    pin = float(jax.device_get(study.params(exp)).pin_radius)
     for k, name in enumerate(names):
         write_load_file(out, name, load_rows(res.history, k, pin))
     if len(names) == 1:
