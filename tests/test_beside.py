@@ -38,12 +38,12 @@ def test_each_thread_counts_its_own_evaluations(monkeypatch):
     from types import SimpleNamespace
 
     ext = SimpleNamespace(schedule=SimpleNamespace(attempts=1))
-    monkeypatch.setattr(_model, "evaluate", lambda e, u, columns=None: (None, e))
+    monkeypatch.setattr(_model, "evaluate", lambda e, u, columns=None, width=None: (None, e))
     monkeypatch.setattr(_model, "forward", lambda e, u, doublings=3: (None, None, 0.0, e))
     monkeypatch.setattr(_model, "_compiled_count", lambda: 0)
     monkeypatch.setattr(_model.Model, "evaluations", 0)
     m = object.__new__(_model.Model)  # no study: the counters only
-    m.ext, m.jacobian_columns = ext, None
+    m.ext, m.jacobian_columns, m.jacobian_width = ext, None, None
     go = threading.Barrier(2)
     out = {}
 

@@ -323,7 +323,10 @@ def test_a_model_built_in_another_thread_while_the_law_search_runs_shares_its_pr
     beside = {}
 
     def build():
-        beside["m"] = cm.variant().with_wear_tolerance(refit_module.REFIT_TOLERANCE)
+        # as the refit builds its model: its columns and width (`refit._setup`)
+        beside["m"] = cm.variant().with_wear_tolerance(
+            refit_module.REFIT_TOLERANCE).with_jacobian_columns(cm.jacobian_columns,
+                                                                cm.jacobian_width)
 
     with searching():
         own = cm.variant()

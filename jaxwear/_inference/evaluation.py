@@ -284,14 +284,49 @@ def unusable_evaluation(model: ResidualModel, u, why: str) -> Evaluation:
                       steps=0, adaptive=model.schedule.adaptive, failure=why)
 
 
-def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
-             ) -> tuple[Evaluation, ResidualModel]:
+def chunks(columns, wanted, width: int) -> list[list[int]]:
+    """`wanted`'s distinct columns (indices) in consecutive parts that need at most `width`
+    tangents each (`seeds`: the columns of distinct experiments share one); a column that
+    alone needs more is a part of its own."""
+    parts: list[list[int]] = []
+    for j in dict.fromkeys(int(i) for i in wanted):
+        if parts and seeds(columns, parts[-1] + [j])[0].shape[1] <= width:
+            parts[-1].append(j)
+        else:
+            parts.append([j])
+    return parts
+
+
+def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None,
+             width: int | None = None) -> tuple[Evaluation, ResidualModel]:
     """The model at u with its Jacobian, and the model it ran (its attempt count raised
     where u needed more: a fit keeps it, so later trials neither repeat a short run nor
     recompile). Where the work estimate at u is not finite the model is not run: an
     unusable `Evaluation` saying why (a fit rejects it as a trial). `columns`: the
     Jacobian's columns computed (indices (K,), one repeated to pad), the others 0
-    (`_evaluate_columns_jit`); None: every column."""
+    (`_evaluate_columns_jit`); None: every column. `width`: the program's tangents (with
+    `columns`): columns that need more are computed in parts of that width (`chunks`),
+    one run each of the same program at the same u, their Jacobians added (each part's
+    other columns are 0). Why: two uses of one model with different column sets (the
+    shape's surface columns and its refit, `shape.analysis`) then share one compilation
+    instead of two (~6 s of CPU each on 2 cores)."""
+    if columns is not None and width is not None:
+        parts = chunks(model.packing.columns, columns, width)
+        if len(parts) > 1:
+            ev, model = _evaluate(model, u, doublings, parts[0], width)
+            for part in parts[1:]:
+                if not ev.usable:
+                    break
+                more, model = _evaluate(model, u, doublings, part, width)
+                # the same run again (same u, same program): only its tangents are new
+                ev = dataclasses.replace(more, J=ev.J + more.J,
+                                         J_snaps=ev.J_snaps + more.J_snaps)
+            return ev, model
+    return _evaluate(model, u, doublings, columns, width)
+
+
+def _evaluate(model: ResidualModel, u, doublings: int, columns, width: int | None
+              ) -> tuple[Evaluation, ResidualModel]:
     need = attempts_needed(model, u)
     if not math.isfinite(need):
         return unusable_evaluation(model, u, work_failure(model, u)), model
@@ -300,7 +335,8 @@ def evaluate(model: ResidualModel, u, *, doublings: int = 3, columns=None
     cols = None
     if columns is not None:
         S, color, owner = seeds(model.packing.columns, columns,
-                                width_of(model.packing.columns, columns))
+                                width if width is not None
+                                else width_of(model.packing.columns, columns))
         cols = (to_device(S), to_device(color), to_device(owner))  # no compilation
     a0, room = model.schedule.attempts, min(HEADROOM, 2 ** max(doublings, 0))
     out = _jacobian_run(_headroom(model, room), uj, cols)

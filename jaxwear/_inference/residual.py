@@ -50,6 +50,7 @@ from jaxwear._inference.packing import (
 )
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.effects import STRUCTURAL_CANDIDATES
+from jaxwear._physics.effects.shape import TERMS_ON
 from jaxwear._physics.effects.shape import pack as pack_shape
 from jaxwear._physics.params import Params
 from jaxwear._physics.schedule import Schedule, pad_schedule
@@ -251,6 +252,25 @@ class ResidualModel(pytree.Struct):
         """The same model with its rows corrected by `defect_um` (rows,) [µm]."""
         return dataclasses.replace(self, defect_um=to_device(defect_um, np.float64))
 
+    def with_terms_on(self, on) -> ResidualModel:
+        """The same model (the same compiled programs) with the switched terms of its shape
+        basis on or off: `on` (terms,) bool in `ShapeBasis.terms()` order; a term without
+        a switch (`ShapeBasis.gated`) cannot be off."""
+        shape = self.cfg.shape
+        terms = () if shape is None else shape.terms()
+        on = [bool(x) for x in on]
+        if len(on) != len(terms):
+            raise ValueError(f"{len(terms)} switches expected, got {len(on)}")
+        if any(not x and i not in shape.gated for i, x in enumerate(on)):
+            raise ValueError("a term without a switch cannot be off (ShapeBasis.gated)")
+        if not terms or not shape.gated:
+            return self
+        flags = np.array([on[i] for i in shape.gated], np.float64)
+        n_exp = len(self.exp_names)
+        eff = {**self.params.effect_params,
+               TERMS_ON: to_device(np.broadcast_to(flags, (n_exp, len(flags))), np.float64)}
+        return dataclasses.replace(self, params=pytree.replace(self.params, effect_params=eff))
+
     @property
     def defect(self) -> np.ndarray:
         """The rows' correction (rows,) [µm] (zeros: none)."""
@@ -361,6 +381,10 @@ def build_model(study: Study, keys: list[str], start: dict | None = None, *,
         cfg = cfg.replace(shape=shape)
         params = pytree.replace(params, effect_params={
             **params.effect_params, **{k: jnp.zeros(len(plist)) for k in shape.keys()}})
+        if shape.gated:  # every term on (`with_terms_on`)
+            params = pytree.replace(params, effect_params={
+                **params.effect_params,
+                TERMS_ON: to_device(np.ones((len(plist), len(shape.gated))), np.float64)})
         cols += shape_columns(shape.keys())
     packing = packing_of(cols, start)
     nominal_angle = [e.profile.angle_offset_deg if e.profile is not None else 0.0

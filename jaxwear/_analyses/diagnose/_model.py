@@ -49,6 +49,8 @@ class Model:
     - `jacobian_columns` (K,): the only columns of u whose Jacobian `evaluate` computes
       (one repeated to pad; the others 0: `evaluation.evaluate`'s `columns`), for a fit
       that holds the rest (`with_jacobian_columns`); None: every column.
+      `jacobian_width`: the program's tangents, columns that need more computed in parts
+      (`evaluation.evaluate`'s `width`); None: as many as the columns need.
     """
 
     # process-wide counters of compiled-model evaluations (progress, benchmarks); this
@@ -61,6 +63,7 @@ class Model:
                  candidates=None, contact=None, shape=None, defect_um=None):
         self.study = study
         self.jacobian_columns = None  # every column (`with_jacobian_columns`)
+        self.jacobian_width = None
         self.keys = list(keys) if keys is not None else parse_fit(
             study, list(study.fit) if study.fit else "K_d,clearance")
         self.start = dict(start or {})
@@ -120,12 +123,23 @@ class Model:
                      shape=self.shape if shape == "same" else shape,
                      defect_um=self.ext.defect)
 
-    def with_jacobian_columns(self, columns) -> Model:
+    def with_jacobian_columns(self, columns, width: int | None = None) -> Model:
         """The same model whose evaluations compute the Jacobian of `columns` only (indices
-        (K,) into u, one repeated to pad; the others 0), None: of every column."""
+        (K,) into u, one repeated to pad; the others 0), None: of every column. `width`:
+        the compiled program's tangents (one program for every column set the model is
+        given with that width); columns that need more are computed in parts, a run each
+        (`evaluation.evaluate`); None: the columns' own."""
         out = copy.copy(self)
         object.__setattr__(out, "jacobian_columns", None if columns is None
                            else np.asarray(columns, np.int32))
+        object.__setattr__(out, "jacobian_width", None if columns is None else width)
+        return out
+
+    def with_terms_on(self, on) -> Model:
+        """The same model (the same compiled programs) with the terms of its gated shape
+        basis switched on or off (`ResidualModel.with_terms_on`)."""
+        out = copy.copy(self)
+        object.__setattr__(out, "ext", self.ext.with_terms_on(on))
         return out
 
     def with_defect(self, defect_um) -> Model:
@@ -193,7 +207,8 @@ class Model:
         _own.n = getattr(_own, "n", 0) + 1
         t0 = time.perf_counter()
         n_compiled = _compiled_count()
-        ev, used = evaluate(self.ext, u, columns=self.jacobian_columns)
+        ev, used = evaluate(self.ext, u, columns=self.jacobian_columns,
+                            width=self.jacobian_width)
         if used.schedule.attempts > self.ext.schedule.attempts:
             # the attempt count an evaluation needed is kept for the rest of the run
             object.__setattr__(self, "ext", used)

@@ -371,10 +371,6 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
         # correction, with its own fit's parameters (`shape.refit._warm_start`)
         beside = (Background(_finished_quietly, after, shp if shared else None, figures)
                   if after is not None else None)
-        pngs_after = None
-        if drawing is not None:
-            pngs, pngs_after = drawing.result()
-            shp = replace(shp, pngs=pngs)
         screened = warming.result() if warming is not None else None
         if warming is None and compiled is not None:
             compiled.join()  # no search: nothing left compiling after the answer
@@ -393,6 +389,13 @@ def diagnose(study: Study, *, verbose: bool = False, max_refits: int = 3,
                                           shape_rmse_um=shp.rmse_after_um,
                                           shape_why=shp.refit_message, ahead=ahead,
                                           screen=screened, verbose=verbose))
+        # the figures after the search, which does not need them: drawn beside the refit
+        # (~26 on the fatigue study, ~4 s of CPU), they were not always done when it ended,
+        # and the search waited for them
+        pngs_after = None
+        if drawing is not None:
+            pngs, pngs_after = drawing.result()
+            shp = replace(shp, pngs=pngs)
         if drawing_rest is not None:
             shp = replace(shp, pngs={**shp.pngs, **drawing_rest.result()[0]})
         if beside is not None:

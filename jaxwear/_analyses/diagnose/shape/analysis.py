@@ -48,6 +48,7 @@ from jaxwear._analyses.diagnose._stats import ALPHA, neighbour_differences
 from jaxwear._analyses.diagnose.shape import linear as lin
 from jaxwear._analyses.diagnose.shape.choice import rank_alternatives
 from jaxwear._analyses.diagnose.shape.design import (
+    JACOBIAN_TOLERANCE,
     JOINT_DRAWS,
     LEVEL,
     SIZE,
@@ -64,11 +65,28 @@ from jaxwear._analyses.diagnose.shape.interaction import (
 )
 from jaxwear._analyses.diagnose.shape.linear import DRAWS
 from jaxwear._analyses.diagnose.shape.map import when_where
-from jaxwear._analyses.diagnose.shape.refit import Ahead, _carriers, _correction, _map_u, _refit
+from jaxwear._analyses.diagnose.shape.refit import (
+    REFIT_TOLERANCE,
+    Ahead,
+    _carriers,
+    _correction,
+    _map_u,
+    _refit,
+    refit_basis,
+    refit_model,
+    refit_width,
+)
 from jaxwear._analyses.diagnose.shape.result import ShapeResult, VariableShape
 from jaxwear._analyses.diagnose.shape.text import describe, next_test, next_test_sentence
 from jaxwear._core.background import Background
 from jaxwear._physics.effects.shape import FORMS
+
+# The refit's Jacobian program is made this much wider where that computes the surface's
+# columns in one run instead of two (each run costs its primal and every tangent of the
+# width, padding included): on the generator's fatigue study 25 columns against the
+# refit's 23 tangents, where a second run cost ~0.8 s and 2 tangents more in each of
+# the refits' ~11 evaluations ~0.3 s.
+SURFACE_WIDTH = 1.25
 
 # -- the range of each variable met in the data ---------------------------------------------
 
@@ -252,29 +270,21 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                       f"{v.dof:.1f}, p {v.p_value:.1e}, peak at {v.peak_at:.4g} {v.unit}")
     alpha_each = ALPHA / len(results)
     results = [replace(v, significant=v.p_value < alpha_each) for v in results]
-    # the leading pair's surface (`shape.interaction`): the form of the variable that
-    # explains most alone; its columns (one Jacobian) computed in the background from the
-    # form's joint fit on (its carriers choose the pair)
+    # the leading pair's surface (`shape.interaction`) is of the form of the variable that
+    # explains most alone; its columns (one Jacobian) are computed in the background once
+    # the refit's carriers are chosen (the pair is the form's joint fit's)
     sig0 = [v for v in results if v.significant]
     lead_form = max(sig0, key=lambda v: v.explained_fraction).form if sig0 else None
-    surface = None
     forms = {}
     for form in FORMS:
         results, forms[form] = _joint(form, results, blocks, rho, rss0, excess, n_res, nu, rng,
                                       alpha_each, verbose)
-        pair = leading_pair(results, form) if form == lead_form else None
-        if pair is not None:
-            tensor = pair_tensor(design, *pair, form)
-            # on top of an effect found, only the base analysis's pair (its columns
-            # reused): a pair of its own would compile another Jacobian
-            if not reused or tensor.label in design.tensors:
-                surface = (tensor, Background(_counted, tensor_columns, design, tensor,
-                                              own_groups, verbose))
     rmse_before = float(np.sqrt(np.mean(ev.r ** 2)))
     sig = [v for v in results if v.significant]
     best = form = inter = None
     alternatives, carriers, confounded = [], (), []
     ahead = None  # the refit's model and first evaluation, made in the background
+    basis_r = width = None  # the refit model's basis and Jacobian width
     if sig:
         top, alternatives = choose_best(results)
         # among variables the data explain alike: unique shares, then left-out experiments
@@ -288,7 +298,38 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                 + (f"; confounded: {', '.join(confounded)}" if confounded else ""))
         best, form = top.name, top.form
         carriers = _carriers(results, top)
-        if surface is not None and surface[0].form == form:
+        # the leading pair's surface (`shape.interaction`), where the refit's form is the
+        # form of the variable that explains most alone; on top of an effect found only
+        # the base analysis's pair (its columns reused): a pair of its own would compile
+        # another Jacobian
+        pair = leading_pair(results, form) if form == lead_form else None
+        tensor = pair_tensor(design, *pair, form) if pair is not None else None
+        if tensor is not None and reused and tensor.label not in design.tensors:
+            tensor = None
+        # one model, one compiled Jacobian program, for the surface's columns and the
+        # refit whatever the surface's test decides (`refit.refit_basis`): on the
+        # generator's fatigue study (48 x 72, 2 cores) the two programs were ~6 s of CPU
+        # each, one after the other on the diagnosis's critical path
+        key = (tuple(carriers), form)
+        if tensor is None and key in design.refit_bases:
+            # an earlier analysis's refit of these carriers (its surface off here)
+            basis_r, width = design.refit_bases[key]
+            cm_r = None
+        else:
+            basis_r = refit_basis(blocks, carriers, form, tensor)
+            cm_r = refit_model(smodel, refit_with, basis_r)
+            width = refit_width(cm_r, basis_r, carriers, form)
+            if tensor is not None and tensor.size <= SURFACE_WIDTH * width:
+                # the surface's columns in one run where that costs the refit's runs little
+                width = max(width, tensor.size)
+            design.refit_bases.setdefault(key, (basis_r, width))
+        if tensor is not None:
+            # at the design's tolerance (a traced value: the same program)
+            tm = cm_r.with_wear_tolerance(JACOBIAN_TOLERANCE / REFIT_TOLERANCE
+                                          ).with_jacobian_columns(
+                [cm_r.index[k] for k in tensor.keys()], width)
+            surface = (tensor, Background(_counted, tensor_columns, design, tensor,
+                                          own_groups, verbose, tm))
             inter = _interaction(surface, sigma, ev, model, phi, n, proj, blocks, carriers,
                                  form, rho, n_res, nu, rng, draws, excess, rss0, alpha_each,
                                  verbose, waited)
@@ -325,7 +366,8 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         surf = inter.block if inter is not None and inter.carried else None
         rmse_after, status, corr_model, u_fit, cov, snaps, resid, message = _refit(
             smodel, refit_with, ev, u, free_base, blocks, carriers, form, rho, n_res, sigma,
-            Jw, rho_full, verbose, deepest, surface=surf, ahead=ahead, warm=warm)
+            Jw, rho_full, verbose, deepest, surface=surf, ahead=ahead, warm=warm,
+            basis=basis_r, width=width)
         # the first evaluation made ahead, in another thread, where the refit took it
         e0 -= ahead.evaluations if ahead is not None and ahead.used else 0
         if not math.isfinite(rmse_after):
@@ -336,7 +378,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
                                   linear.evaluations + Model.own_evaluations() - e0),
                            refit_message=message,
                            refit_tolerance_um=corr_model.wear_tolerance_um)
-        correction = _correction(corr_model, u_fit, carriers, form)
+        correction = _correction(corr_model, u_fit, carriers, form, carried=surf is not None)
         done = [replace(v, refit_rmse_um=rmse_after) if v.name in carriers
                 and v.form == form else v for v in results]
         ww = when_where(corr_model, u_fit, cov, exp_name, deepest, LEVEL, snaps=snaps)
@@ -349,7 +391,7 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
     if sig and refit_ahead:
         ahead = Ahead(smodel, refit_with, u, free_base, blocks, carriers, form, rho, n_res,
                       Jw, rho_full, surface=inter.block if inter is not None
-                      and inter.carried else None)
+                      and inter.carried else None, basis=basis_r, width=width)
     linear = result(results, None, "none", {}, None,
                     Model.own_evaluations() - evals0 + sum(waited) + spent)
     if not sig:

@@ -94,6 +94,10 @@ class Design:
     # the columns of a pair's surface (`tensor_columns`) by its label, shared by the
     # analyses on this design (a later one on top of an effect reuses them)
     tensors: dict = field(default_factory=dict, repr=False)
+    # the refit model's basis and Jacobian width by (carriers, form) (`shape.analysis`):
+    # a later analysis that refits the same carriers takes them, so that both refits run
+    # one compiled program (its surface off where that analysis tests none)
+    refit_bases: dict = field(default_factory=dict, repr=False)
 
 
 def prepare_design(model: Model, fit, *, groups=None, size: int = SIZE,
@@ -134,18 +138,21 @@ def pair_tensor(design: Design, a: str, b: str, form: str,
 
 
 def tensor_columns(design: Design, tensor: ShapeTensor, groups=(),
-                   verbose: bool = False) -> np.ndarray:
+                   verbose: bool = False, model: Model | None = None) -> np.ndarray:
     """The model's derivative (rows, tensor.size) [µm per unit coefficient] with respect to
     each coefficient of the surface `tensor`, at the design's answer: one forward-mode
     Jacobian of the design's (coarse) Jacobian model with the surface as its only
     correction (its own compiled function; cached on the design). Why a run of its own:
     the pair is known only once the variables have been tested, after the design's
     Jacobian; 25 columns of ~170 cost far less than every pair's surface in it.
-    `groups`: the candidate groups the fit has on (the others are off at the answer)."""
+    `groups`: the candidate groups the fit has on (the others are off at the answer).
+    `model`: the model whose program computes them instead (its basis holds `tensor`, its
+    Jacobian columns are the surface's: the shape's refit model, `shape.analysis`, so
+    that the refit compiles nothing more)."""
     if tensor.label in design.tensors:
         return design.tensors[tensor.label]
-    jm = design.jmodel
-    tm = jm.variant(candidates=list(groups), shape=ShapeBasis((), (tensor,)))
+    tm = (model if model is not None else
+          design.jmodel.variant(candidates=list(groups), shape=ShapeBasis((), (tensor,))))
     t0 = time.perf_counter()
     ev = tm.evaluate(_map_u(design.smodel, design.u, tm))
     cols = np.asarray(ev.J)[:, [tm.index[k] for k in tensor.keys()]]

@@ -20,6 +20,7 @@ from jaxwear._analyses.diagnose.shape.design import (
 from jaxwear._analyses.diagnose.shape.map import compile_maps
 from jaxwear._core.background import Background
 from jaxwear._inference import lsq
+from jaxwear._inference.evaluation import seeds
 from jaxwear._physics.effects.shape import ShapeBasis
 
 # The refit's answer is its misfit (the RMSE base -> shape), not its spline's coefficients:
@@ -95,11 +96,58 @@ class _Setup:
         return np.clip(self.own + frac * (self.u0 - self.own), self.lo, self.hi)
 
 
+def _label(name: str, form: str) -> str:
+    return name if form == "factor" else f"deposit:{name}"
+
+
+def refit_basis(blocks, carriers, form, tensor=None) -> ShapeBasis:
+    """The basis of the refit's model: the carriers' variables in `form` and, where the
+    analysis tested a surface (`tensor`), the pair's variables and the surface too, whether
+    or not the refit carries them: a gated basis (`ShapeBasis.gated`), whose terms the
+    refit does not fit are switched off (`_setup`: the model without them exactly, at no
+    cost in its runs). Why: the surface's columns (`design.tensor_columns` with this
+    model, every term on) and the refit then run one compiled program, whatever the
+    surface's test decides (`shape.analysis`)."""
+    vars_ = [blocks[_label(n, form)][4] for n in carriers]
+    if tensor is None:
+        return ShapeBasis(tuple(vars_))
+    first = len(vars_)  # the carriers' terms are always on: no switch
+    vars_ += [blocks[_label(n, form)][4] for n in (tensor.a.name, tensor.b.name)
+              if n not in carriers]
+    return ShapeBasis(tuple(vars_), (tensor,), gated=tuple(range(first, len(vars_) + 1)))
+
+
+def refit_model(smodel: Model, groups, basis: ShapeBasis) -> Model:
+    """The refit's model: `smodel`'s study with the candidate `groups` and the correction
+    `basis`, at `REFIT_TOLERANCE` (the same compiled programs for every call with equal
+    arguments)."""
+    return smodel.variant(candidates=list(groups), shape=basis
+                          ).with_wear_tolerance(REFIT_TOLERANCE)
+
+
+def refit_width(cm: Model, basis: ShapeBasis, carriers, form) -> int:
+    """The tangents of the refit's Jacobian program: those of every column of `cm` that is
+    not the correction's (the base parameters and the candidates it carries, free in one
+    of diagnose's two refits or the other) and of the `carriers`' coefficients. A surface
+    the refit carries, and the pair's variables with it, are computed in further parts of
+    this width. Why every candidate's: both refits then run one program (the effect found
+    is held in the first, free in the second)."""
+    shape_keys = set(basis.keys())
+    cols = [i for i, n in enumerate(cm.names) if n not in shape_keys]
+    keys = {_label(n, form) for n in carriers}
+    cols += [cm.index[k] for v in basis.variables if v.label in keys for k in v.keys()]
+    return seeds(cm.packing.columns, cols)[0].shape[1]
+
+
 def _setup(smodel: Model, groups, u, free_base, blocks, carriers, form, rho, n_res, Jw,
-           rho_full, surface=None, linear_start: bool = True) -> _Setup:
+           rho_full, surface=None, linear_start: bool = True, basis=None,
+           width: int | None = None) -> _Setup:
     """The refit's model, its joint linearised start over the carriers and its prior rows'
-    ingredients (host work; the model's programs compile at its first evaluation)."""
-    labels = [n if form == "factor" else f"deposit:{n}" for n in carriers]
+    ingredients (host work; the model's programs compile at its first evaluation).
+    `basis`: the refit model's basis where it holds more than the carriers (and the
+    surface) (`refit_basis`, held at zero), with `width` its Jacobian program's tangents:
+    the refit's evaluations then compute its free columns only."""
+    labels = [_label(n, form) for n in carriers]
     vars_ = [blocks[lab][4] for lab in labels]
     tensors = ()
     if surface is not None:
@@ -111,8 +159,8 @@ def _setup(smodel: Model, groups, u, free_base, blocks, carriers, form, rho, n_r
         blocks = {**blocks, tensor.label: (A_t, S_t, Z_t, cols_t, tensor)}
         labels = labels + [tensor.label]
     # the fit's own candidate groups only (the design may carry more, held at off)
-    cm = smodel.variant(candidates=list(groups), shape=ShapeBasis(tuple(vars_), tensors)
-                        ).with_wear_tolerance(REFIT_TOLERANCE)
+    cm = refit_model(smodel, groups, basis if basis is not None
+                     else ShapeBasis(tuple(vars_), tensors))
     u0 = _map_u(smodel, u, cm)
     own = u0.copy()  # the fit's own answer: the correction off
     # the joint linearised start over the carriers (their GCV penalty)
@@ -146,6 +194,13 @@ def _setup(smodel: Model, groups, u, free_base, blocks, carriers, form, rho, n_r
     base_names = [smodel.names[i] for i in free_base]
     free[[cm.index[nm] for nm in base_names]] = True
     free[cols] = True
+    if cm.ext.cfg.shape.gated:
+        # the terms the refit does not fit are off: they cost nothing in its runs
+        on = set(labels)
+        cm = cm.with_terms_on([getattr(t, "label", None) in on
+                               for t in cm.ext.cfg.shape.terms()])
+    if width is not None:
+        cm = cm.with_jacobian_columns(np.flatnonzero(free), width)
     lo, hi = cm.bounds_u()
     D = [np.linalg.cholesky(v.roughness() + 1e-12 * np.eye(v.size)).T for v in terms]
     return _Setup(cm=cm, u0=u0, own=own, lam=lam, terms=terms, D=D, free=free, lo=lo, hi=hi)
@@ -198,8 +253,8 @@ class Ahead:
     model without it, discarded.)"""
 
     def __init__(self, smodel: Model, groups, u, free_base, blocks, carriers, form, rho,
-                 n_res, Jw, rho_full, surface=None):
-        self.key = (tuple(groups), tuple(carriers), form)
+                 n_res, Jw, rho_full, surface=None, basis=None, width=None):
+        self.key = (tuple(groups), tuple(carriers), form, basis, width)
         self.surface = surface
         self.used = False
         self.evaluations = 0  # the thread's model evaluations (counted where used)
@@ -208,7 +263,7 @@ class Ahead:
             e0 = Model.own_evaluations()
             try:
                 s = _setup(smodel, groups, u, free_base, blocks, carriers, form, rho, n_res,
-                           Jw, rho_full, surface=surface)
+                           Jw, rho_full, surface=surface, basis=basis, width=width)
                 start = s.start(1.0)
                 return s, start, _objective(s)(start)
             finally:
@@ -216,11 +271,11 @@ class Ahead:
 
         self._job = Background(first)
 
-    def take(self, groups, carriers, form, surface):
+    def take(self, groups, carriers, form, surface, basis=None, width=None):
         """(setup, start, its point) where they are the refit's, else None (a failure
         there is met again, and reported, by the refit's own evaluation)."""
         if (surface is not self.surface
-                or self.key != (tuple(groups), tuple(carriers), form)):
+                or self.key != (tuple(groups), tuple(carriers), form, basis, width)):
             return None
         try:
             got = self._job.result()
@@ -232,7 +287,8 @@ class Ahead:
 
 def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho, n_res,
            sigma, Jw, rho_full, verbose, deepest: int, surface=None, maps: bool = True,
-           linear_start: bool = True, ahead: Ahead | None = None, warm=None):
+           linear_start: bool = True, ahead: Ahead | None = None, warm=None, basis=None,
+           width: int | None = None):
     """The correction of `form` along the `carriers`, refitted with the fit's own
     parameters through the wear loop by the one least-squares core, with its true Jacobian
     (a model with those columns only), the roughness penalty (at the linearised λ) and, for
@@ -255,16 +311,18 @@ def _refit(smodel: Model, groups, ev, u, free_base, blocks, carriers, form, rho,
     (model, u at its answer) (`ShapeResult.refit_at`); where that model has this one's
     columns (the same candidate groups, carriers, form and surface, on the same study),
     the refit starts from its correction with this fit's own parameters, ahead of the
-    linearised start, and with its model's attempt count (`_warm_start`)."""
+    linearised start, and with its model's attempt count (`_warm_start`). `basis`,
+    `width`: the refit model's basis where it holds more than it refits (`refit_basis`)
+    and its Jacobian program's tangents (`_setup`)."""
 
-    got = (ahead.take(groups, carriers, form, surface)
+    got = (ahead.take(groups, carriers, form, surface, basis, width)
            if ahead is not None and linear_start else None)
     if got is not None:
         s, start_ahead, point_ahead = got
     else:
         s, start_ahead, point_ahead = _setup(
             smodel, groups, u, free_base, blocks, carriers, form, rho, n_res, Jw, rho_full,
-            surface=surface, linear_start=linear_start), None, None
+            surface=surface, linear_start=linear_start, basis=basis, width=width), None, None
     cm, free, lo, hi = s.cm, s.free, s.lo, s.hi
     evaluate = _objective(s)
 
@@ -397,16 +455,20 @@ def _full_cov(out: lsq.Outcome, free) -> np.ndarray:
     return C
 
 
-def _correction(cm: Model, u, carriers, form) -> dict:
+def _correction(cm: Model, u, carriers, form, carried: bool = True) -> dict:
     """The refitted correction as data (for the effect file): per variable its form,
-    size, knots and coefficients."""
+    size, knots and coefficients; the model's terms the refit held at zero (a pair's
+    variable and surface it does not carry, `refit_basis`) left out. `carried`: whether
+    the refit carried the model's surface."""
     out = {"form": form, "variables": []}
     for var in cm.ext.cfg.shape.variables:
+        if var.name not in carriers:
+            continue
         out["variables"].append({"name": var.name, "form": var.form, "size": var.size,
                                  "knots": list(var.knots),
                                  "coefficients": [float(u[cm.index[k]]) for k in var.keys()]})
     out["tensors"] = [{"variables": [t.a.name, t.b.name], "form": t.form,
                        "size": [t.a.size, t.b.size], "knots": [list(t.a.knots), list(t.b.knots)],
                        "coefficients": [float(u[cm.index[k]]) for k in t.keys()]}
-                      for t in cm.ext.cfg.shape.tensors]
+                      for t in cm.ext.cfg.shape.tensors if carried]
     return out
