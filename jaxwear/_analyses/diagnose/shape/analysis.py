@@ -314,7 +314,6 @@ def shape_analysis(model: Model, fit: Fit, noise_um: float, nu: float, *, after:
         if tensor is None and key in design.refit_bases:
             # an earlier analysis's refit of these carriers (its surface off here)
             basis_r, width = design.refit_bases[key]
-            cm_r = None
         else:
             basis_r = refit_basis(blocks, carriers, form, tensor)
             cm_r = refit_model(smodel, refit_with, basis_r)

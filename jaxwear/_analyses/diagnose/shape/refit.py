@@ -197,8 +197,7 @@ def _setup(smodel: Model, groups, u, free_base, blocks, carriers, form, rho, n_r
     if cm.ext.cfg.shape.gated:
         # the terms the refit does not fit are off: they cost nothing in its runs
         on = set(labels)
-        cm = cm.with_terms_on([getattr(t, "label", None) in on
-                               for t in cm.ext.cfg.shape.terms()])
+        cm = cm.with_terms_on([t.label in on for t in cm.ext.cfg.shape.terms()])
     if width is not None:
         cm = cm.with_jacobian_columns(np.flatnonzero(free), width)
     lo, hi = cm.bounds_u()
