@@ -334,13 +334,15 @@ def test_correction_gradient_matches_central_differences(shaped):
 
 
 def test_packed_coefficients_are_the_same_correction(shaped):
-    """The wear loop carries the ~140 coefficients as one array (`effects.shape.pack`: a
-    scalar each made the design's compilation ~1 s per variable); one cycle's rates with
-    the coefficients packed equal those read one key at a time, both forms on."""
+    """The wear loop carries the ~140 coefficients as one array (`effects.shape.PACKED`,
+    made by `batched_params`: a scalar each made the design's compilation ~1 s per
+    variable); one cycle's rates with the coefficients packed equal those read one key at
+    a time (`shape_terms`'s other path), both forms on."""
     import jax
 
+    from jaxwear._core import pytree
     from jaxwear._physics.cycle import cycle_rates, run_history
-    from jaxwear._physics.effects.shape import pack
+    from jaxwear._physics.effects.shape import PACKED
 
     m = shaped
     rng = np.random.default_rng(1)
@@ -351,14 +353,54 @@ def test_packed_coefficients_are_the_same_correction(shaped):
                              else 0.01 * abs(rng.standard_normal()))
     p = jax.tree.map(lambda x: x[0], m.ext.batched_params(jnp.asarray(u)))
     cfg = m.ext.cfg
+    keys = cfg.shape.keys()
+    eff = dict(p.effect_params)
+    arr = eff.pop(PACKED)
+    assert not any(k in eff for k in keys)  # packed only: no stale per-key values
+    per_key = pytree.replace(p, effect_params={**eff, **{k: arr[i] for i, k in
+                                                         enumerate(keys)}})
     hist = run_history(p, cfg)
     h = jnp.linspace(0.0, 2e-6, cfg.nodes)
-    packed = pack(p, cfg.shape)
-    assert len(packed.effect_params) < len(p.effect_params)
-    a = cycle_rates(p, cfg, hist, 0, h, jnp.asarray(50.0))[0]
-    b = cycle_rates(packed, cfg, hist, 0, h, jnp.asarray(50.0))[0]
+    a = cycle_rates(per_key, cfg, hist, 0, h, jnp.asarray(50.0))[0]
+    b = cycle_rates(p, cfg, hist, 0, h, jnp.asarray(50.0))[0]
     np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-13, atol=0.0)
     assert float(jnp.max(jnp.abs(a))) > 0
+
+
+def test_batched_params_packs_the_packings_values(shaped):
+    """The packed coefficients (one operation for every column, `residual.
+    _packed_coefficients`) are the packing's values in SI, read on the host one column at
+    a time (`Packing.values_np`), in every experiment; where some keys are held (not
+    columns), their own values stay and the columns' are set."""
+    from jaxwear._core import pytree
+    from jaxwear._inference.residual import _packed_coefficients
+    from jaxwear._physics.effects.shape import PACKED
+
+    m = shaped
+    u = _correction_on(m, seed=4)
+    keys = m.ext.cfg.shape.keys()
+    got = np.asarray(m.ext.batched_params(jnp.asarray(u)).effect_params[PACKED])
+    vals = m.packing.values_np(u)
+    want = np.array([vals[m.index[k]] * m.packing.columns[m.index[k]].to_si for k in keys])
+    assert got.shape == (len(m.exp_names), len(keys))
+    np.testing.assert_allclose(got, np.broadcast_to(want, got.shape), rtol=1e-15, atol=0)
+    assert np.abs(want).max() > 0
+    # two keys held at values of their own (per key, as a study sets them), the rest columns
+    n_exp = len(m.exp_names)
+    held = {keys[0]: jnp.full((n_exp,), 0.25), keys[3]: jnp.full((n_exp,), -0.5)}
+    eff = {k: v for k, v in m.ext.params.effect_params.items() if k != PACKED}
+    p = pytree.replace(m.ext.params, effect_params={
+        **eff, **held, **{k: jnp.zeros(n_exp) for k in keys if k not in held}})
+    coefs = [(m.index[k], i) for i, k in enumerate(keys) if k not in held]
+    out = _packed_coefficients(p, m.ext.cfg.shape, coefs, jnp.asarray(vals),
+                               m.packing.columns, n_exp)
+    arr = np.asarray(out.effect_params[PACKED])
+    np.testing.assert_array_equal(arr[:, 0], 0.25)
+    np.testing.assert_array_equal(arr[:, 3], -0.5)
+    cols = [i for i, k in enumerate(keys) if k not in held]
+    np.testing.assert_allclose(arr[:, cols], np.broadcast_to(want[cols], (n_exp, len(cols))),
+                               rtol=1e-15, atol=0)
+    assert not any(k in out.effect_params for k in keys)
 
 
 def test_when_where_bands_jacobian_matches_forward_mode(shaped):

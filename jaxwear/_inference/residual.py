@@ -50,7 +50,7 @@ from jaxwear._inference.packing import (
 )
 from jaxwear._physics.config import ModelConfig
 from jaxwear._physics.effects import STRUCTURAL_CANDIDATES
-from jaxwear._physics.effects.shape import TERMS_ON
+from jaxwear._physics.effects.shape import PACKED, TERMS_ON
 from jaxwear._physics.effects.shape import pack as pack_shape
 from jaxwear._physics.params import Params
 from jaxwear._physics.schedule import Schedule, pad_schedule
@@ -202,6 +202,34 @@ def measured_data(study: Study, packing: Packing) -> Data:
                 angle=to_device(rows["angle"], f), offset_col=to_device(rows["offset_col"], i))
 
 
+def _packed_coefficients(p, shape, coefs, vals, columns, n_exp: int):
+    """`p` with the shape correction's coefficients at `vals` (its columns `coefs`: (index
+    in u, position in `shape.keys()`)) as the one packed array the wear loop reads
+    (`effects.shape.pack`: `PACKED`, (n_exp, keys)), made in one operation.
+
+    Why not a parameter per key, packed by the loop: the shape's design has ~170
+    coefficient columns, and a scalar per column, broadcast, set and stacked (with its
+    tangents) was ~40 % of the operations of its Jacobian's program, traced, lowered and
+    compiled at its first evaluation. The values are the same products element by
+    element."""
+    eff = dict(p.effect_params)
+    keys = shape.keys()
+    if PACKED in eff:
+        packed = jnp.asarray(eff[PACKED], jnp.float64)
+    else:
+        packed = jnp.stack([jnp.broadcast_to(jnp.asarray(eff.pop(k), jnp.float64), (n_exp,))
+                            for k in keys], axis=-1)
+    idx = np.array([i for i, _ in coefs])
+    pos = np.array([k for _, k in coefs])
+    si = vals[idx] * np.array([columns[i].to_si for i in idx], np.float64)
+    if len(pos) == len(keys) and np.array_equal(pos, np.arange(len(keys))):
+        packed = jnp.broadcast_to(si, (n_exp, len(keys)))
+    else:
+        packed = packed.at[:, pos].set(jnp.broadcast_to(si, (n_exp, len(pos))))
+    eff[PACKED] = packed
+    return pytree.replace(p, effect_params=eff)
+
+
 class ResidualModel(pytree.Struct):
     """A study's model and data: u (P,) ↦ rows [µm] (see the module docstring)."""
 
@@ -285,9 +313,16 @@ class ResidualModel(pytree.Struct):
         n_exp = len(self.exp_names)
         updates: dict = {}
         structural: dict = {}
+        shape = self.cfg.shape
+        at = {k: n for n, k in enumerate(shape.keys())} if shape is not None else {}
+        coefs = []  # the shape correction's columns (index, position in its keys)
         for i, c in enumerate(self.columns):
             if c.key == "angle_offset_deg":
                 continue  # a property of the measurement, not of the joint
+            if (c.key in at and c.experiment is None
+                    and c.group not in STRUCTURAL_CANDIDATES):
+                coefs.append((i, at[c.key]))
+                continue
             si = vals[i] * c.to_si
             if c.group in STRUCTURAL_CANDIDATES:
                 structural.setdefault(c.group, {})[c.key] = jnp.broadcast_to(si, (n_exp,))
@@ -299,6 +334,8 @@ class ResidualModel(pytree.Struct):
         p = p.with_values(updates) if updates else p
         for name, vals_si in structural.items():
             p = STRUCTURAL_CANDIDATES[name].set_strength(p, vals_si)
+        if coefs:
+            p = _packed_coefficients(p, shape, coefs, vals, self.columns, n_exp)
         return p
 
     def snapshots(self, u):
