@@ -214,17 +214,17 @@ def _packed_coefficients(p, shape, coefs, vals, columns, n_exp: int):
     element."""
     eff = dict(p.effect_params)
     keys = shape.keys()
-    if PACKED in eff:
-        packed = jnp.asarray(eff[PACKED], jnp.float64)
-    else:
-        packed = jnp.stack([jnp.broadcast_to(jnp.asarray(eff.pop(k), jnp.float64), (n_exp,))
-                            for k in keys], axis=-1)
+    # per key: gone once packed (each present where they are not packed yet)
+    held = ([eff.pop(k, None) for k in keys] if PACKED in eff
+            else [eff.pop(k) for k in keys])
     idx = np.array([i for i, _ in coefs])
     pos = np.array([k for _, k in coefs])
     si = vals[idx] * np.array([columns[i].to_si for i in idx], np.float64)
     if len(pos) == len(keys) and np.array_equal(pos, np.arange(len(keys))):
-        packed = jnp.broadcast_to(si, (n_exp, len(keys)))
+        packed = jnp.broadcast_to(si, (n_exp, len(keys)))  # every key a column
     else:
+        packed = (jnp.asarray(eff[PACKED], jnp.float64) if PACKED in eff else jnp.stack(
+            [jnp.broadcast_to(jnp.asarray(v, jnp.float64), (n_exp,)) for v in held], axis=-1))
         packed = packed.at[:, pos].set(jnp.broadcast_to(si, (n_exp, len(pos))))
     eff[PACKED] = packed
     return pytree.replace(p, effect_params=eff)
@@ -342,7 +342,8 @@ class ResidualModel(pytree.Struct):
         """Snapshots (experiments, snapshots, nodes) [µm] and the batched `WearResult`."""
         # lax.map, not vmap: on CPU the experiments gain nothing from batching, and mapping
         # keeps the contact solver's data-dependent branches and loop counts per experiment.
-        # the shape correction's coefficients packed before the map too (`pack`)
+        # the shape correction's coefficients packed before the map: `batched_params`
+        # packs the fitted ones; `pack` those of a correction held as study parameters
         res = jax.lax.map(lambda ps: wear_loop(ps[0], self.cfg, ps[1]),
                           (pack_shape(self.batched_params(u), self.cfg.shape),
                            self.schedule))
