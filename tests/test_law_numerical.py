@@ -91,7 +91,14 @@ def test_the_law_constants_are_corrected_to_the_finer_level_and_their_error_said
     c = doc["constants"]["a1"]
     assert {"value", "stderr", "unit", "numerical_error", "uncertainty"} <= set(c)
     assert math.isclose(c["uncertainty"], math.hypot(c["stderr"], c["numerical_error"]))
-    assert doc["numerical"]["checked_against"] == {"nodes": 72, "steps_per_rev": 108}
+    # the search's runs integrate at LAW_TOLERANCE times the study's wear tolerance, the
+    # finer run at a quarter of it: both said beside the levels
+    from jaxwear._analyses.diagnose.law.search import LAW_TOLERANCE
+
+    study_um = lf.model.study.wear_tolerance_um
+    assert doc["numerical"]["wear_tolerance_um"] == pytest.approx(LAW_TOLERANCE * study_um)
+    assert doc["numerical"]["checked_against"] == {
+        "nodes": 72, "steps_per_rev": 108, "wear_tolerance_um": pytest.approx(study_um / 4)}
     json.dumps(doc)
 
 

@@ -13,8 +13,10 @@ and 2); at 96 x 144 the two implementations agree to 0.003 µm and the step is 0
 The error is the bore's nodes' (48 -> 96 moves it, 72 -> 144 steps does not).
 
 At the law's answer û: one forward run of the law model at twice the nodes and steps per
-cycle (half the update M, a quarter of the integration tolerance: `finer_rows`), δ =
-rows_fine(û) − rows(û); the answer's shift is one Gauss-Newton step of the law fit's own
+cycle (half the update M, a quarter of the study's integration tolerance: `finer_rows`),
+δ = rows_fine(û) − rows(û) (the search's runs integrate at `search.LAW_TOLERANCE` times
+the study's tolerance: δ holds that error too, and the correction removes it with the
+grid's); the answer's shift is one Gauss-Newton step of the law fit's own
 Jacobian on the rows moved by δ, less the step on the rows as they are (what the fit's
 stop left: `lsq.defect_step`): no new compilation at the study's level, one at the finer.
 The step is checked by a forward run of the fit's own model with δ held: it must lower the
@@ -91,6 +93,11 @@ class Numerical:
     level: tuple
     finer: tuple
     step_se: float = math.nan
+    # the adaptive wear tolerances [µm] of the fit's runs (the search's, `LAW_TOLERANCE`
+    # times the study's) and of the finer run (a quarter of the study's); None under the
+    # paper's fixed-step integrator
+    tolerance_um: float | None = None
+    finer_tolerance_um: float | None = None
     forward_runs: int = 0
     cpu_s: float = 0.0
     rows_rms_um: float = math.nan
@@ -108,7 +115,9 @@ class Numerical:
             return None if x is None or not math.isfinite(x) else float(x)
 
         return {"nodes": self.level[0], "steps_per_rev": self.level[1],
-                "checked_against": {"nodes": self.finer[0], "steps_per_rev": self.finer[1]},
+                "wear_tolerance_um": num(self.tolerance_um),
+                "checked_against": {"nodes": self.finer[0], "steps_per_rev": self.finer[1],
+                                    "wear_tolerance_um": num(self.finer_tolerance_um)},
                 "step_se": num(self.step_se),
                 "rows_rms_um": num(self.rows_rms_um), "corrected": self.corrected,
                 "step_fraction": self.fraction,
@@ -126,9 +135,11 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
     cfg = lm.study.config if lm is not None else None
     level = (cfg.nodes, cfg.steps_per_rev) if cfg is not None else (0, 0)
     finer = (2 * level[0], 2 * level[1])
+    tols = {"tolerance_um": None if lm is None else lm.wear_tolerance_um,
+            "finer_tolerance_um": None}
 
     def out(**kw):
-        info = Numerical(level, finer, cpu_s=time.process_time() - c0, **kw)
+        info = Numerical(level, finer, cpu_s=time.process_time() - c0, **tols, **kw)
         return dataclasses.replace(lf, numerical=info)
 
     if f is None or lm is None or f.values is None or not f.ev.usable:
@@ -137,6 +148,7 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
                   f"{finer[1]} (one forward run there, defect correction)")
     try:
         fm = finer_model(lm)
+        tols["finer_tolerance_um"] = fm.wear_tolerance_um
         rows = finer_rows(lm, fm, f.ev.u)
     except Exception as e:  # noqa: BLE001 (the answer stands; the report says why)
         return out(why=f"the finer model could not be run ({type(e).__name__}: {e})")
@@ -190,9 +202,11 @@ def correct_law(lf, noise_um: float, *, verbose: bool = False):
         why = (f"the correction did not lower the misfit to the finer level's rows (halved "
                f"{HALVINGS} times): the constants stand at the study's numerics, their "
                f"numerical error the linear step's")
-    info = Numerical(level, finer, first, runs, time.process_time() - c0,
-                     float(np.sqrt(np.mean(delta ** 2))), law is not None, why,
-                     1.0 if law is None else t, delta=delta,
+    info = Numerical(level, finer, first, **tols, forward_runs=runs,
+                     cpu_s=time.process_time() - c0,
+                     rows_rms_um=float(np.sqrt(np.mean(delta ** 2))),
+                     corrected=law is not None, why=why,
+                     fraction=1.0 if law is None else t, delta=delta,
                      u=None if law is None else np.asarray(u, np.float64))
     _log(verbose, f"    δ {info.rows_rms_um:.3g} µm RMS; the answer moves by "
                   f"{first:.2g} standard errors"

@@ -115,6 +115,21 @@ from jaxwear._physics.effects.law import (
 from jaxwear._physics.effects.law_memory import MemoryLaw
 
 LAW_EVALUATIONS = 10  # budget of each through-loop fit (model evaluations)
+# The search's law models integrate at this many times the study's wear tolerance (the
+# adaptive integrator; a traced value: the same programs). Why: the search ranks
+# structures, and its answer's constants are then corrected to a finer level whose run
+# integrates at a quarter of the study's tolerance (`law.numerical.finer_model`), so the
+# looser tolerance's error is in the correction (δ) and in the ± it reports, as the
+# grid's is. At the study's tolerance the law models' runs were the search's cost: on the
+# generator's fatigue study (48 x 72, 2 cores) a factor law's Jacobian (7 tangents) took
+# 0.45 s and a forward run 0.08 s, at 5x 0.26 and 0.04 s (a law with memory's Jacobian
+# 0.32 -> 0.25 s); the search's wall 20.3 -> 15.4 s. The rows it moves are far below the
+# grid's error the correction removes (the same study: δ 0.13 µm RMS against the 48 x
+# 72 level) and the noise: the answer's RMSE 0.3217 µm either way, left out 0.3293 ->
+# 0.3292 µm. The shape's refit integrates at the same factor (`shape.refit`), its
+# design's Jacobian at 10x (`shape.design.JACOBIAN_TOLERANCE`). The JSON says the
+# tolerance (`law.numerical.wear_tolerance_um`).
+LAW_TOLERANCE = 5.0
 LOO_TIE = 0.01  # left-out RMSEs within 1 % are a tie, broken by BIC
 # a candidate's fit stops once 3 evaluations together lower the data's ½χ² by less than
 # this (`lsq.solve`'s `settled`): it is ranked by its misfit, and a Δχ² of 2 moves no
@@ -221,8 +236,9 @@ def law_model(model: Model, fit: Fit, law: LawSpec) -> Model:
     """The model of `fit` (its study, numerics and rows' correction) with `law` switched
     on: the law's structure (kinds, variables, references, form) as held study
     parameters, its constants as columns (`LAW_KEYS`), started at `law`'s values and the
-    fit's own parameters at its answer. Every law gives the same program (one
-    compilation for the search). Call inside `effects.law.searching()`."""
+    fit's own parameters at its answer, integrating at `LAW_TOLERANCE` times the study's
+    wear tolerance. Every law gives the same program (one compilation for the search).
+    Call inside `effects.law.searching()`."""
     st = model.study
     vals = law.values()
     # a law with memory is its own effect and columns (`law.memory`)
@@ -235,7 +251,7 @@ def law_model(model: Model, fit: Fit, law: LawSpec) -> Model:
     start = {n: float(v) for n, v, m in zip(model.names, fit.values, model.base_mask) if m}
     start.update({k: vals[k] for k in cols})
     lm = Model(study, keys=list(model.keys) + list(cols), start=start, candidates=[],
-               defect_um=model.ext.defect)
+               defect_um=model.ext.defect).with_wear_tolerance(LAW_TOLERANCE)
     if cols is not LAW_KEYS:
         return lm
     # the Jacobian of the columns a law fits only (`fit_law`'s free ones: the fit's own
