@@ -13,6 +13,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import jaxwear as jw
 from jaxwear._core import jit as J
@@ -55,8 +56,10 @@ def _plain_process(*args, **env_extra):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-ASKED = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
-ASKED_ONCE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0}
+ASKED = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1,
+         "xla_cpu_experimental_ynn_fusion_type": ""}
+ASKED_ONCE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 0,
+              "xla_cpu_experimental_ynn_fusion_type": ""}
 REASSOC = {"xla_cpu_enable_fast_math": True, "xla_cpu_fast_math_honor_nans": True,
            "xla_cpu_fast_math_honor_infs": True, "xla_cpu_fast_math_honor_division": True,
            "xla_cpu_fast_math_honor_functions": True}
@@ -87,13 +90,37 @@ def _expected(asked: dict) -> dict:
 
 
 PROGRAM, ONCE = _expected(ASKED), _expected(ASKED_ONCE)
+NO_YNN = {"xla_cpu_experimental_ynn_fusion_type": ""}
+YNN = {k: v for k, v in NO_YNN.items() if _knows(k, v)}  # where this jaxlib knows it
+
+
+def test_no_ynnpack_fusion_in_the_jacobians_program():
+    """The per-program option reaches XLA: a Jacobian of a sum over a row (the contact
+    tangent's form, a multiply reduced over an axis) is compiled with no YNNPACK fusion
+    where it is asked for, and with one where it is not (this jaxlib rewrites such a sum
+    into a dot and hands it to YNNPACK)."""
+    if not YNN:
+        pytest.skip("this jaxlib has no YNNPACK fusions")
+    n = jnp.linspace(0.1, 1.0, 48)
+
+    def f(x):
+        return jnp.sum(jnp.where(x > 0.2, x, 0.0) * n, axis=1)
+
+    def hlo(opts):
+        jac = jax.jit(jax.jacfwd(f), compiler_options=opts)
+        return jac.lower(jnp.ones((72, 48))).compile().as_text()
+
+    assert "ynn_fusion" not in hlo(J.current_options())
+    assert "ynn_fusion" in hlo(None)
 
 
 def test_the_expected_options_on_this_jaxlib():
     # 0.10: the legacy emitters at O1; 0.11 (no legacy emitters): O1 and the reassociation
     # (its options known to both)
     assert all(_knows(k, v) for k, v in REASSOC.items())
-    assert PROGRAM == (ASKED if LEGACY else {"xla_backend_optimization_level": 1, **REASSOC})
+    ynn = {k: v for k, v in NO_YNN.items() if _knows(k, v)}
+    assert PROGRAM == (ASKED if LEGACY else {"xla_backend_optimization_level": 1, **REASSOC,
+                                             **ynn})
 
 
 def test_plain_import_is_light_and_runs_the_wear_loop_with_legacy_emitters():
@@ -125,12 +152,15 @@ def test_user_choice_turns_the_per_program_options_off():
     if LEGACY:  # the flag exists (elsewhere it aborts XLA): the user's fusion emitters
         # keep the reassociation that makes them fast on jaxwear's sums
         got = _plain_process(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true")
-        assert got["options"] == {"xla_backend_optimization_level": 1, **REASSOC}
+        assert got["options"] == {"xla_backend_optimization_level": 1, **REASSOC, **YNN}
         got = _plain_process(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true "
                              "--xla_cpu_enable_fast_math=false")
-        assert got["options"] == {"xla_backend_optimization_level": 1}
+        assert got["options"] == {"xla_backend_optimization_level": 1, **YNN}
     got = _plain_process(XLA_FLAGS="--xla_backend_optimization_level=2")
-    assert got["options"] == {"xla_cpu_use_fusion_emitters": False}
+    assert got["options"] == {"xla_cpu_use_fusion_emitters": False, **YNN}
+    # the user's own YNNPACK choice keeps them (any value: theirs)
+    got = _plain_process(XLA_FLAGS="--xla_cpu_experimental_ynn_fusion_type=")
+    assert got["options"] == {k: v for k, v in PROGRAM.items() if k not in NO_YNN}
     assert _plain_process(JAXWEAR_XLA_DEFAULTS="0")["options"] is None
 
 

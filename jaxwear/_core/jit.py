@@ -40,10 +40,21 @@ time). With both, a cold `jaxwear calibrate` of the 5-experiment rig study spent
 the XLA compile CPU and 0.89 of the CPU time (medians of four pairs;
 benchmarks/compile_options.py, docs/performance.md).
 
+XLA:CPU's YNNPACK fusions off (`NO_YNN`): jaxlib 0.10 hands a dot, and a multiply
+reduced over an axis that it rewrites into one, to YNNPACK, whose call overhead dominates at
+jaxwear's sizes. The contact solve's implicit tangent sums (`contact._residual_at`, per
+tangent a (steps, nodes) array summed over the nodes) ran as two YNNPACK fusions that took
+17 % of a Jacobian's XLA time (the generator's fatigue study, 48 x 72, 13 columns: 41 of 248
+ms a call in XLA's own profile); without them (XLA's own loop emitters for the same sums)
+that Jacobian ran in 0.146-0.151 s and 0.25 s of CPU against 0.161-0.179 s and 0.29-0.31 s
+(two interleaved pairs each). A forward run holds no such fusion (0.019 s either way).
+
 `JAXWEAR_XLA_DEFAULTS=0` turns every option off; `xla_cpu_use_fusion_emitters` in the
 user's own `XLA_FLAGS` turns off the emitters' option (the same switches as
 `configure_xla`), `xla_backend_optimization_level` there the level's,
-`xla_cpu_enable_fast_math` there the reassociation's.
+`xla_cpu_enable_fast_math` there the reassociation's, `xla_cpu_experimental_ynn_fusion_type`
+there the YNNPACK fusions'. An option this jaxlib does not know is dropped (below); the
+YNNPACK one quietly (it is experimental: jaxlibs before and after may not have it).
 """
 
 from __future__ import annotations
@@ -71,6 +82,10 @@ FAST_COMPILE = {"xla_backend_optimization_level": 1}
 """LLVM's O1 for jaxwear's programs (XLA:CPU's default is O2)."""
 ONCE_LEVEL = {"xla_backend_optimization_level": 0}
 """The level of `once` programs, wherever the options set a level."""
+NO_YNN = {"xla_cpu_experimental_ynn_fusion_type": ""}
+"""No fusion handed to YNNPACK (an empty list of its fusion kinds): the module's docstring
+says why."""
+_QUIET = set(NO_YNN)  # options dropped without a warning where this jaxlib lacks them
 
 _log = logging.getLogger("jaxwear")
 _unknown: set[str] = set()  # options the installed jaxlib does not know (each logged once)
@@ -92,6 +107,8 @@ def _default_options() -> dict | None:
         opts.update(FUSION_REASSOC)  # the user chose the fusion emitters
     if "xla_backend_optimization_level" not in flags:
         opts.update(FAST_COMPILE)
+    if "xla_cpu_experimental_ynn_fusion_type" not in flags:
+        opts.update(NO_YNN)
     return opts or None
 
 
@@ -142,8 +159,9 @@ def _drop(name: str) -> None:
                   "allowed (%s)", jax.__version__, name, ", ".join(
                       k for k in FUSION_REASSOC if k not in _unknown))
     else:
-        _log.warning("this jaxlib (%s) does not accept the compiler option %s: jaxwear's "
-                     "programs compile without it", jax.__version__, name)
+        (_log.info if name in _QUIET else _log.warning)(
+            "this jaxlib (%s) does not accept the compiler option %s: jaxwear's programs "
+            "compile without it", jax.__version__, name)
 
 
 @contextlib.contextmanager
