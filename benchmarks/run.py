@@ -90,10 +90,11 @@ TARGETS["sweep_user_speedup"] = (1, ">=", "x")  # the same for `jaxwear.sweep`, 
 # XLA:CPU's emitter families, compared in one process, each with jaxwear's per-program
 # options for it (`jaxwear._core.jit`): the legacy emitters at LLVM's O1, and the fusion
 # emitters (jaxlib >= 0.11 has no other) with reassociation at O1. On a jaxlib without the
-# legacy emitters both columns run the fusion emitters. `python -c` with
-# `jwjit.options(None)` gives XLA's plain defaults (fusion emitters, no reassociation, O2).
-FAMILIES = {"legacy": {**jwjit.LEGACY_EMITTERS, **jwjit.FAST_COMPILE},
-            "fusion": {**jwjit.FUSION_REASSOC, **jwjit.FAST_COMPILE}}
+# legacy emitters both columns run the fusion emitters. Both without YNNPACK fusions, as
+# jaxwear's defaults (`jwjit.NO_YNN`). `python -c` with `jwjit.options(None)` gives XLA's
+# plain defaults (fusion emitters, no reassociation, O2, YNNPACK fusions).
+FAMILIES = {"legacy": {**jwjit.LEGACY_EMITTERS, **jwjit.FAST_COMPILE, **jwjit.NO_YNN},
+            "fusion": {**jwjit.FUSION_REASSOC, **jwjit.FAST_COMPILE, **jwjit.NO_YNN}}
 
 
 def log(msg):
