@@ -167,17 +167,24 @@ def _step_sums(a, b):
     XLA:CPU then computes the pressure field, the rate and both sums in one pass, writing
     no (steps, nodes) array (measured, 360 x 360, legacy emitters: 38 µs against 81 µs for
     the pressure and rate written out and summed by two matrix-vector products, 103 µs for
-    two plain sums; a cycle evaluation of the boom's is ~0.4 ms). The derivative uses
-    matrix-vector products: reverse mode cannot transpose a variadic reduction."""
+    two plain sums; a cycle evaluation of the boom's is ~0.4 ms). The derivative is two
+    plain sums over the steps (`_step_sums_jvp`): reverse mode cannot transpose a variadic
+    reduction."""
     return tuple(lax.reduce([a, b], [jnp.zeros((), a.dtype)] * 2,
                             lambda x, y: [x[0] + y[0], x[1] + y[1]], (0,)))
 
 
 @_step_sums.defjvp
 def _step_sums_jvp(primals, tangents):
+    # Plain sums, not matrix-vector products with ones: under the vmap over a Jacobian's
+    # tangents a product `ones @ ta` became a dot over (steps, tangents x nodes), for which
+    # XLA wrote every tangent's (steps, nodes) field out transposed first, recomputing in
+    # that copy the contact's primal terms per tangent (two copy fusions: ~half of the
+    # leaf-op time of the fatigue diagnosis's base-model Jacobian, 48 x 72, 8 tangents).
+    # Summed, the field is reduced where it is made: that Jacobian 0.37 -> 0.21 s, the
+    # shape design's 5.4 -> 3.6 s (docs/performance.md, "A Jacobian's sums over the steps").
     ta, tb = tangents
-    ones = jnp.ones(primals[0].shape[0], primals[0].dtype)
-    return _step_sums(*primals), (ones @ ta, ones @ tb)
+    return _step_sums(*primals), (jnp.sum(ta, 0), jnp.sum(tb, 0))
 
 
 def _cold_starts(hist: LoadHistory):
