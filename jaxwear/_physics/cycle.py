@@ -180,7 +180,7 @@ def _step_sums_jvp(primals, tangents):
     # tangents a product `ones @ ta` became a dot over (steps, tangents x nodes), for which
     # XLA wrote every tangent's (steps, nodes) field out transposed first, recomputing in
     # that copy the contact's primal terms per tangent (two copy fusions: ~half of the
-    # leaf-op time of the fatigue diagnosis's base-model Jacobian, 48 x 72, 8 tangents).
+    # leaf-op time of the fatigue diagnosis's extended-model Jacobian, 48 x 72, 8 tangents).
     # Summed, the field is reduced where it is made: that Jacobian 0.37 -> 0.21 s, the
     # shape design's 5.4 -> 3.6 s (docs/performance.md, "A Jacobian's sums over the steps").
     ta, tb = tangents
